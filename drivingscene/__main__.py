@@ -1,0 +1,5 @@
+import sys
+
+from drivingscene.cli import main
+
+sys.exit(main())

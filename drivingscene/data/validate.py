@@ -1,0 +1,197 @@
+"""Validation of frame-pair arrays: every key, dtype, shape, finiteness, rigidity and consistency.
+
+Each finding is a ``Problem`` (file, key, expected, found); the validator collects all of them
+instead of stopping at the first, so ``drivingscene validate`` can print one line per problem.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivingscene.errors import Problem
+
+FORMAT_NAME = "drivingscene/frame-pair"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class KeySpec:
+    dtype: str  # numpy dtype name, or "str" for unicode
+    shape: tuple  # ints or axis letters bound on first use
+    meaning: str
+
+
+REQUIRED = {
+    "format": KeySpec("str", (), f'"{FORMAT_NAME}"'),
+    "version": KeySpec("int", (), str(FORMAT_VERSION)),
+    "images": KeySpec("uint8", (2, "V", "H", "W", 3), "RGB at the two keyframes"),
+    "intrinsics": KeySpec("float32", ("V", 3, 3), "pinhole intrinsics in pixels"),
+    "cam_to_ego": KeySpec("float32", ("V", 4, 4), "camera-to-ego transform"),
+    "ego_to_world": KeySpec("float64", (2, 4, 4), "ego pose at each keyframe"),
+    "timestamps": KeySpec("float64", (2,), "keyframe times in seconds"),
+    "camera_names": KeySpec("str", ("V",), "camera names"),
+}
+OPTIONAL = {
+    "gt_depth": KeySpec("float32", (2, "V", "H", "W"), "z-depth in metres"),
+    "gt_flow": KeySpec("float32", (2, "V", "H", "W", 2), "optical flow in pixels"),
+    "gt_scene_flow": KeySpec("float32", (2, "V", "H", "W", 3), "world-frame 3D displacement"),
+    "gt_dynamic": KeySpec("bool", (2, "V", "H", "W"), "moving-object mask"),
+    "eval_images": KeySpec("uint8", ("M", "V", "H", "W", 3), "intermediate frames"),
+    "eval_timestamps": KeySpec("float64", ("M",), "intermediate times"),
+    "eval_ego_to_world": KeySpec("float64", ("M", 4, 4), "ego poses at intermediate times"),
+}
+REQUIRED_KEYS = tuple(REQUIRED)
+OPTIONAL_KEYS = tuple(OPTIONAL)
+EVAL_KEYS = ("eval_images", "eval_timestamps", "eval_ego_to_world")
+
+ROTATION_TOL = {"float32": 1e-4, "float64": 1e-6}
+
+
+def _fmt_shape(shape) -> str:
+    return "[" + ", ".join(str(s) for s in shape) + "]"
+
+
+def _dtype_ok(array: np.ndarray, want: str) -> bool:
+    if want == "str":
+        return array.dtype.kind == "U"
+    if want == "int":
+        return array.dtype.kind in "iu"
+    return array.dtype == np.dtype(want)
+
+
+def _check_spec(key: str, array: np.ndarray, spec: KeySpec, dims: dict, source: str) -> list[Problem]:
+    """Check dtype and shape; bind axis letters in ``dims`` on first use."""
+    out = []
+    found_desc = f"{array.dtype} {_fmt_shape(array.shape)}"
+    if not _dtype_ok(array, spec.dtype):
+        want = "unicode string" if spec.dtype == "str" else spec.dtype
+        out.append(Problem(source, key, f"dtype {want}", f"dtype {array.dtype}"))
+    if array.ndim != len(spec.shape):
+        out.append(Problem(source, key, f"shape {_fmt_shape(spec.shape)} ({spec.meaning})", found_desc))
+        return out
+    expected = []
+    bad = False
+    for size, want in zip(array.shape, spec.shape):
+        if isinstance(want, str):
+            if want not in dims:
+                dims[want] = size
+            bad |= dims[want] != size
+            expected.append(f"{want}={dims[want]}")
+        else:
+            bad |= size != want
+            expected.append(str(want))
+    if bad:
+        out.append(Problem(source, key, f"shape [{', '.join(expected)}] ({spec.meaning})", found_desc))
+    return out
+
+
+def _check_rigid(key: str, mats: np.ndarray, source: str) -> list[Problem]:
+    """Each [..., 4, 4] matrix: finite, last row [0 0 0 1], orthonormal rotation with det +1."""
+    out = []
+    if not np.all(np.isfinite(mats)):
+        return [Problem(source, key, "finite values", "NaN or inf")]
+    tol = ROTATION_TOL.get(str(mats.dtype), 1e-4)
+    m = mats.astype(np.float64).reshape(-1, 4, 4)
+    for i, mat in enumerate(m):
+        where = f"{key}[{i}]"
+        if not np.allclose(mat[3], [0, 0, 0, 1], atol=tol):
+            out.append(Problem(source, where, "last row [0, 0, 0, 1]", np.array2string(mat[3], precision=4)))
+        rot = mat[:3, :3]
+        err = np.abs(rot.T @ rot - np.eye(3)).max()
+        if err > tol:
+            out.append(Problem(source, where, f"orthonormal rotation (|R^T R - I| <= {tol:g})", f"error {err:.3g}"))
+        elif np.linalg.det(rot) < 0:
+            out.append(Problem(source, where, "a rotation (det +1)", "a reflection (det -1)"))
+    return out
+
+
+def _check_intrinsics(k: np.ndarray, height: int, width: int, source: str) -> list[Problem]:
+    out = []
+    if not np.all(np.isfinite(k)):
+        return [Problem(source, "intrinsics", "finite values", "NaN or inf")]
+    for i, mat in enumerate(k.astype(np.float64)):
+        where = f"intrinsics[{i}]"
+        if not np.allclose(mat[2], [0, 0, 1], atol=1e-6) or abs(mat[1, 0]) > 1e-6:
+            out.append(Problem(source, where, "rows [fx s cx; 0 fy cy; 0 0 1]", np.array2string(mat, precision=3)))
+        if mat[0, 0] <= 0 or mat[1, 1] <= 0:
+            out.append(Problem(source, where, "positive focal lengths fx, fy", f"fx={mat[0, 0]:.4g} fy={mat[1, 1]:.4g}"))
+        if not (-0.5 <= mat[0, 2] <= width - 0.5 and -0.5 <= mat[1, 2] <= height - 0.5):
+            out.append(
+                Problem(
+                    source,
+                    where,
+                    f"principal point inside the {width}x{height} image",
+                    f"cx={mat[0, 2]:.4g} cy={mat[1, 2]:.4g}",
+                )
+            )
+    return out
+
+
+def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
+    """Semantic checks once dtypes and shapes are right."""
+    out = []
+    fmt = str(arrays["format"])
+    if fmt != FORMAT_NAME:
+        out.append(Problem(source, "format", f'"{FORMAT_NAME}"', f'"{fmt}"'))
+    version = int(arrays["version"])
+    if version != FORMAT_VERSION:
+        out.append(Problem(source, "version", f"{FORMAT_VERSION} (this reader's format version)", str(version)))
+    if dims["V"] < 1 or dims["H"] < 2 or dims["W"] < 2:
+        out.append(Problem(source, "images", "V >= 1 cameras of at least 2x2 pixels", f"V={dims['V']} H={dims['H']} W={dims['W']}"))
+    out += _check_intrinsics(arrays["intrinsics"], dims["H"], dims["W"], source)
+    out += _check_rigid("cam_to_ego", arrays["cam_to_ego"], source)
+    out += _check_rigid("ego_to_world", arrays["ego_to_world"], source)
+    ts = arrays["timestamps"]
+    if not np.all(np.isfinite(ts)) or not ts[1] > ts[0]:
+        out.append(Problem(source, "timestamps", "finite and increasing (t0 < t1)", np.array2string(ts)))
+    names = [str(n) for n in arrays["camera_names"]]
+    if any(not n.strip() for n in names) or len(set(names)) != len(names):
+        out.append(Problem(source, "camera_names", "unique, non-empty names", str(names)))
+    if "gt_depth" in arrays:
+        d = arrays["gt_depth"]
+        if not np.all(np.isfinite(d)):
+            out.append(Problem(source, "gt_depth", "finite values", "NaN or inf"))
+        elif d.min() < 0:
+            out.append(Problem(source, "gt_depth", "depth >= 0 (0 = unknown or sky)", f"minimum {d.min():.4g}"))
+    for key in ("gt_flow", "gt_scene_flow"):
+        if key in arrays and not np.all(np.isfinite(arrays[key])):
+            out.append(Problem(source, key, "finite values", "NaN or inf"))
+    if "eval_timestamps" in arrays and np.all(np.isfinite(ts)):
+        et = arrays["eval_timestamps"]
+        inside = np.all(np.isfinite(et)) and np.all((et >= ts[0]) & (et <= ts[1]))
+        if not inside or np.any(np.diff(et) <= 0):
+            out.append(
+                Problem(source, "eval_timestamps", f"increasing times within [{ts[0]:.6g}, {ts[1]:.6g}]", np.array2string(et, precision=6))
+            )
+    if "eval_ego_to_world" in arrays:
+        out += _check_rigid("eval_ego_to_world", arrays["eval_ego_to_world"], source)
+    return out
+
+
+def validate_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> list[Problem]:
+    """Every problem of a frame pair given as a dict of arrays (as read from the file)."""
+    problems: list[Problem] = []
+    missing = [k for k in REQUIRED if k not in arrays]
+    for key in missing:
+        spec = REQUIRED[key]
+        problems.append(Problem(source, key, f"{spec.dtype} {_fmt_shape(spec.shape)} ({spec.meaning})", "missing"))
+    present_eval = [k for k in EVAL_KEYS if k in arrays]
+    if present_eval and len(present_eval) != len(EVAL_KEYS):
+        for key in set(EVAL_KEYS) - set(present_eval):
+            problems.append(Problem(source, key, f"present together with {', '.join(present_eval)}", "missing"))
+    dims: dict[str, int] = {}
+    shape_problems = []
+    for key, spec in {**REQUIRED, **OPTIONAL}.items():
+        if key in arrays:
+            shape_problems += _check_spec(key, np.asarray(arrays[key]), spec, dims, source)
+    problems += shape_problems
+    if missing or shape_problems:
+        return problems  # values cannot be interpreted safely
+    return problems + _check_values(arrays, dims, source)
+
+
+def unknown_keys(arrays: dict[str, np.ndarray]) -> list[str]:
+    """Keys that this format version does not define (kept, ignored by readers)."""
+    return sorted(set(arrays) - set(REQUIRED) - set(OPTIONAL))

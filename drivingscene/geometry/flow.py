@@ -1,0 +1,75 @@
+"""Rigid flow from depth and poses, backward warping and forward-backward consistency."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from drivingscene.geometry.camera import pixel_grid, project, unproject
+from drivingscene.geometry.se3 import invert_rigid, transform_points
+
+
+def cams_to_world(cam_to_ego: Tensor, ego_to_world: Tensor) -> Tensor:
+    """Camera poses ``[..., V, 4, 4]`` from the rig ``[V, 4, 4]`` and ego poses ``[..., 4, 4]``."""
+    return ego_to_world[..., None, :, :] @ cam_to_ego
+
+
+def rigid_flow(
+    depth: Tensor,  # [..., H, W] z-depth of the source frame, metres
+    intrinsics: Tensor,  # [..., 3, 3]
+    src_cam_to_world: Tensor,  # [..., 4, 4]
+    dst_cam_to_world: Tensor,  # [..., 4, 4]
+) -> tuple[Tensor, Tensor]:
+    """Optical flow of a static world seen by a moving camera.
+
+    Each source pixel is lifted with its depth, moved into the destination camera and projected
+    with the same intrinsics. Returns flow ``[..., H, W, 2]`` in pixels and the destination
+    z-depth ``[..., H, W]`` (<= 0 where the point falls behind the destination camera).
+    """
+    height, width = depth.shape[-2:]
+    points = unproject(depth, intrinsics).flatten(-3, -2)  # [..., HW, 3]
+    src_to_dst = invert_rigid(dst_cam_to_world) @ src_cam_to_world
+    uv, z = project(transform_points(src_to_dst, points), intrinsics)
+    grid = pixel_grid(height, width, dtype=depth.dtype, device=depth.device)
+    flow = uv.unflatten(-2, (height, width)) - grid
+    return flow, z.unflatten(-1, (height, width))
+
+
+def _to_sample_grid(coords: Tensor, height: int, width: int) -> Tensor:
+    """Pixel coordinates ``[B, H, W, 2]`` to grid_sample's [-1, 1] (align_corners=True)."""
+    scale = coords.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
+    return coords * scale - 1.0
+
+
+def backward_warp(image: Tensor, flow: Tensor, mode: str = "bilinear") -> tuple[Tensor, Tensor]:
+    """Sample ``image`` ``[B, C, H, W]`` at ``p + flow(p)``; flow ``[B, H, W, 2]`` in pixels.
+
+    Returns the warped image ``[B, C, H, W]`` and a mask ``[B, H, W]`` of samples inside the image.
+    """
+    height, width = image.shape[-2:]
+    coords = pixel_grid(height, width, dtype=flow.dtype, device=flow.device) + flow
+    warped = F.grid_sample(
+        image, _to_sample_grid(coords, height, width).to(image.dtype), mode=mode, padding_mode="border", align_corners=True
+    )
+    inside = (
+        (coords[..., 0] >= -0.5) & (coords[..., 0] <= width - 0.5) & (coords[..., 1] >= -0.5) & (coords[..., 1] <= height - 0.5)
+    )
+    return warped, inside
+
+
+def forward_backward_consistency(
+    flow_fw: Tensor,  # [B, H, W, 2] keyframe 0 -> 1 at keyframe-0 pixels
+    flow_bw: Tensor,  # [B, H, W, 2] keyframe 1 -> 0 at keyframe-1 pixels
+    alpha: float = 0.01,
+    beta: float = 0.5,
+) -> Tensor:
+    """Pixels whose forward flow is undone by the backward flow (UnFlow's test), ``[B, H, W]`` bool.
+
+    |f + b(p + f)|^2 < alpha (|f|^2 + |b(p + f)|^2) + beta, and p + f inside the image.
+    """
+    bw_at_fw, inside = backward_warp(flow_bw.permute(0, 3, 1, 2), flow_fw)
+    bw_at_fw = bw_at_fw.permute(0, 2, 3, 1)
+    diff = (flow_fw + bw_at_fw).square().sum(-1)
+    bound = alpha * (flow_fw.square().sum(-1) + bw_at_fw.square().sum(-1)) + beta
+    return (diff < bound) & inside
