@@ -13,7 +13,7 @@ import sys
 from drivingscene import __version__
 from drivingscene.errors import DrivingSceneError
 
-COMMAND_MODULES = ("scene",)
+COMMAND_MODULES = ("scene", "bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

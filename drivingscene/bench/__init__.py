@@ -1,0 +1,1 @@
+"""Benchmark commands (``drivingscene bench <name>``). Each module: ``add_arguments`` and ``run``."""

@@ -1,0 +1,30 @@
+"""``drivingscene bench <name>``: benchmark commands (speed, memory, accuracy) that write reports.
+
+Each benchmark is a module in ``drivingscene.bench`` with ``add_arguments(parser)`` and
+``run(args) -> int``. Benchmarks are commands, never timed tests.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    # name: (module, help)
+}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="run a benchmark and write its report")
+    bsub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True)
+    for name, (module, help_text) in BENCHMARKS.items():
+        bp = bsub.add_parser(name, help=help_text)
+        bp.set_defaults(func=_runner(module))
+        importlib.import_module(module).add_arguments(bp)
+
+
+def _runner(module: str):
+    def run(args: argparse.Namespace) -> int:
+        return importlib.import_module(module).run(args)
+
+    return run
