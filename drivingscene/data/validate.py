@@ -49,6 +49,12 @@ EVAL_KEYS = ("eval_images", "eval_timestamps", "eval_ego_to_world")
 ROTATION_TOL = {"float32": 1e-4, "float64": 1e-6}
 
 
+def _fmt_array(a: np.ndarray) -> str:
+    """One-line rendering of a small array with enough digits for timestamps of ~1e9 s."""
+    text = np.array2string(np.asarray(a), separator=" ", max_line_width=10_000, formatter={"float_kind": lambda x: np.format_float_positional(x, trim="-")})
+    return text.replace("\n", "")
+
+
 def _fmt_shape(shape) -> str:
     return "[" + ", ".join(str(s) for s in shape) + "]"
 
@@ -97,7 +103,7 @@ def _check_rigid(key: str, mats: np.ndarray, source: str) -> list[Problem]:
     for i, mat in enumerate(m):
         where = f"{key}[{i}]"
         if not np.allclose(mat[3], [0, 0, 0, 1], atol=tol):
-            out.append(Problem(source, where, "last row [0, 0, 0, 1]", np.array2string(mat[3], precision=4)))
+            out.append(Problem(source, where, "last row [0, 0, 0, 1]", _fmt_array(mat[3])))
         rot = mat[:3, :3]
         err = np.abs(rot.T @ rot - np.eye(3)).max()
         if err > tol:
@@ -114,7 +120,7 @@ def _check_intrinsics(k: np.ndarray, height: int, width: int, source: str) -> li
     for i, mat in enumerate(k.astype(np.float64)):
         where = f"intrinsics[{i}]"
         if not np.allclose(mat[2], [0, 0, 1], atol=1e-6) or abs(mat[1, 0]) > 1e-6:
-            out.append(Problem(source, where, "rows [fx s cx; 0 fy cy; 0 0 1]", np.array2string(mat, precision=3)))
+            out.append(Problem(source, where, "rows [fx s cx; 0 fy cy; 0 0 1]", _fmt_array(mat)))
         if mat[0, 0] <= 0 or mat[1, 1] <= 0:
             out.append(Problem(source, where, "positive focal lengths fx, fy", f"fx={mat[0, 0]:.4g} fy={mat[1, 1]:.4g}"))
         if not (-0.5 <= mat[0, 2] <= width - 0.5 and -0.5 <= mat[1, 2] <= height - 0.5):
@@ -144,8 +150,9 @@ def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
     out += _check_rigid("cam_to_ego", arrays["cam_to_ego"], source)
     out += _check_rigid("ego_to_world", arrays["ego_to_world"], source)
     ts = arrays["timestamps"]
-    if not np.all(np.isfinite(ts)) or not ts[1] > ts[0]:
-        out.append(Problem(source, "timestamps", "finite and increasing (t0 < t1)", np.array2string(ts)))
+    times_ok = bool(np.all(np.isfinite(ts)) and ts[1] > ts[0])
+    if not times_ok:
+        out.append(Problem(source, "timestamps", "finite and increasing (t0 < t1)", _fmt_array(ts)))
     names = [str(n) for n in arrays["camera_names"]]
     if any(not n.strip() for n in names) or len(set(names)) != len(names):
         out.append(Problem(source, "camera_names", "unique, non-empty names", str(names)))
@@ -158,12 +165,12 @@ def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
     for key in ("gt_flow", "gt_scene_flow"):
         if key in arrays and not np.all(np.isfinite(arrays[key])):
             out.append(Problem(source, key, "finite values", "NaN or inf"))
-    if "eval_timestamps" in arrays and np.all(np.isfinite(ts)):
+    if "eval_timestamps" in arrays and times_ok:
         et = arrays["eval_timestamps"]
         inside = np.all(np.isfinite(et)) and np.all((et >= ts[0]) & (et <= ts[1]))
         if not inside or np.any(np.diff(et) <= 0):
             out.append(
-                Problem(source, "eval_timestamps", f"increasing times within [{ts[0]:.6g}, {ts[1]:.6g}]", np.array2string(et, precision=6))
+                Problem(source, "eval_timestamps", f"increasing times within [{ts[0]:.6g}, {ts[1]:.6g}]", _fmt_array(et))
             )
     if "eval_ego_to_world" in arrays:
         out += _check_rigid("eval_ego_to_world", arrays["eval_ego_to_world"], source)

@@ -1,0 +1,69 @@
+"""``drivingscene validate`` / ``info`` and the CLI's error contract."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from drivingscene.cli import main
+from drivingscene.data import save_frame_pair
+from drivingscene.data.npz import save_npz
+
+
+def test_validate_valid_file(tmp_path, small_pair, capsys):
+    path = save_frame_pair(small_pair, tmp_path / "ok.npz")
+    assert main(["validate", str(path)]) == 0
+    assert capsys.readouterr().out.strip() == f"{path}: valid"
+
+
+def test_validate_prints_one_line_per_problem_and_exits_2(tmp_path, small_pair, capsys):
+    arrays = small_pair.to_arrays()
+    arrays["intrinsics"] = arrays["intrinsics"].copy()
+    arrays["intrinsics"][0, 0, 0] = -1
+    arrays["timestamps"] = np.array([3.0, 1.0])
+    path = save_npz(tmp_path / "bad.npz", arrays)
+    assert main(["validate", str(path)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith(f"{path}: intrinsics[0]: expected positive focal lengths")
+    assert lines[1].startswith(f"{path}: timestamps: expected finite and increasing")
+
+
+def test_validate_several_files_reports_each(tmp_path, small_pair, capsys):
+    good = save_frame_pair(small_pair, tmp_path / "good.npz")
+    assert main(["validate", str(good), str(tmp_path / "missing.npz")]) == 2
+    captured = capsys.readouterr()
+    assert "good.npz: valid" in captured.out
+    assert "missing.npz: <file>: expected a readable .npz scene file, found file not found" in captured.err
+
+
+def test_info_summarises(tmp_path, small_pair, capsys):
+    path = save_frame_pair(small_pair, tmp_path / "s.npz")
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "cameras     3: CAM_0, CAM_1, CAM_2" in out
+    assert "image size  16x12" in out
+    assert "ego motion  4.00 m (8.00 m/s)" in out
+    assert "eval frames 1 at t = 0.500" in out
+
+
+def test_info_on_bad_file_is_one_line_error(tmp_path, capsys):
+    path = tmp_path / "junk.npz"
+    path.write_bytes(b"junk")
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("drivingscene info: error: ") and str(path) in err and "\n" not in err
+
+
+def test_unknown_command_is_usage_error(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["frobnicate"])
+    assert info.value.code == 2
+
+
+def test_console_script_runs():
+    out = subprocess.run([sys.executable, "-m", "drivingscene", "--version"], capture_output=True, text=True, check=True)
+    assert out.stdout.startswith("drivingscene ")
