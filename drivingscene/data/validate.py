@@ -67,6 +67,18 @@ def _dtype_ok(array: np.ndarray, want: str) -> bool:
     return array.dtype == np.dtype(want)
 
 
+def _bind_axes(shapes: dict[str, tuple], specs: dict[str, KeySpec]) -> dict[str, int]:
+    """Size of each axis letter: the most common size among the keys using it (first on ties),
+    so a single wrong array is blamed instead of every array that agrees with each other."""
+    votes: dict[str, list[int]] = {}
+    for key, spec in specs.items():
+        if len(shapes[key]) == len(spec.shape):
+            for size, want in zip(shapes[key], spec.shape):
+                if isinstance(want, str):
+                    votes.setdefault(want, []).append(size)
+    return {letter: max(sizes, key=sizes.count) for letter, sizes in votes.items()}
+
+
 def _check_spec(key: str, array: np.ndarray, spec: KeySpec, dims: dict, source: str) -> list[Problem]:
     """Check dtype and shape; bind axis letters in ``dims`` on first use."""
     out = []
@@ -93,7 +105,7 @@ def _check_spec(key: str, array: np.ndarray, spec: KeySpec, dims: dict, source: 
     return out
 
 
-def _check_rigid(key: str, mats: np.ndarray, source: str) -> list[Problem]:
+def check_rigid(key: str, mats: np.ndarray, source: str) -> list[Problem]:
     """Each [..., 4, 4] matrix: finite, last row [0 0 0 1], orthonormal rotation with det +1."""
     out = []
     if not np.all(np.isfinite(mats)):
@@ -113,7 +125,7 @@ def _check_rigid(key: str, mats: np.ndarray, source: str) -> list[Problem]:
     return out
 
 
-def _check_intrinsics(k: np.ndarray, height: int, width: int, source: str) -> list[Problem]:
+def check_intrinsics(k: np.ndarray, height: int, width: int, source: str) -> list[Problem]:
     out = []
     if not np.all(np.isfinite(k)):
         return [Problem(source, "intrinsics", "finite values", "NaN or inf")]
@@ -137,18 +149,12 @@ def _check_intrinsics(k: np.ndarray, height: int, width: int, source: str) -> li
 
 def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
     """Semantic checks once dtypes and shapes are right."""
-    out = []
-    fmt = str(arrays["format"])
-    if fmt != FORMAT_NAME:
-        out.append(Problem(source, "format", f'"{FORMAT_NAME}"', f'"{fmt}"'))
-    version = int(arrays["version"])
-    if version != FORMAT_VERSION:
-        out.append(Problem(source, "version", f"{FORMAT_VERSION} (this reader's format version)", str(version)))
+    out = check_header(arrays, FORMAT_NAME, FORMAT_VERSION, source)
     if dims["V"] < 1 or dims["H"] < 2 or dims["W"] < 2:
         out.append(Problem(source, "images", "V >= 1 cameras of at least 2x2 pixels", f"V={dims['V']} H={dims['H']} W={dims['W']}"))
-    out += _check_intrinsics(arrays["intrinsics"], dims["H"], dims["W"], source)
-    out += _check_rigid("cam_to_ego", arrays["cam_to_ego"], source)
-    out += _check_rigid("ego_to_world", arrays["ego_to_world"], source)
+    out += check_intrinsics(arrays["intrinsics"], dims["H"], dims["W"], source)
+    out += check_rigid("cam_to_ego", arrays["cam_to_ego"], source)
+    out += check_rigid("ego_to_world", arrays["ego_to_world"], source)
     ts = arrays["timestamps"]
     times_ok = bool(np.all(np.isfinite(ts)) and ts[1] > ts[0])
     if not times_ok:
@@ -173,30 +179,44 @@ def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
                 Problem(source, "eval_timestamps", f"increasing times within [{ts[0]:.6g}, {ts[1]:.6g}]", _fmt_array(et))
             )
     if "eval_ego_to_world" in arrays:
-        out += _check_rigid("eval_ego_to_world", arrays["eval_ego_to_world"], source)
+        out += check_rigid("eval_ego_to_world", arrays["eval_ego_to_world"], source)
+    return out
+
+
+def check_keys(
+    arrays: dict[str, np.ndarray], required: dict[str, KeySpec], optional: dict[str, KeySpec], source: str
+) -> tuple[list[Problem], dict[str, int]]:
+    """Presence, dtype and shape of every key; returns the problems and the bound axis sizes."""
+    problems = []
+    for key, spec in required.items():
+        if key not in arrays:
+            problems.append(Problem(source, key, f"{spec.dtype} {_fmt_shape(spec.shape)} ({spec.meaning})", "missing"))
+    specs = {k: v for k, v in {**required, **optional}.items() if k in arrays}
+    dims = _bind_axes({k: np.asarray(arrays[k]).shape for k in specs}, specs)
+    for key, spec in specs.items():
+        problems += _check_spec(key, np.asarray(arrays[key]), spec, dims, source)
+    return problems, dims
+
+
+def check_header(arrays: dict[str, np.ndarray], name: str, version: int, source: str) -> list[Problem]:
+    out = []
+    if str(arrays["format"]) != name:
+        out.append(Problem(source, "format", f'"{name}"', f'"{arrays["format"]}"'))
+    if int(arrays["version"]) != version:
+        out.append(Problem(source, "version", f"{version} (this reader's format version)", str(int(arrays["version"]))))
     return out
 
 
 def validate_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> list[Problem]:
     """Every problem of a frame pair given as a dict of arrays (as read from the file)."""
-    problems: list[Problem] = []
-    missing = [k for k in REQUIRED if k not in arrays]
-    for key in missing:
-        spec = REQUIRED[key]
-        problems.append(Problem(source, key, f"{spec.dtype} {_fmt_shape(spec.shape)} ({spec.meaning})", "missing"))
+    problems, dims = check_keys(arrays, REQUIRED, OPTIONAL, source)
     present_eval = [k for k in EVAL_KEYS if k in arrays]
     if present_eval and len(present_eval) != len(EVAL_KEYS):
         for key in set(EVAL_KEYS) - set(present_eval):
             problems.append(Problem(source, key, f"present together with {', '.join(present_eval)}", "missing"))
-    dims: dict[str, int] = {}
-    shape_problems = []
-    for key, spec in {**REQUIRED, **OPTIONAL}.items():
-        if key in arrays:
-            shape_problems += _check_spec(key, np.asarray(arrays[key]), spec, dims, source)
-    problems += shape_problems
-    if missing or shape_problems:
+    if problems:
         return problems  # values cannot be interpreted safely
-    return problems + _check_values(arrays, dims, source)
+    return _check_values(arrays, dims, source)
 
 
 def unknown_keys(arrays: dict[str, np.ndarray]) -> list[str]:

@@ -19,6 +19,21 @@ def matrix_to_quat(rotmats: Tensor) -> Tensor:
     return torch.where(q[..., :1] < 0, -q, q)
 
 
+def quat_multiply(q1: Tensor, q2: Tensor) -> Tensor:
+    """Hamilton product ``q1 * q2`` of quaternions ``[..., 4]`` (w, x, y, z): rotate by q2, then q1."""
+    w1, x1, y1, z1 = q1.unbind(-1)
+    w2, x2, y2, z2 = q2.unbind(-1)
+    return torch.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        dim=-1,
+    )
+
+
 def invert_rigid(transforms: Tensor) -> Tensor:
     """Inverse of rigid transforms ``[..., 4, 4]`` (R^T, -R^T t), exact for orthonormal R."""
     rot = transforms[..., :3, :3].transpose(-1, -2)

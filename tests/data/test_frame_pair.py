@@ -200,3 +200,11 @@ def test_frame_pair_rejects_invalid_construction():
     arrays["timestamps"] = np.array([2.0, 1.0])
     with pytest.raises(SceneFormatError, match="timestamps"):
         FramePair.from_arrays(arrays)
+
+
+def test_one_wrong_array_is_blamed_not_the_ones_that_agree():
+    arrays = make_pair().to_arrays()
+    arrays["images"] = arrays["images"][:, :2]  # V=2 while five other keys say V=3
+    problems = validate_arrays(arrays, "scene.npz")
+    assert [p.key for p in problems] == ["images"]
+    assert "V=3" in str(problems[0])

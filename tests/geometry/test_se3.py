@@ -76,3 +76,11 @@ def test_interpolate_pose_batched_times():
     out = interpolate_pose(p0, p1, ts)
     assert out.shape == (3, 4, 4)
     torch.testing.assert_close(out[1], interpolate_pose(p0, p1, 0.25))
+
+
+def test_quat_multiply_composes_rotations():
+    from drivingscene.geometry import quat_multiply
+
+    q1 = torch.nn.functional.normalize(torch.randn(10, 4, dtype=torch.float64), dim=-1)
+    q2 = torch.nn.functional.normalize(torch.randn(10, 4, dtype=torch.float64), dim=-1)
+    torch.testing.assert_close(quat_to_matrix(quat_multiply(q1, q2)), quat_to_matrix(q1) @ quat_to_matrix(q2))

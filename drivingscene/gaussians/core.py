@@ -1,0 +1,170 @@
+"""Dynamic 3D Gaussians of a frame pair.
+
+Each Gaussian comes from one keyframe (0 or 1) and carries a world displacement ``flow`` towards
+the other keyframe (zero for static ones). At normalised time t in [0, 1]:
+
+    keyframe-0 Gaussians sit at  means + t * flow
+    keyframe-1 Gaussians sit at  means + (1 - t) * flow
+
+so both sets can be rendered together at any t.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields, replace
+
+import torch
+from torch import Tensor
+
+from drivingscene.errors import InputError
+
+SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * sh[:, 0] + 0.5 (3DGS convention)
+
+
+def rgb_to_sh0(rgb: Tensor) -> Tensor:
+    """Colours ``[..., 3]`` in [0, 1] to degree-0 SH coefficients."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh0_to_rgb(sh0: Tensor) -> Tensor:
+    return sh0 * SH_C0 + 0.5
+
+
+def num_sh_coeffs(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def sh_degree_from_coeffs(num_coeffs: int) -> int:
+    degree = round(num_coeffs**0.5) - 1
+    if num_coeffs not in (1, 4, 9, 16) or num_sh_coeffs(degree) != num_coeffs:
+        raise InputError(f"sh: expected 1, 4, 9 or 16 coefficients per channel (degree 0-3), found {num_coeffs}")
+    return degree
+
+
+@dataclass(frozen=True, eq=False)
+class Gaussians:
+    """A set of N dynamic Gaussians (activated values, float32 tensors on one device)."""
+
+    means: Tensor  # [N, 3] world, metres, at their own keyframe
+    quats: Tensor  # [N, 4] w, x, y, z, unit
+    scales: Tensor  # [N, 3] metres, > 0
+    opacities: Tensor  # [N] in (0, 1)
+    sh: Tensor  # [N, K, 3] SH coefficients, K = (degree + 1)^2
+    flows: Tensor  # [N, 3] world displacement towards the other keyframe
+    keyframes: Tensor  # [N] int64, 0 or 1
+    cameras: Tensor  # [N] int64 source camera index, -1 if unknown
+
+    def __post_init__(self):
+        n = self.means.shape[0]
+        expected = {
+            "means": (n, 3),
+            "quats": (n, 4),
+            "scales": (n, 3),
+            "opacities": (n,),
+            "flows": (n, 3),
+            "keyframes": (n,),
+            "cameras": (n,),
+        }
+        for name, shape in expected.items():
+            if tuple(getattr(self, name).shape) != shape:
+                raise InputError(f"Gaussians.{name}: expected shape {list(shape)}, found {list(getattr(self, name).shape)}")
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
+            raise InputError(f"Gaussians.sh: expected shape [{n}, K, 3], found {list(self.sh.shape)}")
+        sh_degree_from_coeffs(self.sh.shape[1])
+
+    @classmethod
+    def create(
+        cls,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        sh: Tensor,
+        flows: Tensor | None = None,
+        keyframes: Tensor | int = 0,
+        cameras: Tensor | int = -1,
+    ) -> Gaussians:
+        """Build with defaults: no flow, keyframe 0, unknown camera. ``sh`` may be ``[N, 3]`` RGB-DC."""
+        n = means.shape[0]
+        if sh.ndim == 2:
+            sh = sh[:, None, :]
+        long = dict(dtype=torch.int64, device=means.device)
+        if not torch.is_tensor(keyframes):
+            keyframes = torch.full((n,), int(keyframes), **long)
+        if not torch.is_tensor(cameras):
+            cameras = torch.full((n,), int(cameras), **long)
+        return cls(
+            means=means,
+            quats=torch.nn.functional.normalize(quats, dim=-1),
+            scales=scales,
+            opacities=opacities,
+            sh=sh,
+            flows=torch.zeros_like(means) if flows is None else flows,
+            keyframes=keyframes.to(torch.int64),
+            cameras=cameras.to(torch.int64),
+        )
+
+    @classmethod
+    def empty(cls, sh_degree: int = 0, device=None) -> Gaussians:
+        z = torch.zeros(0, 3, device=device)
+        return cls.create(z, torch.zeros(0, 4, device=device), z, torch.zeros(0, device=device), torch.zeros(0, num_sh_coeffs(sh_degree), 3, device=device))
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_coeffs(self.sh.shape[1])
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @property
+    def dynamic(self) -> Tensor:
+        """``[N]`` bool: Gaussians that move relative to the world."""
+        return self.flows.abs().amax(dim=-1) > 0
+
+    def colors(self) -> Tensor:
+        """View-independent RGB ``[N, 3]`` from the DC coefficient."""
+        return sh0_to_rgb(self.sh[:, 0]).clamp(0, 1)
+
+    def means_at(self, t: float | Tensor) -> Tensor:
+        """World positions ``[N, 3]`` at normalised time t (see module docstring)."""
+        t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
+        step = torch.where(self.keyframes == 0, t, 1 - t)
+        return self.means + step[:, None] * self.flows
+
+    def at_time(self, t: float | Tensor) -> Gaussians:
+        """The Gaussians moved to time t, as static Gaussians of keyframe 0 (for export/rendering)."""
+        return replace(self, means=self.means_at(t), flows=torch.zeros_like(self.flows), keyframes=torch.zeros_like(self.keyframes))
+
+    def index(self, selector: Tensor | slice | Sequence[int]) -> Gaussians:
+        """A subset by bool mask or integer indices."""
+        return Gaussians(**{f.name: getattr(self, f.name)[selector] for f in fields(self)})
+
+    def with_sh_degree(self, degree: int) -> Gaussians:
+        """Truncate or zero-pad the SH coefficients to ``degree``."""
+        k = num_sh_coeffs(degree)
+        sh = self.sh[:, :k]
+        if sh.shape[1] < k:
+            sh = torch.cat([sh, sh.new_zeros(len(self), k - sh.shape[1], 3)], dim=1)
+        return replace(self, sh=sh)
+
+    def to(self, device=None, dtype=None) -> Gaussians:
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = value.to(device=device, dtype=dtype) if value.is_floating_point() else value.to(device=device)
+        return Gaussians(**out)
+
+    def detach(self) -> Gaussians:
+        return Gaussians(**{f.name: getattr(self, f.name).detach() for f in fields(self)})
+
+    @staticmethod
+    def cat(parts: Sequence[Gaussians]) -> Gaussians:
+        """Concatenate; SH degrees are padded to the highest one."""
+        degree = max(p.sh_degree for p in parts)
+        parts = [p.with_sh_degree(degree) for p in parts]
+        return Gaussians(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Gaussians)})

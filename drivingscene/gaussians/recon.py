@@ -1,0 +1,246 @@
+"""A reconstruction: dynamic Gaussians plus the frame pair's metadata and per-camera intermediates.
+
+Stored as ``recon.npz`` (format ``drivingscene/reconstruction`` v1, no pickles), documented in
+docs/reconstruction-format.md. Static Gaussians carry no flow in the file: only the dynamic ones are
+listed, by index, with their flow.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.data.npz import load_npz, save_npz
+from drivingscene.data.validate import KeySpec, check_header, check_intrinsics, check_keys, check_rigid
+from drivingscene.errors import Problem, SceneFormatError
+from drivingscene.gaussians.core import Gaussians
+from drivingscene.geometry.flow import cams_to_world
+from drivingscene.geometry.se3 import interpolate_pose, invert_rigid
+
+RECON_FORMAT = "drivingscene/reconstruction"
+RECON_VERSION = 1
+
+REQUIRED = {
+    "format": KeySpec("str", (), f'"{RECON_FORMAT}"'),
+    "version": KeySpec("int", (), str(RECON_VERSION)),
+    "means": KeySpec("float32", ("N", 3), "Gaussian centres, world, at their keyframe"),
+    "quats": KeySpec("float32", ("N", 4), "rotations w, x, y, z"),
+    "scales": KeySpec("float32", ("N", 3), "standard deviations in metres"),
+    "opacities": KeySpec("float32", ("N",), "opacities in [0, 1]"),
+    "sh": KeySpec("float32", ("N", "K", 3), "SH colour coefficients"),
+    "keyframes": KeySpec("uint8", ("N",), "source keyframe 0 or 1"),
+    "cameras": KeySpec("int16", ("N",), "source camera, -1 unknown"),
+    "dynamic_index": KeySpec("int64", ("D",), "indices of Gaussians with flow"),
+    "dynamic_flows": KeySpec("float32", ("D", 3), "their world displacement to the other keyframe"),
+    "intrinsics": KeySpec("float32", ("V", 3, 3), "camera intrinsics"),
+    "cam_to_ego": KeySpec("float32", ("V", 4, 4), "camera-to-ego transforms"),
+    "ego_to_world": KeySpec("float64", (2, 4, 4), "ego poses at the keyframes"),
+    "timestamps": KeySpec("float64", (2,), "keyframe times in seconds"),
+    "camera_names": KeySpec("str", ("V",), "camera names"),
+    "image_size": KeySpec("int", (2,), "H, W of the input images"),
+}
+OPTIONAL = {
+    "sky_sh": KeySpec("float32", ("S", 3), "sky colour as SH of the world direction"),
+    "hidden": KeySpec("bool", ("N",), "Gaussians hidden by an edit"),
+    "images": KeySpec("uint8", (2, "V", "H", "W", 3), "input images"),
+    "depth": KeySpec("float32", (2, "V", "H", "W"), "predicted z-depth"),
+    "rigid_flow": KeySpec("float32", (2, "V", "H", "W", 2), "rigid flow, pixels"),
+    "residual_flow": KeySpec("float32", (2, "V", "H", "W", 2), "residual (non-rigid) flow, pixels"),
+    "meta": KeySpec("str", (), "JSON: method, source, timings"),
+}
+PER_CAMERA = ("images", "depth", "rigid_flow", "residual_flow")
+
+
+@dataclass(frozen=True, eq=False)
+class Reconstruction:
+    """Gaussians of a frame pair with the rig, poses and optional per-camera maps (numpy, as stored)."""
+
+    gaussians: Gaussians
+    intrinsics: np.ndarray  # [V, 3, 3] float32
+    cam_to_ego: np.ndarray  # [V, 4, 4] float32
+    ego_to_world: np.ndarray  # [2, 4, 4] float64
+    timestamps: np.ndarray  # [2] float64
+    camera_names: tuple[str, ...]
+    image_size: tuple[int, int]  # (H, W)
+    sky_sh: Tensor | None = None  # [S, 3]
+    hidden: Tensor | None = None  # [N] bool
+    images: np.ndarray | None = None  # [2, V, H, W, 3] uint8
+    depth: np.ndarray | None = None  # [2, V, H, W] float32
+    rigid_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32
+    residual_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_pair(cls, pair: FramePair, gaussians: Gaussians, **kwargs) -> Reconstruction:
+        """Wrap Gaussians with the rig and poses of ``pair`` (and its images unless given)."""
+        kwargs.setdefault("images", pair.images)
+        return cls(
+            gaussians=gaussians,
+            intrinsics=pair.intrinsics,
+            cam_to_ego=pair.cam_to_ego,
+            ego_to_world=pair.ego_to_world,
+            timestamps=pair.timestamps,
+            camera_names=pair.camera_names,
+            image_size=pair.image_size,
+            **kwargs,
+        )
+
+    @property
+    def num_views(self) -> int:
+        return len(self.camera_names)
+
+    @property
+    def total_flow(self) -> np.ndarray | None:
+        """Rigid + residual flow ``[2, V, H, W, 2]`` where both are present."""
+        if self.rigid_flow is None:
+            return None
+        return self.rigid_flow if self.residual_flow is None else self.rigid_flow + self.residual_flow
+
+    def ego_to_world_at(self, t: float | Tensor) -> Tensor:
+        """Ego pose ``[..., 4, 4]`` (float64) at normalised time t, by SE(3) interpolation."""
+        poses = torch.from_numpy(self.ego_to_world)
+        return interpolate_pose(poses[0], poses[1], torch.as_tensor(t, dtype=torch.float64))
+
+    def cam_to_world_at(self, t: float | Tensor) -> Tensor:
+        """Rig camera poses ``[V, 4, 4]`` (float64) at normalised time t."""
+        return cams_to_world(torch.from_numpy(self.cam_to_ego).double(), self.ego_to_world_at(t))
+
+    def world_to_cam_at(self, t: float | Tensor) -> Tensor:
+        return invert_rigid(self.cam_to_world_at(t))
+
+    def visible(self) -> Gaussians:
+        """The Gaussians not hidden by an edit."""
+        return self.gaussians if self.hidden is None else self.gaussians.index(~self.hidden)
+
+    def with_gaussians(self, gaussians: Gaussians, hidden: Tensor | None = None) -> Reconstruction:
+        return replace(self, gaussians=gaussians, hidden=hidden)
+
+
+def recon_to_arrays(recon: Reconstruction) -> dict[str, np.ndarray]:
+    g = recon.gaussians.detach().to("cpu")
+    dynamic = g.dynamic.nonzero().squeeze(1)
+    arrays = {
+        "format": np.array(RECON_FORMAT),
+        "version": np.array(RECON_VERSION, dtype=np.int64),
+        "means": g.means.float().numpy(),
+        "quats": g.quats.float().numpy(),
+        "scales": g.scales.float().numpy(),
+        "opacities": g.opacities.float().numpy(),
+        "sh": g.sh.float().numpy(),
+        "keyframes": g.keyframes.numpy().astype(np.uint8),
+        "cameras": g.cameras.numpy().astype(np.int16),
+        "dynamic_index": dynamic.numpy().astype(np.int64),
+        "dynamic_flows": g.flows[dynamic].float().numpy(),
+        "intrinsics": np.asarray(recon.intrinsics, dtype=np.float32),
+        "cam_to_ego": np.asarray(recon.cam_to_ego, dtype=np.float32),
+        "ego_to_world": np.asarray(recon.ego_to_world, dtype=np.float64),
+        "timestamps": np.asarray(recon.timestamps, dtype=np.float64),
+        "camera_names": np.array(recon.camera_names, dtype=np.str_),
+        "image_size": np.array(recon.image_size, dtype=np.int64),
+        "meta": np.array(json.dumps(recon.meta, sort_keys=True)),
+    }
+    if recon.sky_sh is not None:
+        arrays["sky_sh"] = recon.sky_sh.detach().cpu().float().numpy()
+    if recon.hidden is not None:
+        arrays["hidden"] = recon.hidden.cpu().numpy().astype(bool)
+    for key in PER_CAMERA:
+        value = getattr(recon, key)
+        if value is not None:
+            arrays[key] = np.asarray(value, dtype=np.uint8 if key == "images" else np.float32)
+    return arrays
+
+
+def _check_recon_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
+    out = check_header(arrays, RECON_FORMAT, RECON_VERSION, source)
+    if dims["K"] not in (1, 4, 9, 16):
+        out.append(Problem(source, "sh", "1, 4, 9 or 16 coefficients (SH degree 0-3)", f"{dims['K']}"))
+    for key in ("means", "quats", "scales", "opacities", "sh", "dynamic_flows"):
+        if not np.all(np.isfinite(arrays[key])):
+            out.append(Problem(source, key, "finite values", "NaN or inf"))
+    if arrays["scales"].size and arrays["scales"].min() <= 0:
+        out.append(Problem(source, "scales", "positive scales", f"minimum {arrays['scales'].min():.4g}"))
+    op = arrays["opacities"]
+    if op.size and (op.min() < 0 or op.max() > 1):
+        out.append(Problem(source, "opacities", "values in [0, 1]", f"range [{op.min():.4g}, {op.max():.4g}]"))
+    if arrays["quats"].size and np.linalg.norm(arrays["quats"], axis=-1).min() < 1e-8:
+        out.append(Problem(source, "quats", "non-zero quaternions", "a zero quaternion"))
+    if arrays["keyframes"].size and arrays["keyframes"].max() > 1:
+        out.append(Problem(source, "keyframes", "0 or 1", f"maximum {arrays['keyframes'].max()}"))
+    idx = arrays["dynamic_index"]
+    n = dims["N"]
+    if idx.size and (idx.min() < 0 or idx.max() >= n or np.unique(idx).size != idx.size):
+        out.append(Problem(source, "dynamic_index", f"unique indices in [0, {n})", f"range [{idx.min()}, {idx.max()}]"))
+    height, width = (int(v) for v in arrays["image_size"])
+    if "H" in dims and (dims["H"], dims["W"]) != (height, width):
+        out.append(Problem(source, "image_size", f"[{dims['H']}, {dims['W']}] like the per-camera maps", f"[{height}, {width}]"))
+    out += check_intrinsics(arrays["intrinsics"], height, width, source)
+    out += check_rigid("cam_to_ego", arrays["cam_to_ego"], source)
+    out += check_rigid("ego_to_world", arrays["ego_to_world"], source)
+    try:
+        json.loads(str(arrays.get("meta", "{}")))
+    except json.JSONDecodeError as e:
+        out.append(Problem(source, "meta", "a JSON object", f"invalid JSON ({e.msg})"))
+    return out
+
+
+def validate_recon_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> list[Problem]:
+    problems, dims = check_keys(arrays, REQUIRED, OPTIONAL, source)
+    if problems:
+        return problems
+    return _check_recon_values(arrays, dims, source)
+
+
+def recon_from_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> Reconstruction:
+    problems = validate_recon_arrays(arrays, source)
+    if problems:
+        raise SceneFormatError(problems)
+    flows = np.zeros_like(arrays["means"])
+    flows[arrays["dynamic_index"]] = arrays["dynamic_flows"]
+    t = torch.from_numpy
+    gaussians = Gaussians(
+        means=t(arrays["means"]),
+        quats=t(arrays["quats"]),
+        scales=t(arrays["scales"]),
+        opacities=t(arrays["opacities"]),
+        sh=t(arrays["sh"]),
+        flows=t(flows),
+        keyframes=t(arrays["keyframes"].astype(np.int64)),
+        cameras=t(arrays["cameras"].astype(np.int64)),
+    )
+    return Reconstruction(
+        gaussians=gaussians,
+        intrinsics=arrays["intrinsics"],
+        cam_to_ego=arrays["cam_to_ego"],
+        ego_to_world=arrays["ego_to_world"],
+        timestamps=arrays["timestamps"],
+        camera_names=tuple(str(n) for n in arrays["camera_names"]),
+        image_size=(int(arrays["image_size"][0]), int(arrays["image_size"][1])),
+        sky_sh=t(arrays["sky_sh"]) if "sky_sh" in arrays else None,
+        hidden=t(arrays["hidden"]) if "hidden" in arrays else None,
+        meta=json.loads(str(arrays.get("meta", "{}"))),
+        **{k: arrays[k] for k in PER_CAMERA if k in arrays},
+    )
+
+
+def save_reconstruction(recon: Reconstruction, path: str | os.PathLike) -> Path:
+    """Validate and write ``recon.npz`` atomically."""
+    arrays = recon_to_arrays(recon)
+    problems = validate_recon_arrays(arrays, str(path))
+    if problems:
+        raise SceneFormatError(problems)
+    return save_npz(path, arrays)
+
+
+def load_reconstruction(path: str | os.PathLike) -> Reconstruction:
+    return recon_from_arrays(load_npz(path), str(path))
+
+
+def is_reconstruction_file(arrays: dict[str, np.ndarray]) -> bool:
+    return "format" in arrays and str(arrays["format"]) == RECON_FORMAT

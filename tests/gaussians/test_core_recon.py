@@ -1,0 +1,167 @@
+"""Gaussians container, time evaluation, assembly from depth and the recon.npz round trip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from drivingscene.data.npz import load_npz, save_npz
+from drivingscene.errors import InputError, SceneFormatError
+from drivingscene.gaussians import Gaussians, Reconstruction, gaussians_from_pixels, load_reconstruction, save_reconstruction
+from drivingscene.gaussians.recon import recon_to_arrays, validate_recon_arrays
+from drivingscene.geometry import quat_to_matrix, unproject
+from drivingscene.geometry.flow import cams_to_world
+from tests.factories import make_pair
+
+
+def random_gaussians(n: int = 50, degree: int = 0, seed: int = 0, dynamic_share: float = 0.3) -> Gaussians:
+    g = torch.Generator().manual_seed(seed)
+    flows = torch.randn(n, 3, generator=g)
+    flows[torch.rand(n, generator=g) > dynamic_share] = 0
+    return Gaussians.create(
+        means=torch.randn(n, 3, generator=g) * 5,
+        quats=torch.randn(n, 4, generator=g),
+        scales=torch.rand(n, 3, generator=g) * 0.2 + 0.01,
+        opacities=torch.rand(n, generator=g) * 0.9 + 0.05,
+        sh=torch.randn(n, (degree + 1) ** 2, 3, generator=g) * 0.3,
+        flows=flows,
+        keyframes=(torch.rand(n, generator=g) > 0.5).long(),
+        cameras=torch.randint(0, 6, (n,), generator=g),
+    )
+
+
+def test_means_at_time_moves_each_keyframe_towards_the_other():
+    g = Gaussians.create(
+        means=torch.tensor([[0.0, 0, 0], [10.0, 0, 0]]),
+        quats=torch.tensor([[1.0, 0, 0, 0]] * 2),
+        scales=torch.ones(2, 3),
+        opacities=torch.ones(2) * 0.5,
+        sh=torch.zeros(2, 3),
+        flows=torch.tensor([[10.0, 0, 0], [-10.0, 0, 0]]),
+        keyframes=torch.tensor([0, 1]),
+    )
+    torch.testing.assert_close(g.means_at(0.0), torch.tensor([[0.0, 0, 0], [0.0, 0, 0]]))
+    torch.testing.assert_close(g.means_at(1.0), torch.tensor([[10.0, 0, 0], [10.0, 0, 0]]))
+    torch.testing.assert_close(g.means_at(0.25), torch.tensor([[2.5, 0, 0], [2.5, 0, 0]]))
+    moved = g.at_time(0.25)
+    assert not moved.dynamic.any() and (moved.keyframes == 0).all()
+
+
+def test_shape_errors_name_the_field():
+    with pytest.raises(InputError, match=r"Gaussians.scales: expected shape \[3, 3\], found \[3, 2\]"):
+        Gaussians.create(torch.zeros(3, 3), torch.ones(3, 4), torch.ones(3, 2), torch.ones(3), torch.zeros(3, 3))
+    with pytest.raises(InputError, match="degree 0-3"):
+        Gaussians.create(torch.zeros(3, 3), torch.ones(3, 4), torch.ones(3, 3), torch.ones(3), torch.zeros(3, 5, 3))
+
+
+def test_cat_pads_sh_and_index_selects():
+    a, b = random_gaussians(10, degree=0), random_gaussians(5, degree=2, seed=1)
+    both = Gaussians.cat([a, b])
+    assert len(both) == 15 and both.sh_degree == 2
+    torch.testing.assert_close(both.sh[:10, 0], a.sh[:, 0])
+    assert both.sh[:10, 1:].abs().max() == 0
+    sub = both.index(both.keyframes == 1)
+    assert len(sub) == int((both.keyframes == 1).sum())
+
+
+def test_assembly_places_gaussians_on_the_surface_with_camera_facing_discs():
+    pair = make_pair(num_views=2, height=6, width=8)
+    depth = torch.from_numpy(pair.gt_depth[0])
+    k = torch.from_numpy(pair.intrinsics)
+    c2w = cams_to_world(torch.from_numpy(pair.cam_to_ego), torch.from_numpy(pair.ego_to_world[0]).float())
+    depth[0, 0, 0] = 0  # sky: no Gaussian
+    rgb = torch.from_numpy(pair.images[0]).float() / 255
+    g = gaussians_from_pixels(depth, k, c2w, rgb, keyframe=0)
+    assert len(g) == 2 * 6 * 8 - 1
+    # Independent check of one Gaussian: camera 1, pixel (row 2, col 3).
+    p_cam = torch.linalg.inv(k[1]) @ torch.tensor([3.0, 2.0, 1.0]) * depth[1, 2, 3]
+    expected = c2w[1, :3, :3] @ p_cam + c2w[1, :3, 3]
+    idx = 6 * 8 - 1 + 2 * 8 + 3
+    torch.testing.assert_close(g.means[idx], expected, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(g.colors()[idx], rgb[1, 2, 3], atol=1e-6, rtol=0)
+    # Disc normal (third axis, the thin one) points along the camera's viewing axis.
+    normal = quat_to_matrix(g.quats[idx])[:, 2]
+    torch.testing.assert_close(normal, c2w[1, :3, 2], atol=1e-5, rtol=0)
+    assert g.scales[idx, 2] < g.scales[idx, 0]
+    assert (g.cameras[: 6 * 8 - 1] == 0).all() and (g.cameras[6 * 8 - 1 :] == 1).all()
+
+
+def test_assembly_is_differentiable():
+    pair = make_pair(num_views=1, height=4, width=5)
+    depth = torch.from_numpy(pair.gt_depth[0]).requires_grad_()
+    c2w = cams_to_world(torch.from_numpy(pair.cam_to_ego), torch.eye(4))
+    g = gaussians_from_pixels(depth, torch.from_numpy(pair.intrinsics), c2w, torch.rand(1, 4, 5, 3), keyframe=1)
+    (g.means.sum() + g.scales.sum()).backward()
+    assert depth.grad is not None and depth.grad.abs().min() > 0
+
+
+def _recon(with_maps: bool = True) -> Reconstruction:
+    pair = make_pair(num_views=3, height=6, width=8)
+    maps = {}
+    if with_maps:
+        maps = dict(depth=pair.gt_depth, rigid_flow=pair.gt_flow, residual_flow=pair.gt_flow * 0.1)
+    return Reconstruction.from_pair(
+        pair, random_gaussians(40, degree=1), sky_sh=torch.rand(9, 3), meta={"method": "test"}, **maps
+    )
+
+
+def test_recon_round_trip_is_exact(tmp_path):
+    recon = _recon()
+    back = load_reconstruction(save_reconstruction(recon, tmp_path / "r.npz"))
+    for name in ("means", "quats", "scales", "opacities", "sh", "flows", "keyframes", "cameras"):
+        torch.testing.assert_close(getattr(back.gaussians, name), getattr(recon.gaussians, name), atol=0, rtol=0)
+    np.testing.assert_array_equal(back.depth, recon.depth)
+    np.testing.assert_array_equal(back.total_flow, recon.rigid_flow + recon.residual_flow)
+    assert back.meta == {"method": "test"} and back.camera_names == recon.camera_names
+    torch.testing.assert_close(back.sky_sh, recon.sky_sh)
+
+
+def test_static_gaussians_carry_no_flow_in_the_file():
+    recon = _recon(with_maps=False)
+    arrays = recon_to_arrays(recon)
+    assert arrays["dynamic_index"].size == int(recon.gaussians.dynamic.sum()) < len(recon.gaussians)
+    assert arrays["dynamic_flows"].shape == (arrays["dynamic_index"].size, 3)
+    assert "flows" not in arrays
+
+
+def test_camera_poses_interpolate_between_keyframes():
+    recon = _recon(with_maps=False)
+    mid = recon.cam_to_world_at(0.5)
+    c0, c1 = recon.cam_to_world_at(0.0), recon.cam_to_world_at(1.0)
+    torch.testing.assert_close(mid[:, :3, 3], (c0[:, :3, 3] + c1[:, :3, 3]) / 2)
+    assert mid.shape == (3, 4, 4)
+
+
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("scales", lambda a: -a, "scales: expected positive scales"),
+        ("opacities", lambda a: a + 2, "opacities: expected values in [0, 1]"),
+        ("keyframes", lambda a: a + 2, "keyframes: expected 0 or 1"),
+        ("dynamic_index", lambda a: a + 1000, "dynamic_index: expected unique indices"),
+        ("means", lambda a: a[:-1], "means: expected shape [N=40, 3]"),
+        ("sh", lambda a: np.concatenate([a, a[:, :1]], 1), "sh: expected 1, 4, 9 or 16"),
+        ("means", lambda a: a * np.nan, "means: expected finite values"),
+        ("meta", lambda a: np.array("{not json"), "meta: expected a JSON object"),
+        ("format", lambda a: np.array("drivingscene/frame-pair"), 'format: expected "drivingscene/reconstruction"'),
+    ],
+)
+def test_recon_validation_errors(tmp_path, key, value, message):
+    arrays = recon_to_arrays(_recon())
+    arrays[key] = value(arrays[key])
+    problems = validate_recon_arrays(arrays, "r.npz")
+    assert any(message in str(p) for p in problems), [str(p) for p in problems]
+    save_npz(tmp_path / "r.npz", arrays)
+    with pytest.raises(SceneFormatError):
+        load_reconstruction(tmp_path / "r.npz")
+
+
+def test_unprojected_default_scales_match_pixel_footprint():
+    depth = torch.full((1, 3, 4), 10.0)
+    k = torch.tensor([[[100.0, 0, 1.5], [0, 50.0, 1.0], [0, 0, 1]]])
+    g = gaussians_from_pixels(depth, k, torch.eye(4)[None], torch.rand(1, 3, 4, 3), keyframe=0)
+    torch.testing.assert_close(g.scales[0, :2], torch.tensor([0.7 * 10 / 100, 0.7 * 10 / 50]))
+    torch.testing.assert_close(g.means[:, 2], torch.full((12,), 10.0))
+    assert unproject(depth, k).shape == (1, 3, 4, 3)
+    _ = load_npz  # imported for the error-path test above
