@@ -7,6 +7,10 @@ the other keyframe (zero for static ones). At normalised time t in [0, 1]:
     keyframe-1 Gaussians sit at  means + (1 - t) * flow
 
 so both sets can be rendered together at any t.
+
+Scales and opacities are stored as the raw parameters that 3DGS files hold (log scales, opacity
+logits), so files round-trip bit for bit; ``scales`` and ``opacities`` are their activations.
+Quaternions need not be unit length (renderers normalise them), again as in 3DGS files.
 """
 
 from __future__ import annotations
@@ -47,9 +51,9 @@ class Gaussians:
     """A set of N dynamic Gaussians (activated values, float32 tensors on one device)."""
 
     means: Tensor  # [N, 3] world, metres, at their own keyframe
-    quats: Tensor  # [N, 4] w, x, y, z, unit
-    scales: Tensor  # [N, 3] metres, > 0
-    opacities: Tensor  # [N] in (0, 1)
+    quats: Tensor  # [N, 4] w, x, y, z, not necessarily unit
+    log_scales: Tensor  # [N, 3] log of the standard deviations in metres
+    opacity_logits: Tensor  # [N] logit of the opacity
     sh: Tensor  # [N, K, 3] SH coefficients, K = (degree + 1)^2
     flows: Tensor  # [N, 3] world displacement towards the other keyframe
     keyframes: Tensor  # [N] int64, 0 or 1
@@ -60,8 +64,8 @@ class Gaussians:
         expected = {
             "means": (n, 3),
             "quats": (n, 4),
-            "scales": (n, 3),
-            "opacities": (n,),
+            "log_scales": (n, 3),
+            "opacity_logits": (n,),
             "flows": (n, 3),
             "keyframes": (n,),
             "cameras": (n,),
@@ -85,7 +89,8 @@ class Gaussians:
         keyframes: Tensor | int = 0,
         cameras: Tensor | int = -1,
     ) -> Gaussians:
-        """Build with defaults: no flow, keyframe 0, unknown camera. ``sh`` may be ``[N, 3]`` RGB-DC."""
+        """Build from activated values (scales in metres, opacities in (0, 1)) with defaults: no flow,
+        keyframe 0, unknown camera. ``sh`` may be ``[N, 3]`` (degree 0)."""
         n = means.shape[0]
         if sh.ndim == 2:
             sh = sh[:, None, :]
@@ -97,8 +102,8 @@ class Gaussians:
         return cls(
             means=means,
             quats=torch.nn.functional.normalize(quats, dim=-1),
-            scales=scales,
-            opacities=opacities,
+            log_scales=torch.log(scales),
+            opacity_logits=torch.logit(opacities),
             sh=sh,
             flows=torch.zeros_like(means) if flows is None else flows,
             keyframes=keyframes.to(torch.int64),
@@ -112,6 +117,16 @@ class Gaussians:
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
+
+    @property
+    def scales(self) -> Tensor:
+        """``[N, 3]`` standard deviations in metres."""
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> Tensor:
+        """``[N]`` opacities in (0, 1)."""
+        return torch.sigmoid(self.opacity_logits)
 
     @property
     def sh_degree(self) -> int:

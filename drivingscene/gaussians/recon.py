@@ -32,8 +32,8 @@ REQUIRED = {
     "version": KeySpec("int", (), str(RECON_VERSION)),
     "means": KeySpec("float32", ("N", 3), "Gaussian centres, world, at their keyframe"),
     "quats": KeySpec("float32", ("N", 4), "rotations w, x, y, z"),
-    "scales": KeySpec("float32", ("N", 3), "standard deviations in metres"),
-    "opacities": KeySpec("float32", ("N",), "opacities in [0, 1]"),
+    "log_scales": KeySpec("float32", ("N", 3), "log of the standard deviations in metres"),
+    "opacity_logits": KeySpec("float32", ("N",), "logit of the opacities"),
     "sh": KeySpec("float32", ("N", "K", 3), "SH colour coefficients"),
     "keyframes": KeySpec("uint8", ("N",), "source keyframe 0 or 1"),
     "cameras": KeySpec("int16", ("N",), "source camera, -1 unknown"),
@@ -131,8 +131,8 @@ def recon_to_arrays(recon: Reconstruction) -> dict[str, np.ndarray]:
         "version": np.array(RECON_VERSION, dtype=np.int64),
         "means": g.means.float().numpy(),
         "quats": g.quats.float().numpy(),
-        "scales": g.scales.float().numpy(),
-        "opacities": g.opacities.float().numpy(),
+        "log_scales": g.log_scales.float().numpy(),
+        "opacity_logits": g.opacity_logits.float().numpy(),
         "sh": g.sh.float().numpy(),
         "keyframes": g.keyframes.numpy().astype(np.uint8),
         "cameras": g.cameras.numpy().astype(np.int16),
@@ -161,14 +161,11 @@ def _check_recon_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
     out = check_header(arrays, RECON_FORMAT, RECON_VERSION, source)
     if dims["K"] not in (1, 4, 9, 16):
         out.append(Problem(source, "sh", "1, 4, 9 or 16 coefficients (SH degree 0-3)", f"{dims['K']}"))
-    for key in ("means", "quats", "scales", "opacities", "sh", "dynamic_flows"):
+    for key in ("means", "quats", "log_scales", "sh", "dynamic_flows"):
         if not np.all(np.isfinite(arrays[key])):
             out.append(Problem(source, key, "finite values", "NaN or inf"))
-    if arrays["scales"].size and arrays["scales"].min() <= 0:
-        out.append(Problem(source, "scales", "positive scales", f"minimum {arrays['scales'].min():.4g}"))
-    op = arrays["opacities"]
-    if op.size and (op.min() < 0 or op.max() > 1):
-        out.append(Problem(source, "opacities", "values in [0, 1]", f"range [{op.min():.4g}, {op.max():.4g}]"))
+    if np.any(np.isnan(arrays["opacity_logits"])):  # +-inf logits are opacities 1 and 0
+        out.append(Problem(source, "opacity_logits", "numbers (+-inf allowed)", "NaN"))
     if arrays["quats"].size and np.linalg.norm(arrays["quats"], axis=-1).min() < 1e-8:
         out.append(Problem(source, "quats", "non-zero quaternions", "a zero quaternion"))
     if arrays["keyframes"].size and arrays["keyframes"].max() > 1:
@@ -207,8 +204,8 @@ def recon_from_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -
     gaussians = Gaussians(
         means=t(arrays["means"]),
         quats=t(arrays["quats"]),
-        scales=t(arrays["scales"]),
-        opacities=t(arrays["opacities"]),
+        log_scales=t(arrays["log_scales"]),
+        opacity_logits=t(arrays["opacity_logits"]),
         sh=t(arrays["sh"]),
         flows=t(flows),
         keyframes=t(arrays["keyframes"].astype(np.int64)),

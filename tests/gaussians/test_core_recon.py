@@ -49,7 +49,7 @@ def test_means_at_time_moves_each_keyframe_towards_the_other():
 
 
 def test_shape_errors_name_the_field():
-    with pytest.raises(InputError, match=r"Gaussians.scales: expected shape \[3, 3\], found \[3, 2\]"):
+    with pytest.raises(InputError, match=r"Gaussians.log_scales: expected shape \[3, 3\], found \[3, 2\]"):
         Gaussians.create(torch.zeros(3, 3), torch.ones(3, 4), torch.ones(3, 2), torch.ones(3), torch.zeros(3, 3))
     with pytest.raises(InputError, match="degree 0-3"):
         Gaussians.create(torch.zeros(3, 3), torch.ones(3, 4), torch.ones(3, 3), torch.ones(3), torch.zeros(3, 5, 3))
@@ -109,7 +109,7 @@ def _recon(with_maps: bool = True) -> Reconstruction:
 def test_recon_round_trip_is_exact(tmp_path):
     recon = _recon()
     back = load_reconstruction(save_reconstruction(recon, tmp_path / "r.npz"))
-    for name in ("means", "quats", "scales", "opacities", "sh", "flows", "keyframes", "cameras"):
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "flows", "keyframes", "cameras"):
         torch.testing.assert_close(getattr(back.gaussians, name), getattr(recon.gaussians, name), atol=0, rtol=0)
     np.testing.assert_array_equal(back.depth, recon.depth)
     np.testing.assert_array_equal(back.total_flow, recon.rigid_flow + recon.residual_flow)
@@ -136,8 +136,8 @@ def test_camera_poses_interpolate_between_keyframes():
 @pytest.mark.parametrize(
     "key, value, message",
     [
-        ("scales", lambda a: -a, "scales: expected positive scales"),
-        ("opacities", lambda a: a + 2, "opacities: expected values in [0, 1]"),
+        ("log_scales", lambda a: a + np.inf, "log_scales: expected finite values"),
+        ("opacity_logits", lambda a: a * np.nan, "opacity_logits: expected numbers"),
         ("keyframes", lambda a: a + 2, "keyframes: expected 0 or 1"),
         ("dynamic_index", lambda a: a + 1000, "dynamic_index: expected unique indices"),
         ("means", lambda a: a[:-1], "means: expected shape [N=40, 3]"),

@@ -1,0 +1,150 @@
+"""PLY files: the standard 3DGS layout, a dynamic variant, and plain coloured point clouds.
+
+Standard 3DGS (graphdeco's loader, SuperSplat, most viewers), binary little-endian float32:
+
+    x y z nx ny nz f_dc_0..2 f_rest_0..(3(K-1)-1) opacity scale_0..2 rot_0..3
+
+with opacity as a logit, scales as logs, rotation (w, x, y, z), and f_rest grouped by colour
+channel (all of red's higher-order coefficients, then green's, then blue's). The dynamic variant
+appends ``flow_x flow_y flow_z`` (world displacement towards the other keyframe), ``keyframe``
+(uchar) and ``camera`` (short). Point clouds hold ``x y z red green blue`` (uchar) for
+CloudCompare, Open3D and MeshLab.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+from plyfile import PlyData, PlyElement
+
+from drivingscene.data.npz import atomic_write
+from drivingscene.errors import InputError
+from drivingscene.gaussians.core import Gaussians, num_sh_coeffs
+
+PLY_KINDS = ("3dgs", "dynamic", "points")
+REQUIRED_3DGS = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [
+    f"rot_{i}" for i in range(4)
+]
+DYNAMIC_PROPS = ("flow_x", "flow_y", "flow_z")
+
+
+def _gaussian_fields(g: Gaussians) -> list[tuple[str, np.ndarray]]:
+    """(name, float32 column) pairs of the standard layout."""
+    g = g.detach().to("cpu")
+    rest = g.sh[:, 1:].transpose(1, 2).reshape(len(g), -1).float().numpy()  # [N, 3 (K-1)] by channel
+    means = g.means.float().numpy()
+    columns = [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
+    columns += [(f"n{a}", np.zeros(len(g), np.float32)) for a in "xyz"]
+    columns += [(f"f_dc_{i}", g.sh[:, 0, i].float().numpy()) for i in range(3)]
+    columns += [(f"f_rest_{i}", rest[:, i]) for i in range(rest.shape[1])]
+    columns += [("opacity", g.opacity_logits.float().numpy())]
+    columns += [(f"scale_{i}", g.log_scales[:, i].float().numpy()) for i in range(3)]
+    columns += [(f"rot_{i}", g.quats[:, i].float().numpy()) for i in range(4)]
+    return columns
+
+
+def _structured(columns: list[tuple[str, np.ndarray]], dtypes: dict[str, str] | None = None) -> np.ndarray:
+    dtypes = dtypes or {}
+    n = len(columns[0][1])
+    out = np.empty(n, dtype=[(name, dtypes.get(name, "<f4")) for name, _ in columns])
+    for name, column in columns:
+        out[name] = column
+    return out
+
+
+def _write(vertices: np.ndarray, path: str | os.PathLike, comments: list[str]) -> Path:
+    data = PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<", comments=comments)
+    return atomic_write(path, data.write)
+
+
+def write_ply(gaussians: Gaussians, path: str | os.PathLike, kind: str = "3dgs", t: float | None = None) -> Path:
+    """Write Gaussians as ``kind`` ("3dgs", "dynamic" or "points").
+
+    ``t`` (normalised time) moves dynamic Gaussians first; "dynamic" keeps them at their keyframe
+    with their flow, so ``t`` must be None for it.
+    """
+    if kind not in PLY_KINDS:
+        raise InputError(f"--kind: expected one of {', '.join(PLY_KINDS)}, found {kind!r}")
+    if kind == "dynamic" and t is not None:
+        raise InputError("--time: a dynamic PLY stores Gaussians at their keyframes with their flow; omit --time")
+    g = gaussians if t is None else gaussians.at_time(t)
+    comments = ["DrivingScene"] + ([f"time {t:.6f} (normalised between keyframes)"] if t is not None else [])
+    if kind == "points":
+        rgb = np.round(g.colors().detach().cpu().numpy() * 255).astype(np.uint8)
+        means = g.means.detach().cpu().float().numpy()
+        cols = [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
+        cols += [(c, rgb[:, i]) for i, c in enumerate(("red", "green", "blue"))]
+        return _write(_structured(cols, {"red": "u1", "green": "u1", "blue": "u1"}), path, comments)
+    cols = _gaussian_fields(g)
+    dtypes = {}
+    if kind == "dynamic":
+        flows = g.flows.detach().cpu().float().numpy()
+        cols += [(name, flows[:, i]) for i, name in enumerate(DYNAMIC_PROPS)]
+        cols += [("keyframe", g.keyframes.cpu().numpy().astype(np.uint8)), ("camera", g.cameras.cpu().numpy().astype(np.int16))]
+        dtypes = {"keyframe": "u1", "camera": "<i2"}
+    return _write(_structured(cols, dtypes), path, comments)
+
+
+def _vertex_element(path: Path):
+    if not path.exists():
+        raise InputError(f"{path}: file not found")
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as e:  # noqa: BLE001 - plyfile raises several unrelated types for bad headers
+        raise InputError(f"{path}: expected a PLY file, could not parse it: {e}") from None
+    names = [el.name for el in ply.elements]
+    if "vertex" not in names:
+        raise InputError(f"{path}: expected a 'vertex' element, found elements {names}")
+    return ply["vertex"]
+
+
+def _column(vertex, path: Path, name: str) -> np.ndarray:
+    values = np.ascontiguousarray(vertex[name], dtype=np.float32)
+    if not np.all(np.isfinite(values)) and name != "opacity":
+        raise InputError(f"{path}: property '{name}': expected finite values, found NaN or inf")
+    return values
+
+
+def read_ply(path: str | os.PathLike) -> Gaussians:
+    """Read a standard (or dynamic) 3DGS PLY with SH degree 0-3; extra properties are ignored."""
+    path = Path(path)
+    vertex = _vertex_element(path)
+    props = [p.name for p in vertex.properties]
+    missing = [p for p in REQUIRED_3DGS if p not in props]
+    if missing:
+        hint = " (this looks like a plain point cloud, not 3D Gaussians)" if {"x", "red"} <= set(props) else ""
+        raise InputError(f"{path}: expected 3DGS properties {', '.join(missing)}, found only {', '.join(props)}{hint}")
+    rest_idx = sorted(int(m.group(1)) for p in props if (m := re.fullmatch(r"f_rest_(\d+)", p)))
+    degree = {0: 0, 9: 1, 24: 2, 45: 3}.get(len(rest_idx))
+    if degree is None or rest_idx != list(range(len(rest_idx))):
+        raise InputError(f"{path}: expected 0, 9, 24 or 45 f_rest_* properties numbered from 0 (SH degree 0-3), found {len(rest_idx)}")
+    col = lambda name: _column(vertex, path, name)  # noqa: E731
+    n = len(vertex.data)
+    k = num_sh_coeffs(degree)
+    sh = np.zeros((n, k, 3), np.float32)
+    sh[:, 0] = np.stack([col(f"f_dc_{i}") for i in range(3)], axis=1)
+    if k > 1:
+        rest = np.stack([col(f"f_rest_{i}") for i in rest_idx], axis=1)  # [N, 3 (K-1)], by channel
+        sh[:, 1:] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
+    opacity = col("opacity")
+    if np.any(np.isnan(opacity)):
+        raise InputError(f"{path}: property 'opacity': expected numbers, found NaN")
+    quats = np.stack([col(f"rot_{i}") for i in range(4)], axis=1)
+    if n and np.linalg.norm(quats, axis=1).min() == 0:
+        raise InputError(f"{path}: properties 'rot_0..3': expected non-zero quaternions, found a zero one")
+    dynamic = all(p in props for p in DYNAMIC_PROPS)
+    t = torch.from_numpy
+    return Gaussians(
+        means=t(np.stack([col(a) for a in "xyz"], axis=1)),
+        quats=t(quats),
+        log_scales=t(np.stack([col(f"scale_{i}") for i in range(3)], axis=1)),
+        opacity_logits=t(opacity),
+        sh=t(sh),
+        flows=t(np.stack([col(p) for p in DYNAMIC_PROPS], axis=1)) if dynamic else torch.zeros(n, 3),
+        keyframes=t(np.asarray(vertex["keyframe"], np.int64)) if dynamic and "keyframe" in props else torch.zeros(n, dtype=torch.int64),
+        cameras=t(np.asarray(vertex["camera"], np.int64)) if "camera" in props else torch.full((n,), -1, dtype=torch.int64),
+    )
