@@ -13,19 +13,26 @@ import sys
 from drivingscene import __version__
 from drivingscene.errors import DrivingSceneError
 
-COMMAND_MODULES = ("scene", "bench")
+COMMAND_MODULES = ("scene", "export", "bench")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """Usage errors as one line (the command, the argument, what was expected), exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     import importlib
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="drivingscene",
         description="DrivingScene: dynamic 3D Gaussians from surround-view frame pairs.",
     )
     parser.add_argument("--version", action="version", version=f"drivingscene {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=OneLineParser)
     for name in COMMAND_MODULES:
         importlib.import_module(f"drivingscene.cli.{name}").register(sub)
     return parser

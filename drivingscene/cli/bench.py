@@ -16,7 +16,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="run a benchmark and write its report")
-    bsub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True)
+    bsub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True, parser_class=type(p))
     for name, (module, help_text) in BENCHMARKS.items():
         bp = bsub.add_parser(name, help=help_text)
         bp.set_defaults(func=_runner(module))

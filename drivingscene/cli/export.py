@@ -1,0 +1,36 @@
+"""``drivingscene export``: PLY files from a reconstruction or another PLY."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from drivingscene.cli.common import check_output, load_gaussian_source, unit_interval
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export", help="write Gaussians as a PLY file (3DGS, dynamic or points)")
+    p.add_argument("source", type=Path, metavar="RECON_OR_PLY", help="recon.npz or a 3DGS .ply")
+    p.add_argument("--ply", type=Path, required=True, metavar="OUT.ply")
+    p.add_argument("--kind", choices=("3dgs", "dynamic", "points"), default="3dgs")
+    p.add_argument("--time", type=unit_interval, default=None, metavar="T", help="normalised time in [0, 1] (0 = keyframe 0)")
+    p.add_argument("--include-hidden", action="store_true", help="also write Gaussians hidden by an edit")
+    p.add_argument("--force", action="store_true", help="overwrite OUT.ply if it exists")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivingscene.export.ply import write_ply
+    from drivingscene.gaussians.recon import Reconstruction
+
+    check_output(args.ply, args.force, "--ply")
+    source = load_gaussian_source(args.source)
+    if isinstance(source, Reconstruction):
+        gaussians = source.gaussians if args.include_hidden else source.visible()
+    else:
+        gaussians = source
+    path = write_ply(gaussians, args.ply, kind=args.kind, t=args.time)
+    moving = int(gaussians.dynamic.sum())
+    when = "" if args.time is None else f" at t={args.time:g}"
+    print(f"{path}: {len(gaussians)} Gaussians ({moving} dynamic), {args.kind}{when}")
+    return 0
