@@ -1,0 +1,213 @@
+"""Pair finding (no grad) and differentiable front-to-back compositing (Kerbl et al. 2023, eq. 3).
+
+Per pixel ``p`` and splat ``i`` (in front-to-back order), with ``d = p - mean2d`` in pixels:
+
+    sigma_i = 0.5 * (a dx² + c dy²) + b dx dy          (half the squared Mahalanobis distance)
+    alpha_i = min(0.99, opacity_i * exp(-sigma_i))
+    T_0 = 1,  T_{i+1} = T_i (1 - alpha_i),  w_i = alpha_i T_i
+
+A splat contributes only if ``sigma_i <= sigma_max_i = min(4.5, ln(255 opacity_i))``, i.e. inside
+its 3-sigma ellipse (``4.5 = 3²/2``) and with ``alpha >= 1/255``. A splat that would bring the
+transmittance below 1e-4 is dropped and the pixel stops (as 3DGS), and at most ``max_layers``
+splats contribute per pixel. Pair finding applies these rules without grad and returns splat ids
+``[P, max_layers]``; ``composite`` recomputes alphas and weights with autograd over that buffer.
+The torch and C++ pair finders do the same float32 operations in the same order, so they return the
+same pairs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+MAX_ALPHA = 0.99
+MIN_TRANSMITTANCE = 1e-4
+SIGMA_CUT = 4.5  # 3-sigma ellipse: 0.5 * 3**2
+MIN_WEIGHT_SUM = 1e-6  # below this accumulated alpha, expected depth is reported as 0
+_CHUNK = 1 << 22  # candidate (splat, pixel) pairs evaluated at once by the torch pair finder
+
+
+@dataclass(frozen=True)
+class PairInputs:
+    """Detached, contiguous per-splat data both pair finders read (float32 unless inputs are float64)."""
+
+    means2d: Tensor  # [M, 2]
+    conics: Tensor  # [M, 3]
+    opacities: Tensor  # [M]
+    sigma_max: Tensor  # [M]
+    boxes: Tensor  # [M, 4] int32 pixel box x0, x1, y0, y1 (inclusive, clipped; empty if x0 > x1)
+    camera_offsets: Tensor  # [B + 1] int64
+
+
+def pair_inputs(means2d: Tensor, conics: Tensor, opacities: Tensor, camera_offsets: Tensor, width: int, height: int) -> PairInputs:
+    """Cut thresholds and pixel boxes of the ellipses ``sigma <= sigma_max`` (with a small margin)."""
+    with torch.no_grad():
+        means2d, conics, opacities = means2d.detach(), conics.detach(), opacities.detach()
+        sigma_max = torch.clamp(torch.log(255.0 * opacities), max=SIGMA_CUT)
+        q = conics.double()
+        det = q[:, 0] * q[:, 2] - q[:, 1] * q[:, 1]
+        ok = (det > 0) & (sigma_max > 0)
+        det = torch.where(ok, det, torch.ones_like(det))
+        two_s = 2.0 * sigma_max.double().clamp(min=0.0)
+        # Extent of {dᵀ Q d <= 2 sigma_max} along x is sqrt(2 sigma_max (Q⁻¹)_xx) = sqrt(2 sigma_max c / det).
+        half = torch.stack([torch.sqrt(two_s * q[:, 2] / det), torch.sqrt(two_s * q[:, 0] / det)], dim=-1)
+        half = half * (1 + 1e-3) + 1e-3
+        centre = means2d.double()
+        lo = torch.ceil(centre - half).clamp(min=-1, max=max(width, height))
+        hi = torch.floor(centre + half).clamp(min=-1, max=max(width, height))
+        lo = torch.maximum(lo, torch.zeros_like(lo))
+        hi = torch.minimum(hi, torch.tensor([width - 1, height - 1], dtype=hi.dtype))
+        hi = torch.where(ok[:, None], hi, lo - 1)
+        boxes = torch.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], dim=-1).to(torch.int32)
+        return PairInputs(
+            means2d=means2d.contiguous(),
+            conics=conics.contiguous(),
+            opacities=opacities.contiguous(),
+            sigma_max=sigma_max.contiguous(),
+            boxes=boxes.contiguous(),
+            camera_offsets=camera_offsets.to(torch.int64).contiguous(),
+        )
+
+
+def _half_sq_mahalanobis(dx: Tensor, dy: Tensor, conics: Tensor) -> Tensor:
+    """``0.5 (a dx² + c dy²) + b dx dy``; this exact operation order is mirrored in find_pairs.cpp."""
+    a, b, c = conics.unbind(-1)
+    return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+
+
+def _alpha_for_decision(opacities: Tensor, sigma: Tensor) -> Tensor:
+    """Alpha with the exponential taken in float64 then rounded, as in find_pairs.cpp."""
+    return torch.clamp(opacities * torch.exp(-sigma.double()).to(sigma.dtype), max=MAX_ALPHA)
+
+
+def _candidates(inp: PairInputs, width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Pairs inside the boxes that pass the cut: splat ids ``[Q]``, global pixel ids ``[Q]``, sigma ``[Q]``."""
+    boxes = inp.boxes.long()
+    bw = (boxes[:, 1] - boxes[:, 0] + 1).clamp(min=0)
+    area = bw * (boxes[:, 3] - boxes[:, 2] + 1).clamp(min=0)  # [M]
+    cam = torch.repeat_interleave(torch.arange(len(inp.camera_offsets) - 1), inp.camera_offsets.diff())  # [M]
+    ends = area.cumsum(0)
+    out_j, out_p, out_s = [], [], []
+    start = 0
+    while start < len(area):
+        # Splats [start, stop) hold at most _CHUNK candidates (or a single large splat).
+        base = ends[start - 1] if start > 0 else ends.new_zeros(())
+        stop = max(start + 1, int(torch.searchsorted(ends, base + _CHUNK, right=True)))
+        ids = torch.arange(start, stop)
+        j = torch.repeat_interleave(ids, area[start:stop])
+        local = torch.arange(len(j)) - torch.repeat_interleave(ends[start:stop] - area[start:stop] - base, area[start:stop])
+        x = boxes[j, 0] + local % bw[j]
+        y = boxes[j, 2] + local // bw[j]
+        dx = x.to(inp.means2d.dtype) - inp.means2d[j, 0]
+        dy = y.to(inp.means2d.dtype) - inp.means2d[j, 1]
+        sigma = _half_sq_mahalanobis(dx, dy, inp.conics[j])
+        keep = sigma <= inp.sigma_max[j]
+        out_j.append(j[keep])
+        out_p.append((cam[j] * height + y)[keep] * width + x[keep])
+        out_s.append(sigma[keep])
+        start = stop
+    return torch.cat(out_j), torch.cat(out_p), torch.cat(out_s)
+
+
+def find_pairs_torch(inp: PairInputs, width: int, height: int, max_layers: int) -> Tensor:
+    """Pure-torch pair finding: splat ids ``[B*H*W, max_layers]`` int32, -1 where empty."""
+    num_pixels = (len(inp.camera_offsets) - 1) * height * width
+    out = torch.full((num_pixels, max_layers), -1, dtype=torch.int32)
+    with torch.no_grad():
+        j, pix, sigma = _candidates(inp, width, height)
+        if len(j) == 0:
+            return out
+        # Sort by (pixel, splat); splat order is front-to-back within a camera.
+        order = torch.sort(pix * len(inp.means2d) + j).indices
+        j, pix, sigma = j[order], pix[order], sigma[order]
+        alpha = _alpha_for_decision(inp.opacities[j], sigma)
+        pos = torch.arange(len(j))
+        first = torch.ones_like(pix, dtype=torch.bool)
+        first[1:] = pix[1:] != pix[:-1]
+        rank = pos - torch.where(first, pos, torch.zeros_like(pos)).cummax(0).values  # depth rank within the pixel
+        by_layer = torch.sort(rank, stable=True).indices
+        layer_ends = torch.bincount(rank).cumsum(0).tolist()
+        trans = torch.ones(num_pixels, dtype=alpha.dtype)
+        layers = torch.zeros(num_pixels, dtype=torch.int64)
+        done = torch.zeros(num_pixels, dtype=torch.bool)
+        lo = 0
+        for hi in layer_ends:
+            # Layer r holds each pixel's r-th candidate: at most one per pixel, so writes never collide.
+            sel = by_layer[lo:hi]
+            lo = hi
+            p = pix[sel]
+            live = ~done[p]
+            sel, p = sel[live], p[live]
+            nxt = trans[p] * (1.0 - alpha[sel])
+            stop = nxt < MIN_TRANSMITTANCE
+            done[p[stop]] = True
+            sel, p, nxt = sel[~stop], p[~stop], nxt[~stop]
+            out[p, layers[p]] = j[sel].to(torch.int32)
+            trans[p] = nxt
+            layers[p] += 1
+            done[p[layers[p] == max_layers]] = True
+    return out
+
+
+def find_pairs_cpp(op, inp: PairInputs, width: int, height: int, max_layers: int) -> Tensor:
+    """Compiled pair finding (same rule and result as ``find_pairs_torch``); float32 decisions."""
+    return op(
+        inp.means2d.float().contiguous(),
+        inp.conics.float().contiguous(),
+        inp.opacities.float().contiguous(),
+        inp.sigma_max.float().contiguous(),
+        inp.boxes,
+        inp.camera_offsets,
+        width,
+        height,
+        max_layers,
+    )
+
+
+def composite(
+    pair_ids: Tensor,  # [B*H*W, L] splat ids, -1 where empty
+    means2d: Tensor,  # [M, 2]
+    conics: Tensor,  # [M, 3]
+    opacities: Tensor,  # [M]
+    depths: Tensor,  # [M]
+    colors: Tensor,  # [M, C]
+    backgrounds: Tensor,  # [B, C]
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Differentiable compositing over the pair buffer.
+
+    Returns colours ``[B, H, W, C]`` over the backgrounds, expected z-depth ``[B, H, W]`` (metres,
+    ``sum w z / sum w``, 0 where ``sum w < 1e-6``) and accumulated alpha ``[B, H, W]`` (``sum w``).
+    """
+    num_cams, channels = backgrounds.shape
+    used = int((pair_ids >= 0).sum(1).max()) if pair_ids.numel() else 0
+    pair_ids = pair_ids[:, : max(used, 1)].long()  # drop layers no pixel uses
+    valid = pair_ids >= 0
+    packed = torch.cat([means2d, conics, opacities[:, None], depths[:, None], colors], dim=1)  # [M, 7 + C]
+    if packed.shape[0] == 0:
+        packed = packed.new_zeros(1, packed.shape[1])
+    g = packed[pair_ids.clamp(min=0)]  # [P, L, 7 + C]
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=packed.dtype), torch.arange(width, dtype=packed.dtype), indexing="ij"
+    )
+    u = u.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)  # [P, 1]
+    v = v.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)
+    sigma = _half_sq_mahalanobis(u - g[..., 0], v - g[..., 1], g[..., 2:5])  # [P, L]
+    alpha = torch.clamp(g[..., 5] * torch.exp(-sigma), max=MAX_ALPHA)
+    alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
+    trans = torch.cumprod(1.0 - alpha, dim=1)  # [P, L] transmittance after each layer
+    weights = alpha * torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+    weight_sum = weights.sum(1)  # [P]
+    bg = backgrounds[:, None, :].expand(num_cams, height * width, channels).reshape(-1, channels)
+    rgb = (weights[..., None] * g[..., 7:]).sum(1) + trans[:, -1:] * bg  # [P, C]
+    depth_sum = (weights * g[..., 6]).sum(1)
+    has = weight_sum >= MIN_WEIGHT_SUM
+    depth = torch.where(has, depth_sum / torch.where(has, weight_sum, torch.ones_like(weight_sum)), torch.zeros_like(depth_sum))
+    return (
+        rgb.reshape(num_cams, height, width, channels),
+        depth.reshape(num_cams, height, width),
+        weight_sum.reshape(num_cams, height, width),
+    )

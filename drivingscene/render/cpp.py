@@ -1,0 +1,75 @@
+"""Loader of the optional compiled pair-finding step (``csrc/find_pairs.cpp``).
+
+Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenMP, ninja) into
+``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
+``DRIVINGSCENE_BUILD_DIR``); later processes reuse the build (~15 s on 2 cores the first time).
+Any failure (no compiler, no ninja, missing source, compile error) is logged once as a warning and
+``load_extension`` returns ``None``, so callers fall back to the pure-torch path. Setting
+``DRIVINGSCENE_NO_CPP=1`` disables the compiled path.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+log = logging.getLogger(__name__)
+
+EXTENSION_NAME = "drivingscene_render"
+SOURCES = (Path(__file__).parent / "csrc" / "find_pairs.cpp",)
+CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")  # no FMA: must match the torch path's rounding
+
+
+def default_build_dir() -> Path:
+    """Per-python, per-torch build directory under ``~/.cache/drivingscene``."""
+    if os.environ.get("DRIVINGSCENE_BUILD_DIR"):
+        return Path(os.environ["DRIVINGSCENE_BUILD_DIR"])
+    tag = f"py{sys.version_info.major}{sys.version_info.minor}-torch{torch.__version__.replace('+', '_')}"
+    return Path.home() / ".cache" / "drivingscene" / "torch_extensions" / tag
+
+
+def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> Callable | None:
+    """Compile (or reuse) the extension and return its ``find_pairs`` op, or ``None`` on any failure."""
+    build_dir = Path(build_dir) if build_dir is not None else default_build_dir()
+    try:
+        from torch.utils import cpp_extension
+
+        missing = [str(s) for s in SOURCES if not s.is_file()]
+        if missing:
+            raise FileNotFoundError(f"C++ source not installed: {', '.join(missing)}")
+        build_dir.mkdir(parents=True, exist_ok=True)
+        cpp_extension.load(
+            name=EXTENSION_NAME,
+            sources=[str(s) for s in SOURCES],
+            extra_cflags=list(CFLAGS),
+            extra_ldflags=["-fopenmp"],
+            build_directory=str(build_dir),
+            is_python_module=False,
+            verbose=verbose,
+        )
+        return torch.ops.drivingscene_render.find_pairs
+    except Exception as e:  # any build/load failure means "use the torch path"
+        log.warning("C++ rasterizer step unavailable, using the pure-torch path (same image, slower): %s", _first_line(e))
+        return None
+
+
+@functools.lru_cache(maxsize=1)
+def load_extension() -> Callable | None:
+    """The compiled ``find_pairs`` op, built once per process; ``None`` if disabled or unavailable."""
+    if os.environ.get("DRIVINGSCENE_NO_CPP", "") not in ("", "0"):
+        log.info("C++ rasterizer step disabled by DRIVINGSCENE_NO_CPP")
+        return None
+    if hasattr(torch.ops.drivingscene_render, "find_pairs"):
+        return torch.ops.drivingscene_render.find_pairs
+    return build_extension()
+
+
+def _first_line(e: Exception) -> str:
+    text = str(e).strip() or type(e).__name__
+    return text.splitlines()[0][:300]

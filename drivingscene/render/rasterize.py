@@ -1,0 +1,151 @@
+"""``rasterize``: differentiable 3D Gaussian splatting for a batch of cameras, on CPU.
+
+Pipeline: ``splats.make_splats`` culls, sorts and projects (EWA, ``project.py``) the visible
+(camera, Gaussian) pairs; a no-grad pair finder (compiled ``csrc/find_pairs.cpp`` or pure torch,
+same result) picks, per pixel, at most ``max_layers`` contributing Gaussians front to back; then
+``composite.composite`` recomputes alpha and the compositing weights with autograd over the dense
+``[pixels, max_layers]`` buffer, so gradients reach means, quats, scales, opacities and colours
+(or SH coefficients). Semantics are documented in ``project.py`` and ``composite.py``; the float64
+``reference.rasterize_reference`` renders the same image without the layer cap.
+
+Backends: ``"cpp"`` (compiled pair finding, CPU), ``"torch"`` (any device, slower pair finding),
+``"gsplat"`` (CUDA only, optional, see ``gsplat_backend.py``), ``"auto"``: gsplat for CUDA tensors
+when it is installed, else cpp when it builds, else torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from drivingscene.errors import InputError
+
+DEFAULT_MAX_LAYERS = 16
+BACKENDS = ("auto", "torch", "cpp", "gsplat")
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """Rendered images for ``B`` cameras."""
+
+    colors: Tensor  # [B, H, W, C] composited over the background
+    depths: Tensor  # [B, H, W] expected camera z (metres): sum(w z) / sum(w); 0 where alpha < 1e-6
+    alphas: Tensor  # [B, H, W] accumulated opacity sum(w) = 1 - final transmittance
+
+
+def rasterize(
+    means: Tensor,  # [N, 3] world, metres
+    quats: Tensor,  # [N, 4] w, x, y, z (need not be normalised)
+    scales: Tensor,  # [N, 3] metres (activated, > 0)
+    opacities: Tensor,  # [N] in (0, 1)
+    colors: Tensor,  # [N, C] colours, or [N, K, 3] SH coefficients with sh_degree
+    viewmats: Tensor,  # [B, 4, 4] world_to_cam
+    Ks: Tensor,  # [B, 3, 3] pixels, pixel centres at integer coordinates
+    width: int,
+    height: int,
+    *,
+    background: Tensor | None = None,  # [C] or [B, C]; default black
+    sh_degree: int | None = None,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+    max_layers: int = DEFAULT_MAX_LAYERS,
+    backend: str = "auto",
+) -> RenderOutput:
+    """Render RGB, expected depth and alpha of Gaussians into ``B`` cameras.
+
+    ``near``/``far`` are camera-z limits in metres, ``eps2d`` the 2D low-pass in px², ``max_layers``
+    the most Gaussians composited per pixel (the front-most contributing ones). With SH colours the
+    view direction is from each camera centre to the Gaussian. Raises ``InputError`` on bad shapes.
+    """
+    backgrounds = check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, sh_degree)
+    if max_layers < 1:
+        raise InputError(f"max_layers must be >= 1, found {max_layers}")
+    chosen = choose_backend(backend, means)
+    if chosen == "gsplat":
+        from drivingscene.render.gsplat_backend import rasterize_gsplat
+
+        return rasterize_gsplat(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, sh_degree, near, far, eps2d
+        )
+    from drivingscene.render.composite import composite, find_pairs_cpp, find_pairs_torch, pair_inputs
+    from drivingscene.render.splats import make_splats
+
+    dtype = means.dtype
+    viewmats, Ks, backgrounds = viewmats.to(dtype), Ks.to(dtype), backgrounds.to(dtype)
+    s = make_splats(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=sh_degree, near=near, far=far, eps2d=eps2d
+    )
+    inp = pair_inputs(s.means2d, s.conics, s.opacities, s.camera_offsets, width, height)
+    if chosen == "cpp":
+        from drivingscene.render.cpp import load_extension
+
+        pair_ids = find_pairs_cpp(load_extension(), inp, width, height, max_layers)
+    else:
+        pair_ids = find_pairs_torch(inp, width, height, max_layers)
+    rgb, depth, alpha = composite(pair_ids, s.means2d, s.conics, s.opacities, s.depths, s.colors, backgrounds, width, height)
+    return RenderOutput(colors=rgb, depths=depth, alphas=alpha)
+
+
+def choose_backend(backend: str, means: Tensor) -> str:
+    """Resolve ``"auto"`` and check that an explicitly requested backend can run."""
+    if backend not in BACKENDS:
+        raise InputError(f"backend must be one of {BACKENDS}, found {backend!r}")
+    if backend == "gsplat" or (backend == "auto" and means.is_cuda):
+        from drivingscene.render.gsplat_backend import gsplat_available
+
+        if gsplat_available() and means.is_cuda:
+            return "gsplat"
+        if backend == "gsplat":
+            raise InputError("backend 'gsplat' needs CUDA tensors and an importable gsplat")
+    if means.device.type != "cpu":
+        if backend == "cpp":
+            raise InputError(f"backend 'cpp' runs on CPU tensors, found device {means.device}")
+        return "torch"
+    if backend in ("cpp", "auto"):
+        from drivingscene.render.cpp import load_extension
+
+        if load_extension() is not None:
+            return "cpp"
+        if backend == "cpp":
+            raise InputError("backend 'cpp' requested but the C++ step could not be built (see the logged warning)")
+    return "torch"
+
+
+def _check_shape(name: str, t: Tensor, shape: tuple) -> None:
+    """Raise ``InputError`` unless ``t`` has ``shape`` (``None`` matches any size)."""
+    if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
+        want = ", ".join("*" if s is None else str(s) for s in shape)
+        raise InputError(f"{name} must have shape [{want}], found {list(t.shape)}")
+
+
+def check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, sh_degree) -> Tensor:
+    """Validate shapes at the public boundary; returns backgrounds ``[B, C]`` (default black)."""
+    _check_shape("means", means, (None, 3))
+    n = means.shape[0]
+    _check_shape("quats", quats, (n, 4))
+    _check_shape("scales", scales, (n, 3))
+    _check_shape("opacities", opacities, (n,))
+    _check_shape("viewmats", viewmats, (None, 4, 4))
+    _check_shape("Ks", Ks, (viewmats.shape[0], 3, 3))
+    if sh_degree is None and (colors.dim() != 2 or colors.shape[0] != n):
+        raise InputError(f"colors must be [N, C] (N={n}) without sh_degree, found {list(colors.shape)}")
+    if sh_degree is not None:
+        if not 0 <= sh_degree <= 3:
+            raise InputError(f"sh_degree must be in 0..3, found {sh_degree}")
+        k = (sh_degree + 1) ** 2
+        if colors.dim() != 3 or colors.shape[0] != n or colors.shape[1] < k or colors.shape[2] != 3:
+            raise InputError(f"colors must be [N, K>={k}, 3] SH coefficients (N={n}), found {list(colors.shape)}")
+    if width < 1 or height < 1:
+        raise InputError(f"width and height must be positive, found {width}x{height}")
+    num_cams, channels = viewmats.shape[0], colors.shape[-1]
+    if background is None:
+        return torch.zeros(num_cams, channels, dtype=means.dtype, device=means.device)
+    background = torch.as_tensor(background, dtype=means.dtype, device=means.device)
+    if background.shape == (channels,):
+        return background.expand(num_cams, channels)
+    if background.shape == (num_cams, channels):
+        return background
+    raise InputError(f"background must be [{channels}] or [{num_cams}, {channels}], found {list(background.shape)}")

@@ -1,0 +1,89 @@
+"""Visible (camera, Gaussian) pairs, projected and sorted front to back per camera.
+
+Culling happens once, without grad, over all ``B x N`` pairs (``project.py`` rules plus opacity
+< 1/255, which can never contribute); the ``M`` survivors are then projected again with grad so that
+autograd only sees Gaussians that can reach a pixel. Sorting is by camera, then camera-space ``z`` of
+the centre, ties broken by Gaussian index (a stable sort), which is the compositing order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from drivingscene.render.project import covariances_3d, project_covariances
+from drivingscene.render.sh import sh_to_color
+
+MIN_ALPHA = 1.0 / 255.0
+
+
+@dataclass(frozen=True)
+class Splats:
+    """``M`` visible (camera, Gaussian) pairs in compositing order; camera ``b`` owns rows
+    ``camera_offsets[b]:camera_offsets[b+1]``."""
+
+    means2d: Tensor  # [M, 2] pixels
+    conics: Tensor  # [M, 3] px^-2
+    depths: Tensor  # [M] camera z, metres
+    radii: Tensor  # [M] 3-sigma bounding radius, pixels (no grad)
+    opacities: Tensor  # [M]
+    colors: Tensor  # [M, C]
+    camera_ids: Tensor  # [M] int64
+    gaussian_ids: Tensor  # [M] int64
+    camera_offsets: Tensor  # [B + 1] int64
+
+
+def camera_centres(viewmats: Tensor) -> Tensor:
+    """Camera centres ``[B, 3]`` in world from world_to_cam ``[B, 4, 4]``: ``-Rᵀ t``."""
+    rot = viewmats[:, :3, :3]
+    return -(rot.transpose(-1, -2) @ viewmats[:, :3, 3:]).squeeze(-1)
+
+
+def make_splats(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4]
+    scales: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    colors: Tensor,  # [N, C] or [N, K, 3] with sh_degree
+    viewmats: Tensor,  # [B, 4, 4]
+    Ks: Tensor,  # [B, 3, 3]
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None,
+    near: float,
+    far: float,
+    eps2d: float,
+) -> Splats:
+    """Cull, sort and project (with grad) the visible pairs; SH colours evaluated per camera."""
+    num_cams = viewmats.shape[0]
+    covars = covariances_3d(quats, scales)  # [N, 3, 3]
+    kw = dict(near=near, far=far, eps2d=eps2d)
+    with torch.no_grad():
+        full = project_covariances(means[None], covars[None], viewmats[:, None], Ks[:, None], width, height, **kw)
+        visible = (full.radii > 0) & (opacities >= MIN_ALPHA)[None]  # [B, N]
+        cam_ids, gs_ids = visible.nonzero(as_tuple=True)
+        order = torch.sort(full.depths[cam_ids, gs_ids], stable=True).indices
+        order = order[torch.sort(cam_ids[order], stable=True).indices]
+        cam_ids, gs_ids = cam_ids[order], gs_ids[order]
+        counts = torch.bincount(cam_ids, minlength=num_cams)
+        offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    proj = project_covariances(means[gs_ids], covars[gs_ids], viewmats[cam_ids], Ks[cam_ids], width, height, **kw)
+    if sh_degree is None:
+        splat_colors = colors[gs_ids]
+    else:
+        dirs = means[gs_ids] - camera_centres(viewmats)[cam_ids]  # [M, 3]
+        splat_colors = sh_to_color(sh_degree, colors[gs_ids], dirs)
+    return Splats(
+        means2d=proj.means2d,
+        conics=proj.conics,
+        depths=proj.depths,
+        radii=proj.radii,
+        opacities=opacities[gs_ids],
+        colors=splat_colors,
+        camera_ids=cam_ids,
+        gaussian_ids=gs_ids,
+        camera_offsets=offsets,
+    )
