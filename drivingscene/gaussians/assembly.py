@@ -36,9 +36,9 @@ def gaussians_from_pixels(
     colors: Tensor,  # [V, H, W, 3] RGB in [0, 1], or [V, H, W, K, 3] SH coefficients
     *,
     keyframe: int,
-    scales: Tensor | None = None,  # [V, H, W, 3] metres, camera axes
+    log_scales: Tensor | None = None,  # [V, H, W, 3] log metres, camera axes
     quats: Tensor | None = None,  # [V, H, W, 4] w, x, y, z, camera axes
-    opacities: Tensor | None = None,  # [V, H, W]
+    opacity_logits: Tensor | None = None,  # [V, H, W]
     flows: Tensor | None = None,  # [V, H, W, 3] world displacement to the other keyframe
     valid: Tensor | None = None,  # [V, H, W] bool; default depth > 0
     default_opacity: float = 0.95,
@@ -49,21 +49,22 @@ def gaussians_from_pixels(
         valid = depth > 0
     points_cam = unproject(depth, intrinsics)  # [V, H, W, 3]
     means = transform_points(cam_to_world, points_cam.flatten(1, 2)).view(num_views, height, width, 3)
-    if scales is None:
-        scales = default_scales(depth, intrinsics)
+    if log_scales is None:
+        log_scales = torch.log(default_scales(depth, intrinsics))
     cam_quats = matrix_to_quat(cam_to_world[:, :3, :3])[:, None, None, :].expand(num_views, height, width, 4)
     world_quats = cam_quats if quats is None else quat_multiply(cam_quats, quats)
     sh = rgb_to_sh0(colors)[..., None, :] if colors.ndim == 4 else colors
-    if opacities is None:
-        opacities = torch.full_like(depth, default_opacity)
+    if opacity_logits is None:
+        opacity_logits = torch.full_like(depth, torch.logit(torch.tensor(default_opacity)).item())
     cameras = torch.arange(num_views, device=depth.device)[:, None, None].expand(num_views, height, width)
-    return Gaussians.create(
+    n = int(valid.sum())
+    return Gaussians(
         means=means[valid],
         quats=world_quats[valid],
-        scales=scales[valid],
-        opacities=opacities[valid],
+        log_scales=log_scales[valid],
+        opacity_logits=opacity_logits[valid],
         sh=sh[valid],
-        flows=None if flows is None else flows[valid],
-        keyframes=keyframe,
+        flows=torch.zeros_like(means[valid]) if flows is None else flows[valid],
+        keyframes=torch.full((n,), keyframe, dtype=torch.int64, device=depth.device),
         cameras=cameras[valid],
     )

@@ -155,6 +155,17 @@ class Gaussians:
         """The Gaussians moved to time t, as static Gaussians of keyframe 0 (for export/rendering)."""
         return replace(self, means=self.means_at(t), flows=torch.zeros_like(self.flows), keyframes=torch.zeros_like(self.keyframes))
 
+    def transform(self, a_to_b: Tensor) -> Gaussians:
+        """The Gaussians in another frame: ``a_to_b`` ``[4, 4]`` rigid (computed in float64)."""
+        from drivingscene.geometry.se3 import matrix_to_quat, quat_multiply
+
+        mat = a_to_b.to(device=self.device, dtype=torch.float64)
+        rot, trans = mat[:3, :3], mat[:3, 3]
+        means = (self.means.double() @ rot.T + trans).to(self.means.dtype)
+        flows = (self.flows.double() @ rot.T).to(self.flows.dtype)
+        quats = quat_multiply(matrix_to_quat(rot).to(self.quats.dtype).expand_as(self.quats), self.quats)
+        return replace(self, means=means, flows=flows, quats=quats)
+
     def index(self, selector: Tensor | slice | Sequence[int]) -> Gaussians:
         """A subset by bool mask or integer indices."""
         return Gaussians(**{f.name: getattr(self, f.name)[selector] for f in fields(self)})

@@ -165,3 +165,19 @@ def test_unprojected_default_scales_match_pixel_footprint():
     torch.testing.assert_close(g.means[:, 2], torch.full((12,), 10.0))
     assert unproject(depth, k).shape == (1, 3, 4, 3)
     _ = load_npz  # imported for the error-path test above
+
+
+def test_transform_moves_means_flows_and_rotations_consistently():
+    from drivingscene.geometry import quat_to_matrix as q2m
+
+    g = random_gaussians(20)
+    yaw = 0.7
+    mat = torch.eye(4, dtype=torch.float64)
+    mat[:2, :2] = torch.tensor([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    mat[:3, 3] = torch.tensor([100.0, -20.0, 3.0])
+    moved = g.transform(mat)
+    rot = mat[:3, :3].float()
+    torch.testing.assert_close(moved.means, g.means @ rot.T + mat[:3, 3].float())
+    torch.testing.assert_close(moved.flows, g.flows @ rot.T)
+    torch.testing.assert_close(q2m(moved.quats), rot @ q2m(g.quats), atol=1e-6, rtol=0)
+    torch.testing.assert_close(moved.transform(torch.linalg.inv(mat)).means, g.means, atol=1e-4, rtol=0)

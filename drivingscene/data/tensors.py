@@ -1,0 +1,73 @@
+"""A frame pair as float tensors in a local frame, ready for the networks.
+
+Poses are re-expressed relative to the ego pose at keyframe 0 (in float64, then cast), so float32
+stays precise even when world coordinates are large (map or UTM frames). ``local_to_world`` maps
+results back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from drivingscene.data.frame_pair import FramePair
+
+
+@dataclass
+class PairTensors:
+    images: Tensor  # [2, V, 3, H, W] float in [0, 1]
+    intrinsics: Tensor  # [V, 3, 3]
+    cam_to_ego: Tensor  # [V, 4, 4]
+    cam_to_local: Tensor  # [2, V, 4, 4] camera poses in the local frame (ego at keyframe 0)
+    local_to_world: Tensor  # [4, 4] float64
+    eval_images: Tensor | None = None  # [M, V, 3, H, W]
+    eval_cam_to_local: Tensor | None = None  # [M, V, 4, 4]
+    eval_times: Tensor | None = None  # [M] normalised time in [0, 1]
+    gt_depth: Tensor | None = None  # [2, V, H, W]
+    gt_flow: Tensor | None = None  # [2, V, H, W, 2]
+    gt_dynamic: Tensor | None = None  # [2, V, H, W] bool
+
+    @property
+    def num_views(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return int(self.images.shape[-2]), int(self.images.shape[-1])
+
+    def to(self, device) -> PairTensors:
+        return PairTensors(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device) for f in fields(self)})
+
+
+def _images(array: np.ndarray) -> Tensor:
+    """uint8 [..., H, W, 3] -> float [..., 3, H, W] in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(np.moveaxis(array, -1, -3))).float() / 255.0
+
+
+def pair_to_tensors(pair: FramePair, *, with_gt: bool = True, with_eval: bool = True) -> PairTensors:
+    world_to_local = np.linalg.inv(pair.ego_to_world[0])
+    cam_to_ego = pair.cam_to_ego.astype(np.float64)
+    cam_to_local = world_to_local[None, None] @ pair.ego_to_world[:, None] @ cam_to_ego[None]
+    out = PairTensors(
+        images=_images(pair.images),
+        intrinsics=torch.from_numpy(pair.intrinsics.astype(np.float32)),
+        cam_to_ego=torch.from_numpy(pair.cam_to_ego.astype(np.float32)),
+        cam_to_local=torch.from_numpy(cam_to_local.astype(np.float32)),
+        local_to_world=torch.from_numpy(pair.ego_to_world[0].copy()),
+    )
+    if with_eval and pair.num_eval:
+        eval_c2l = world_to_local[None, None] @ pair.eval_ego_to_world[:, None] @ cam_to_ego[None]
+        out.eval_images = _images(pair.eval_images)
+        out.eval_cam_to_local = torch.from_numpy(eval_c2l.astype(np.float32))
+        out.eval_times = torch.from_numpy(pair.normalised_time(pair.eval_timestamps).astype(np.float32))
+    if with_gt:
+        if pair.gt_depth is not None:
+            out.gt_depth = torch.from_numpy(pair.gt_depth)
+        if pair.gt_flow is not None:
+            out.gt_flow = torch.from_numpy(pair.gt_flow)
+        if pair.gt_dynamic is not None:
+            out.gt_dynamic = torch.from_numpy(pair.gt_dynamic)
+    return out

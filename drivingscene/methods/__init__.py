@@ -1,0 +1,1 @@
+"""Reconstruction methods: frame pair -> Reconstruction (the oracle, the feed-forward model, ...)."""

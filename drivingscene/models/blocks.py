@@ -1,0 +1,80 @@
+"""Small building blocks shared by the networks (monodepth2/ResNet style)."""
+
+from __future__ import annotations
+
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+
+def conv3x3(in_ch: int, out_ch: int, stride: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(in_ch, out_ch, 3, stride=stride, padding=1, bias=False)
+
+
+class BasicBlock(nn.Module):
+    """ResNet basic block: two 3x3 convs with batch norm and a projected shortcut when needed."""
+
+    def __init__(self, in_ch: int, out_ch: int, stride: int = 1):
+        super().__init__()
+        self.conv1 = conv3x3(in_ch, out_ch, stride)
+        self.bn1 = nn.BatchNorm2d(out_ch)
+        self.conv2 = conv3x3(out_ch, out_ch)
+        self.bn2 = nn.BatchNorm2d(out_ch)
+        self.shortcut = (
+            nn.Sequential(nn.Conv2d(in_ch, out_ch, 1, stride=stride, bias=False), nn.BatchNorm2d(out_ch))
+            if stride != 1 or in_ch != out_ch
+            else nn.Identity()
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        out = F.relu(self.bn1(self.conv1(x)), inplace=True)
+        out = self.bn2(self.conv2(out))
+        return F.relu(out + self.shortcut(x), inplace=True)
+
+
+class ConvELU(nn.Module):
+    """3x3 conv + ELU, the decoder block of monodepth2 (replicate padding avoids zero-border artefacts and works on 1-pixel maps)."""
+
+    def __init__(self, in_ch: int, out_ch: int):
+        super().__init__()
+        self.conv = nn.Conv2d(in_ch, out_ch, 3, padding=1, padding_mode="replicate")
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.elu(self.conv(x), inplace=True)
+
+
+def upsample_to(x: Tensor, like: Tensor, mode: str = "nearest") -> Tensor:
+    """Resize ``x`` to the spatial size of ``like`` (sizes need not be powers of two)."""
+    if x.shape[-2:] == like.shape[-2:]:
+        return x
+    kwargs = {} if mode == "nearest" else {"align_corners": False}
+    return F.interpolate(x, size=like.shape[-2:], mode=mode, **kwargs)
+
+
+class ResNetEncoder(nn.Module):
+    """ResNet-18 layout at a configurable width; returns features at 1/2, 1/4, 1/8, 1/16, 1/32.
+
+    Channels are (w, w, 2w, 4w, 8w) for width w (w = 64 is ResNet-18).
+    """
+
+    def __init__(self, in_ch: int = 3, width: int = 32, blocks: tuple[int, ...] = (2, 2, 2, 2)):
+        super().__init__()
+        self.channels = (width, width, 2 * width, 4 * width, 8 * width)
+        self.stem = nn.Sequential(
+            nn.Conv2d(in_ch, width, 7, stride=2, padding=3, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True)
+        )
+        self.pool = nn.MaxPool2d(3, stride=2, padding=1)
+        layers = []
+        in_c = width
+        for i, (out_c, n) in enumerate(zip(self.channels[1:], blocks)):
+            stride = 1 if i == 0 else 2
+            layers.append(nn.Sequential(BasicBlock(in_c, out_c, stride), *[BasicBlock(out_c, out_c) for _ in range(n - 1)]))
+            in_c = out_c
+        self.layers = nn.ModuleList(layers)
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        feats = [self.stem(x)]
+        x = self.pool(feats[0])
+        for layer in self.layers:
+            x = layer(x)
+            feats.append(x)
+        return feats

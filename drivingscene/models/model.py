@@ -1,0 +1,68 @@
+"""The DrivingScene model: the composition root of D (depth), P (Gaussian head) and R (residual flow).
+
+Stage 1 trains D and P (static prior); stage 2 freezes them and trains R (dynamics). The model holds
+no state about a particular rig: intrinsics and camera slots are inputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from drivingscene.models.depth import DepthConfig, DepthNet, DepthOutput
+from drivingscene.models.gaussian_head import GaussianHead, GaussianHeadConfig, PixelGaussians
+from drivingscene.models.residual_flow import FlowConfig, ResidualFlowNet, decoder_slots
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    gaussians: GaussianHeadConfig = field(default_factory=GaussianHeadConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ModelConfig:
+        def tuples(d: dict) -> dict:
+            return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+        return cls(
+            depth=DepthConfig(**tuples(data.get("depth", {}))),
+            gaussians=GaussianHeadConfig(**tuples(data.get("gaussians", {}))),
+            flow=FlowConfig(**tuples(data.get("flow", {}))),
+        )
+
+
+class DrivingSceneModel(nn.Module):
+    """D + P + R. See ``drivingscene.models.pipeline`` for how they are chained on a frame pair."""
+
+    def __init__(self, config: ModelConfig = ModelConfig()):
+        super().__init__()
+        self.config = config
+        self.depth_net = DepthNet(config.depth)
+        self.gaussian_head = GaussianHead(self.depth_net.encoder.channels, config.depth.decoder_channels[0], config.gaussians)
+        self.flow_net = ResidualFlowNet(config.flow)
+
+    def static(self, images: Tensor, intrinsics: Tensor) -> tuple[DepthOutput, PixelGaussians]:
+        """Stage-1 networks on images ``[B, 3, H, W]`` with intrinsics ``[B, 3, 3]``."""
+        depth = self.depth_net(images, intrinsics)
+        params = self.gaussian_head(images, depth.depth, intrinsics, depth.features, depth.decoder_features)
+        return depth, params
+
+    def residual_flow(self, warped_source: Tensor, target: Tensor, rigid_flow: Tensor, slots: Tensor) -> list[Tensor]:
+        """Stage-2 network: residual flows ``[B, 2, H, W]`` per pyramid level, finest last."""
+        return self.flow_net(warped_source, target, rigid_flow, slots)
+
+    def camera_slots(self, cam_to_ego: Tensor) -> Tensor:
+        """Residual-flow decoder index ``[V]`` for a rig ``[V, 4, 4]``."""
+        return decoder_slots(cam_to_ego, self.config.flow.decoder_yaws_deg)
+
+    def parameter_counts(self) -> dict[str, int]:
+        return {
+            name: sum(p.numel() for p in module.parameters())
+            for name, module in (("depth", self.depth_net), ("gaussians", self.gaussian_head), ("flow", self.flow_net))
+        }

@@ -1,0 +1,145 @@
+"""Chaining D, P and R on a frame pair: shared by training (with gradients) and inference.
+
+    depth_k        = D(I_k)                                   k = 0, 1, all V cameras at once
+    rigid_{0->1}   = project(T_{1<-0} unproject(depth_0))     (ego motion and extrinsics known)
+    residual_{0->1}= R(warp(I_1, rigid_{0->1}), I_0, rigid_{0->1})   and symmetrically 1 -> 0
+    total          = rigid + residual
+    scene flow     = lift(total, depth_0, depth_1)  where forward/backward-consistent and the
+                     residual is above a threshold; elsewhere the Gaussian is static (zero flow)
+
+Everything runs in the local frame of ``PairTensors`` (ego at keyframe 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from drivingscene.data.tensors import PairTensors
+from drivingscene.gaussians.assembly import gaussians_from_pixels
+from drivingscene.gaussians.core import Gaussians
+from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
+from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
+from drivingscene.models.depth import DepthOutput
+from drivingscene.models.gaussian_head import PixelGaussians
+from drivingscene.models.model import DrivingSceneModel
+
+
+@dataclass(frozen=True)
+class LiftConfig:
+    # Pixels whose depth, brought to the reference focal length, exceeds this are sky: background,
+    # no Gaussian. (Depth scales with fx / W, so the threshold does too; see models/depth.py.)
+    sky_depth: float = 100.0
+    dynamic_threshold_px: float = 1.0  # residual flow below this is treated as static
+
+
+def sky_mask(depth: Tensor, intrinsics: Tensor, ref_focal: float, config: LiftConfig) -> Tensor:
+    """``[..., V, H, W]`` bool: pixels treated as sky, for depth ``[..., V, H, W]``."""
+    focal = intrinsics[:, 0, 0] / depth.shape[-1]
+    threshold = config.sky_depth * focal / ref_focal  # [V]
+    return depth > threshold[:, None, None]
+
+
+@dataclass
+class StaticPrediction:
+    depth: Tensor  # [2, V, H, W]
+    depth_output: DepthOutput  # batched over 2V images (keyframe-major)
+    params: PixelGaussians  # batched over 2V images
+
+
+@dataclass
+class FlowPrediction:
+    rigid: Tensor  # [2, V, H, W, 2]: [0] 0->1 at keyframe-0 pixels, [1] 1->0
+    residuals: list[Tensor]  # per pyramid level, [2, V, H, W, 2], finest last
+    warped_sources: Tensor  # [2, V, 3, H, W] the other keyframe warped by the rigid flow
+
+    @property
+    def residual(self) -> Tensor:
+        return self.residuals[-1]
+
+    @property
+    def total(self) -> Tensor:
+        return self.rigid + self.residual
+
+
+def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPrediction:
+    """D and P on both keyframes' V images."""
+    num_views = batch.num_views
+    images = batch.images.flatten(0, 1).contiguous(memory_format=torch.channels_last)
+    depth_out, params = model.static(images, batch.intrinsics.repeat(2, 1, 1))
+    return StaticPrediction(depth=depth_out.depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
+
+
+def rigid_flows(depth: Tensor, batch: PairTensors) -> Tensor:
+    """``[2, V, H, W, 2]`` rigid flow 0->1 from depth_0 and 1->0 from depth_1."""
+    c2l = batch.cam_to_local
+    f01, _ = rigid_flow(depth[0], batch.intrinsics, c2l[0], c2l[1])
+    f10, _ = rigid_flow(depth[1], batch.intrinsics, c2l[1], c2l[0])
+    return torch.stack([f01, f10])
+
+
+def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) -> FlowPrediction:
+    """Rigid flow from ``depth`` ``[2, V, H, W]`` and R's residual, both directions."""
+    rigid = rigid_flows(depth, batch)
+    targets = batch.images  # [2, V, 3, H, W]
+    sources = batch.images.flip(0)  # the other keyframe
+    warped, _ = backward_warp(sources.flatten(0, 1), rigid.flatten(0, 1))
+    rigid_chw = rigid.flatten(0, 1).permute(0, 3, 1, 2)
+    slots = model.camera_slots(batch.cam_to_ego).repeat(2)
+    residuals = model.residual_flow(warped, targets.flatten(0, 1), rigid_chw, slots)
+    residuals = [r.float().permute(0, 2, 3, 1).unflatten(0, (2, batch.num_views)) for r in residuals]
+    return FlowPrediction(rigid=rigid, residuals=residuals, warped_sources=warped.unflatten(0, (2, batch.num_views)))
+
+
+def lift_scene_flow(
+    depth: Tensor, total: Tensor, residual: Tensor, sky: Tensor, batch: PairTensors, config: LiftConfig
+) -> tuple[Tensor, Tensor]:
+    """World (local-frame) displacement ``[2, V, H, W, 3]`` and dynamic mask ``[2, V, H, W]``.
+
+    A pixel moves only where its residual exceeds the threshold, its flow is forward/backward
+    consistent and both depths are valid; every other pixel falls back to static.
+    """
+    c2l = batch.cam_to_local
+    flows, masks = [], []
+    for k in (0, 1):
+        o = 1 - k
+        sf, valid = scene_flow_from_optical_flow(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o])
+        consistent = forward_backward_consistency(total[k], total[o])
+        moving = residual[k].norm(dim=-1) > config.dynamic_threshold_px
+        dynamic = valid & consistent & moving & ~sky[k]
+        flows.append(torch.where(dynamic[..., None], sf, torch.zeros_like(sf)))
+        masks.append(dynamic)
+    return torch.stack(flows), torch.stack(masks)
+
+
+def assemble(
+    static: StaticPrediction,
+    batch: PairTensors,
+    sky: Tensor,  # [2, V, H, W] bool
+    scene_flow: Tensor | None = None,  # [2, V, H, W, 3]
+    keyframes: tuple[int, ...] = (0, 1),
+) -> Gaussians:
+    """Gaussians of the requested keyframes in the local frame (sky pixels excluded)."""
+    num_views = batch.num_views
+    p = static.params
+    parts = []
+    for k in keyframes:
+        sl = slice(k * num_views, (k + 1) * num_views)
+        depth = static.depth[k]
+        parts.append(
+            gaussians_from_pixels(
+                depth,
+                batch.intrinsics,
+                batch.cam_to_local[k],
+                p.sh[sl],
+                keyframe=k,
+                log_scales=p.log_scales[sl],
+                quats=p.quats[sl],
+                opacity_logits=p.opacity_logits[sl],
+                flows=None if scene_flow is None else scene_flow[k],
+                valid=~sky[k],
+            )
+        )
+    return Gaussians.cat(parts)

@@ -1,0 +1,51 @@
+"""The sky as a background, not as far-away Gaussians.
+
+The sky colour is a low-degree spherical-harmonic function of the world viewing direction,
+``colour = max(SH(d) + 0.5, 0)`` (the Gaussians' own colour convention), fitted by ridge
+least squares to the pixels classified as sky. Degree 2 (9 coefficients per channel) captures
+the horizon-to-zenith gradient and the sun side; it costs nothing to render.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from drivingscene.geometry.camera import pixel_grid
+from drivingscene.render.sh import SH_C0, eval_sh, num_sh_coeffs, sh_basis
+
+SKY_DEGREE = 2
+
+
+def ray_directions(cam_to_world: Tensor, intrinsics: Tensor, height: int, width: int) -> Tensor:
+    """Unit world directions ``[B, H, W, 3]`` through every pixel centre of cameras ``[B, 4, 4]``."""
+    uv = pixel_grid(height, width, dtype=intrinsics.dtype, device=intrinsics.device)
+    k = intrinsics[:, None, None]
+    y = (uv[..., 1] - k[..., 1, 2]) / k[..., 1, 1]
+    x = (uv[..., 0] - k[..., 0, 2] - k[..., 0, 1] * y) / k[..., 0, 0]
+    rays = torch.stack([x, y, torch.ones_like(x)], dim=-1)  # camera axes
+    dirs = (cam_to_world[:, None, None, :3, :3].to(rays.dtype) @ rays[..., None]).squeeze(-1)
+    return torch.nn.functional.normalize(dirs, dim=-1)
+
+
+def sky_colors(sky_sh: Tensor, dirs: Tensor) -> Tensor:
+    """Sky RGB ``[..., 3]`` for unit directions ``[..., 3]`` and coefficients ``[K, 3]``."""
+    degree = round(sky_sh.shape[0] ** 0.5) - 1
+    return torch.clamp_min(eval_sh(degree, sky_sh.expand(*dirs.shape[:-1], *sky_sh.shape), dirs) + 0.5, 0.0)
+
+
+def fit_sky(dirs: Tensor, colors: Tensor, degree: int = SKY_DEGREE, ridge: float = 1e-2) -> Tensor:
+    """Coefficients ``[K, 3]`` fitting colours ``[P, 3]`` seen along directions ``[P, 3]``.
+
+    With few samples the ridge term pulls the higher orders to zero, leaving the mean colour.
+    With no samples, returns a mid-grey sky.
+    """
+    k = num_sh_coeffs(degree)
+    if dirs.shape[0] == 0:
+        out = torch.zeros(k, 3, dtype=colors.dtype, device=colors.device)
+        out[0] = (0.6 - 0.5) / SH_C0
+        return out
+    basis = sh_basis(degree, dirs.double())  # [P, K]
+    target = colors.double() - 0.5
+    gram = basis.T @ basis + ridge * dirs.shape[0] * torch.diag(torch.tensor([0.0] + [1.0] * (k - 1), dtype=torch.float64))
+    return torch.linalg.solve(gram, basis.T @ target).to(colors.dtype)

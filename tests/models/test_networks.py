@@ -1,0 +1,97 @@
+"""D, P, R: shapes for any rig size, documented initial behaviour, focal scaling, gradients."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from drivingscene.data.tensors import pair_to_tensors
+from drivingscene.gaussians.assembly import default_scales
+from drivingscene.models import DrivingSceneModel, ModelConfig
+from drivingscene.models.depth import DepthConfig
+from drivingscene.models.pipeline import LiftConfig, assemble, predict_flow, predict_static, sky_mask
+from drivingscene.models.residual_flow import decoder_slots, local_cost_volume
+from tests.factories import make_pair, make_rig
+
+SMALL = ModelConfig(depth=DepthConfig(width=8, decoder_channels=(8, 8, 16, 16, 32)))
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return DrivingSceneModel(SMALL).eval()
+
+
+@pytest.mark.parametrize("height, width", [(32, 48), (30, 50)])
+def test_static_shapes_for_odd_sizes(model, height, width):
+    images = torch.rand(3, 3, height, width)
+    k = torch.tensor([[40.0, 0, width / 2], [0, 40.0, height / 2], [0, 0, 1]]).expand(3, 3, 3)
+    depth, params = model.static(images, k)
+    assert depth.depth.shape == (3, height, width)
+    assert [d.shape[-2:] == (height, width) for d in depth.depths] == [True] * 4
+    assert params.log_scales.shape == (3, height, width, 3) and params.sh.shape == (3, height, width, 1, 3)
+    assert (depth.depth > 0).all()
+
+
+def test_depth_scales_with_normalised_focal_length(model):
+    images = torch.rand(1, 3, 32, 48).expand(2, -1, -1, -1)
+    k = torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]).repeat(2, 1, 1)
+    k[1, 0, 0] = 80.0  # twice the focal length: same pixels, twice the depth
+    depth = model.depth_net(images, k).depth
+    torch.testing.assert_close(depth[1], 2 * depth[0])
+
+
+def test_gaussian_head_starts_at_pixel_discs_with_pixel_colours(model):
+    images = torch.rand(2, 3, 32, 48)
+    k = torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]).expand(2, 3, 3)
+    depth, params = model.static(images, k)
+    torch.testing.assert_close(params.log_scales, torch.log(default_scales(depth.depth, k)))
+    torch.testing.assert_close(params.quats, torch.tensor([1.0, 0, 0, 0]).expand(2, 32, 48, 4))
+    rgb = params.sh[..., 0, :] * 0.28209479177387814 + 0.5
+    torch.testing.assert_close(rgb, images.permute(0, 2, 3, 1), atol=1e-5, rtol=0)
+    assert torch.sigmoid(params.opacity_logits).min() > 0.9
+
+
+def test_camera_slots_follow_viewing_yaw():
+    _, rig = make_rig(num_views=6)  # yaws 0, 60, 120, 180, 240, 300 degrees
+    slots = decoder_slots(torch.from_numpy(rig), (0.0, -55.0, -110.0, 180.0, 110.0, 55.0))
+    assert slots.tolist() == [0, 5, 4, 3, 2, 1]
+    _, two = make_rig(num_views=2)  # a front and a back camera
+    assert decoder_slots(torch.from_numpy(two), (0.0, -55.0, -110.0, 180.0, 110.0, 55.0)).tolist() == [0, 3]
+
+
+def test_cost_volume_peaks_at_the_true_shift():
+    target = torch.randn(1, 8, 12, 16)
+    source = torch.roll(target, shifts=(1, -2), dims=(2, 3))  # source(p) = target(p - (1, -2))
+    cost = local_cost_volume(target, source, radius=3)
+    best = cost[0, :, 4:-4, 4:-4].mean(dim=(1, 2)).argmax().item()
+    dy, dx = divmod(best, 7)
+    assert (dy - 3, dx - 3) == (1, -2)
+
+
+def test_residual_flow_starts_at_zero_and_gets_gradients(model):
+    pair = make_pair(num_views=3, height=32, width=48)
+    batch = pair_to_tensors(pair)
+    static = predict_static(model, batch)
+    flow = predict_flow(model, batch, static.depth)
+    assert flow.residual.shape == (2, 3, 32, 48, 2) and flow.residual.abs().max() == 0
+    model.train()
+    flow = predict_flow(model, batch, static.depth.detach())
+    (flow.total.square().mean() + flow.residuals[0].mean()).backward()
+    grads = [p.grad for p in model.flow_net.parameters() if p.grad is not None]
+    assert grads and any(g.abs().sum() > 0 for g in grads)
+    model.zero_grad()
+    model.eval()
+
+
+def test_assembly_excludes_sky_and_counts_pixels(model):
+    pair = make_pair(num_views=2, height=32, width=48)
+    batch = pair_to_tensors(pair)
+    static = predict_static(model, batch)
+    sky = sky_mask(static.depth, batch.intrinsics, model.config.depth.ref_focal, LiftConfig(sky_depth=math.inf))
+    g = assemble(static, batch, sky)
+    assert len(g) == 2 * 2 * 32 * 48
+    sky[0, 0, :10] = True
+    assert len(assemble(static, batch, sky)) == 2 * 2 * 32 * 48 - 10 * 48
