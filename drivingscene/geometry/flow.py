@@ -20,17 +20,18 @@ def rigid_flow(
     intrinsics: Tensor,  # [..., 3, 3]
     src_cam_to_world: Tensor,  # [..., 4, 4]
     dst_cam_to_world: Tensor,  # [..., 4, 4]
+    dst_intrinsics: Tensor | None = None,  # [..., 3, 3], default: same as the source
 ) -> tuple[Tensor, Tensor]:
-    """Optical flow of a static world seen by a moving camera.
+    """Optical flow of a static world seen by a moving camera (or into another camera).
 
     Each source pixel is lifted with its depth, moved into the destination camera and projected
-    with the same intrinsics. Returns flow ``[..., H, W, 2]`` in pixels and the destination
-    z-depth ``[..., H, W]`` (<= 0 where the point falls behind the destination camera).
+    with the destination intrinsics. Returns flow ``[..., H, W, 2]`` in pixels and the
+    destination z-depth ``[..., H, W]`` (<= 0 where the point falls behind the destination camera).
     """
     height, width = depth.shape[-2:]
     points = unproject(depth, intrinsics).flatten(-3, -2)  # [..., HW, 3]
     src_to_dst = invert_rigid(dst_cam_to_world) @ src_cam_to_world
-    uv, z = project(transform_points(src_to_dst, points), intrinsics)
+    uv, z = project(transform_points(src_to_dst, points), intrinsics if dst_intrinsics is None else dst_intrinsics)
     grid = pixel_grid(height, width, dtype=depth.dtype, device=depth.device)
     flow = uv.unflatten(-2, (height, width)) - grid
     return flow, z.unflatten(-1, (height, width))

@@ -1,0 +1,67 @@
+"""``drivingscene train``: the two-stage (or joint) training of the model."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from drivingscene.cli.common import positive_int
+from drivingscene.errors import InputError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train the model: --stage static, then dynamic (or joint for the ablation)")
+    p.add_argument("--stage", choices=("static", "dynamic", "joint"), required=True)
+    p.add_argument("--data", type=Path, required=True, metavar="DIR", help="training pairs (drivingscene synth --split train)")
+    p.add_argument("--val-data", type=Path, default=None, metavar="DIR", help="validation pairs (drivingscene synth --split val)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="run folder: checkpoints, log.jsonl, model.safetensors")
+    p.add_argument("--init", type=Path, default=None, metavar="WEIGHTS", help="start from these weights (stage 2: stage 1's)")
+    p.add_argument("--steps", type=positive_int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads per process")
+    p.add_argument("--batch-pairs", type=positive_int, default=None, help="frame pairs per step and process (default 1)")
+    p.add_argument("--render-every", type=positive_int, default=None, help="L_render on every n-th step")
+    p.add_argument("--val-every", type=positive_int, default=None)
+    p.add_argument("--ckpt-every", type=positive_int, default=None)
+    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default=None)
+    p.add_argument("--no-amp", action="store_true", help="float32 networks (default: bf16 autocast)")
+    p.add_argument("--config", type=Path, default=None, help="JSON config to start from (e.g. a run's config.json)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivingscene.train.config import TrainConfig
+    from drivingscene.train.trainer import train
+
+    base = TrainConfig()
+    if args.config is not None:
+        try:
+            base = TrainConfig.from_dict(json.loads(args.config.read_text()))
+        except (OSError, ValueError, TypeError) as e:
+            raise InputError(f"{args.config}: --config: expected a training config JSON: {e}") from None
+    if args.lr is not None and not args.lr > 0:
+        raise InputError(f"--lr: expected a positive learning rate, found {args.lr}")
+    config = base.with_overrides(
+        stage=args.stage,
+        data=str(args.data),
+        val_data=str(args.val_data) if args.val_data else None,
+        out=str(args.out),
+        init=str(args.init) if args.init else None,
+        steps=args.steps,
+        lr=args.lr,
+        seed=args.seed,
+        threads=args.threads,
+        batch_pairs=args.batch_pairs,
+        render_every=args.render_every,
+        val_every=args.val_every,
+        ckpt_every=args.ckpt_every,
+        lpips=args.lpips,
+        amp=False if args.no_amp else None,
+    )
+    path = train(config, resume=args.resume, show_progress=not args.no_progress)
+    print(f"weights: {path}")
+    return 0

@@ -1,0 +1,106 @@
+"""The DrivingScene model as a reconstruction method: frame pair -> Reconstruction, one forward pass.
+
+    reconstruct(model, pair)  ->  Reconstruction with the dynamic Gaussians of both keyframes and the
+                                  per-camera depth, rigid flow and residual flow.
+
+Variants for the ablations: ``use_residual=False`` (static-only: rigid flow, every Gaussian static)
+and a model trained in one stage (it is the same code with other weights).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.data.tensors import pair_to_tensors
+from drivingscene.errors import InputError
+from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.methods.oracle import fit_sky_from_pixels
+from drivingscene.models.model import DrivingSceneModel, ModelConfig
+from drivingscene.models.pipeline import LiftConfig, assemble, lift_scene_flow, predict_flow, predict_static, sky_mask
+from drivingscene.resources import asset_path
+
+DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
+
+
+@dataclass(frozen=True)
+class InferenceOptions:
+    use_residual: bool = True  # False: static-only ablation (rigid flow, no dynamic Gaussians)
+    lift: LiftConfig = LiftConfig()
+    amp: bool = True  # bf16 autocast for the networks on CPU
+    threads: int | None = None
+
+
+def load_model(path: str | Path | None = None, device: str = "cpu") -> DrivingSceneModel:
+    """Model from ``NAME.safetensors`` + ``NAME.json`` (default: the shipped weights)."""
+    path = Path(path) if path else asset_path(DEFAULT_WEIGHTS)
+    config_path = path.with_suffix(".json")
+    if not path.exists():
+        raise InputError(f"{path}: model weights not found (train them with `drivingscene train`, or pass --weights)")
+    if not config_path.exists():
+        raise InputError(f"{config_path}: expected the model's JSON config beside its weights, found nothing")
+    try:
+        meta = json.loads(config_path.read_text())
+        config = ModelConfig.from_dict(meta["model"])
+        state = load_file(str(path))
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"{path}: could not load model weights/config: {e}") from None
+    model = DrivingSceneModel(config)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise InputError(f"{path}: weights do not match the model config (missing {len(missing)}, unexpected {len(unexpected)} tensors)")
+    return model.to(device).eval()
+
+
+@torch.no_grad()
+def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOptions = InferenceOptions()) -> Reconstruction:
+    """Dynamic Gaussians of both keyframes (world frame) and per-camera maps, with timings in ``meta``."""
+    if options.threads:
+        torch.set_num_threads(options.threads)
+    device = next(model.parameters()).device
+    timings = {}
+    start = time.perf_counter()
+    batch = pair_to_tensors(pair, with_gt=False, with_eval=False).to(device)
+    amp = torch.autocast(device.type, dtype=torch.bfloat16, enabled=options.amp)
+    with amp:
+        static = predict_static(model, batch)
+    timings["static_s"] = time.perf_counter() - start
+    depth = static.depth.float()
+    sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
+    t0 = time.perf_counter()
+    with amp:
+        flow = predict_flow(model, batch, depth) if options.use_residual else None
+    rigid = flow.rigid if flow is not None else None
+    scene_flow = None
+    if flow is not None:
+        scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, options.lift)
+    timings["flow_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    gaussians = assemble(static, batch, sky, scene_flow).transform(batch.local_to_world)
+    sky_sh = fit_sky_from_pixels(batch.images, sky, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics)
+    timings["assembly_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - start
+    if rigid is None:
+        from drivingscene.models.pipeline import rigid_flows
+
+        rigid = rigid_flows(depth, batch)
+    sky_np = sky.cpu().numpy()[..., None]
+    return Reconstruction.from_pair(
+        pair,
+        gaussians.detach().to("cpu"),
+        sky_sh=sky_sh.cpu(),
+        depth=np.where(sky_np[..., 0], 0.0, depth.cpu().numpy()).astype(np.float32),
+        rigid_flow=np.where(sky_np, 0.0, rigid.cpu().numpy()).astype(np.float32),
+        residual_flow=None if flow is None else np.where(sky_np, 0.0, flow.residual.cpu().numpy()).astype(np.float32),
+        meta={
+            "method": "drivingscene" if options.use_residual else "drivingscene-static",
+            "timings": {k: round(v, 4) for k, v in timings.items()},
+        },
+    )

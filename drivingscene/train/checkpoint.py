@@ -1,0 +1,101 @@
+"""Atomic checkpoints: weights (and optimiser state) in safetensors, everything else in JSON.
+
+A checkpoint is ``step_XXXXXXX.safetensors`` plus ``latest.json`` naming it; the JSON is written
+last, so a run killed mid-save resumes from the previous complete checkpoint. Nothing is pickled.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file
+
+from drivingscene.data.npz import atomic_write
+from drivingscene.errors import InputError
+
+LATEST = "latest.json"
+
+
+def _optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
+    state = optimizer.state_dict()
+    tensors = {}
+    scalars: dict = {"param_groups": state["param_groups"], "state": {}}
+    for idx, entry in state["state"].items():
+        for name, value in entry.items():
+            if torch.is_tensor(value):
+                tensors[f"optim.{idx}.{name}"] = value.contiguous()
+            else:
+                scalars["state"].setdefault(str(idx), {})[name] = value
+    return tensors, scalars
+
+
+def _restore_optimizer(optimizer: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], scalars: dict) -> None:
+    state: dict = {}
+    for key, value in tensors.items():
+        if key.startswith("optim."):
+            _, idx, name = key.split(".", 2)
+            state.setdefault(int(idx), {})[name] = value
+    for idx, entry in scalars.get("state", {}).items():
+        state.setdefault(int(idx), {}).update(entry)
+    optimizer.load_state_dict({"state": state, "param_groups": scalars["param_groups"]})
+
+
+def save_checkpoint(out_dir: Path, step: int, model: torch.nn.Module, optimizer, info: dict, keep: int = 2) -> Path:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    name = f"step_{step:07d}.safetensors"
+    tensors = {f"model.{k}": v.detach().contiguous() for k, v in model.state_dict().items()}
+    optim_scalars = {}
+    if optimizer is not None:
+        opt_tensors, optim_scalars = _optimizer_tensors(optimizer)
+        tensors.update(opt_tensors)
+    tensors["rng.torch"] = torch.get_rng_state()
+    atomic_write(out_dir / name, lambda f: f.write(_safetensors_bytes(tensors)))
+    meta = {"step": step, "weights": name, "optimizer": optim_scalars, **info}
+    atomic_write(out_dir / LATEST, lambda f: f.write(json.dumps(meta, indent=1, sort_keys=True).encode()))
+    for old in sorted(out_dir.glob("step_*.safetensors"))[:-keep]:
+        old.unlink()
+    return out_dir / name
+
+
+def _safetensors_bytes(tensors: dict[str, torch.Tensor]) -> bytes:
+    from safetensors.torch import save
+
+    return save(tensors)
+
+
+def load_checkpoint(out_dir: Path) -> tuple[dict, dict[str, torch.Tensor]] | None:
+    """(meta, tensors) of the latest complete checkpoint in ``out_dir``, or None."""
+    latest = out_dir / LATEST
+    if not latest.exists():
+        return None
+    try:
+        meta = json.loads(latest.read_text())
+        tensors = load_file(str(out_dir / meta["weights"]))
+    except (OSError, ValueError, KeyError) as e:
+        raise InputError(f"{latest}: expected a complete checkpoint, could not read it: {e}") from None
+    return meta, tensors
+
+
+def restore(model: torch.nn.Module, optimizer, meta: dict, tensors: dict[str, torch.Tensor]) -> int:
+    model.load_state_dict({k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")})
+    if optimizer is not None and meta.get("optimizer"):
+        _restore_optimizer(optimizer, tensors, meta["optimizer"])
+    if "rng.torch" in tensors:
+        torch.set_rng_state(tensors["rng.torch"])
+    return int(meta["step"])
+
+
+def export_weights(model: torch.nn.Module, config_dict: dict, path: str | os.PathLike, info: dict) -> Path:
+    """Ship-ready weights: ``NAME.safetensors`` (model only) and ``NAME.json`` (config + info)."""
+    path = Path(path)
+    tensors = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    atomic_write(path, lambda f: f.write(_safetensors_bytes(tensors)))
+    meta = {"model": config_dict, **info}
+    atomic_write(path.with_suffix(".json"), lambda f: f.write(json.dumps(meta, indent=1, sort_keys=True).encode()))
+    return path
+
+
+__all__ = ["export_weights", "load_checkpoint", "restore", "save_checkpoint"]

@@ -1,0 +1,70 @@
+"""Training configuration: frozen dataclasses, saved as JSON beside every checkpoint."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields, replace
+
+from drivingscene.models.model import ModelConfig
+
+STAGES = ("static", "dynamic", "joint")
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """The paper's weights. Stage 1: 0.1 L_loc + 0.001 L_smooth + 0.01 L_render;
+    stage 2: 0.02 L_warp + 1e-5 L_consist + 0.01 L_render."""
+
+    loc: float = 0.1
+    smooth: float = 0.001
+    render: float = 0.01
+    warp: float = 0.02
+    consist: float = 1e-5
+    render_lpips: float = 0.05  # inside L_render: L2 + 0.05 LPIPS
+    warp_ssim: float = 0.1  # inside L_warp: L1 + 0.1 SSIM + 0.05 LPIPS
+    warp_lpips: float = 0.05
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    stage: str = "static"
+    data: str = ""  # folder of pair_*.npz (drivingscene synth --split train)
+    val_data: str = ""  # folder for periodic validation ("" = none)
+    out: str = "runs/static"
+    init: str = ""  # weights to start from (stage 2 starts from stage 1's)
+    steps: int = 10000
+    lr: float = 1e-4
+    batch_pairs: int = 1  # frame pairs per step and process (the paper: batch 1)
+    seed: int = 0
+    threads: int = 2
+    amp: bool = True  # bf16 autocast for the networks (the rasterizer stays float32)
+    lpips: str = "auto"  # perceptual metric: auto | lpips | stlpips
+    render_every: int = 1  # L_render on every n-th step (it is the most expensive term)
+    log_every: int = 10
+    val_every: int = 500
+    val_pairs: int = 8
+    ckpt_every: int = 100
+    keep_checkpoints: int = 2
+    weights: LossWeights = field(default_factory=LossWeights)
+    model: ModelConfig = field(default_factory=ModelConfig)
+
+    def __post_init__(self):
+        if self.stage not in STAGES:
+            raise ValueError(f"stage: expected one of {STAGES}, found {self.stage!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TrainConfig:
+        data = dict(data)
+        weights = LossWeights(**data.pop("weights", {}))
+        model = ModelConfig.from_dict(data.pop("model", {}))
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known}, weights=weights, model=model)
+
+    def with_overrides(self, **kwargs) -> TrainConfig:
+        return replace(self, **{k: v for k, v in kwargs.items() if v is not None})

@@ -1,0 +1,43 @@
+"""Training data: a folder of frame-pair files, visited in a seeded order that depends only on
+(seed, epoch), so a resumed run sees the same sequence without saved iterator state."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from drivingscene.data.frame_pair import load_frame_pair
+from drivingscene.data.tensors import PairTensors, pair_to_tensors
+from drivingscene.errors import InputError
+
+
+def list_pairs(folder: str | Path) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: expected a folder of pair_*.npz files (drivingscene synth --split train --out DIR)")
+    files = sorted(folder.glob("pair_*.npz"))
+    if not files:
+        raise InputError(f"{folder}: expected pair_*.npz files, found none")
+    return files
+
+
+class PairSequence:
+    """Infinite, deterministic sequence of pairs for one process of a (possibly distributed) run."""
+
+    def __init__(self, files: list[Path], seed: int, rank: int = 0, world: int = 1):
+        self.files = files
+        self.seed = seed
+        self.rank = rank
+        self.world = world
+
+    def index(self, step: int, slot: int = 0, per_step: int = 1) -> int:
+        """File index for a global step (each step consumes world * per_step files)."""
+        n = len(self.files)
+        position = (step * self.world + self.rank) * per_step + slot
+        epoch, offset = divmod(position, n)
+        order = np.random.default_rng([self.seed, epoch]).permutation(n)
+        return int(order[offset])
+
+    def get(self, step: int, slot: int = 0, per_step: int = 1) -> PairTensors:
+        return pair_to_tensors(load_frame_pair(self.files[self.index(step, slot, per_step)]))

@@ -1,0 +1,171 @@
+"""One training step per stage, as an ``nn.Module`` whose forward returns the loss (so it can be
+wrapped in DistributedDataParallel).
+
+- static:  D and P on both keyframes. L_loc reprojects every image from the same camera at the
+  other keyframe (temporal) and from its neighbouring cameras at the same time (spatial).
+  L_render renders Gaussians into views they did not come from: the intermediate frame of the
+  training pair when it has one, else the other keyframe.
+- dynamic: D and P frozen; R on the rigid flow. L_warp and L_consist on the total flow, L_render
+  of Gaussians moved by the lifted flow to the intermediate time (or to the other keyframe).
+- joint:   everything trained together from the start (the single-stage ablation).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from drivingscene.data.tensors import PairTensors
+from drivingscene.geometry.flow import backward_warp, rigid_flow
+from drivingscene.geometry.se3 import invert_rigid
+from drivingscene.methods.oracle import fit_sky_from_pixels
+from drivingscene.models.model import DrivingSceneModel
+from drivingscene.models.pipeline import (
+    LiftConfig,
+    StaticPrediction,
+    assemble,
+    lift_scene_flow,
+    predict_flow,
+    predict_static,
+    sky_mask,
+)
+from drivingscene.render.scene import render_gaussians
+from drivingscene.train.config import TrainConfig
+from drivingscene.train.losses import consistency_loss, render_loss, reprojection_loss, smoothness_loss, warp_loss
+
+# Lift every consistent pixel while training so L_render reaches R everywhere; inference gates
+# small residuals to static (LiftConfig default).
+TRAIN_LIFT = LiftConfig(dynamic_threshold_px=0.0)
+
+
+def neighbour_views(cam_to_ego: Tensor) -> list[tuple[int, int]]:
+    """For each camera, its left and right neighbours by viewing yaw (empty for one camera)."""
+    axis = cam_to_ego[:, :3, 2]
+    order = torch.atan2(axis[:, 1], axis[:, 0]).argsort().tolist()
+    n = len(order)
+    out = [(-1, -1)] * n
+    for i, v in enumerate(order):
+        out[v] = (order[(i - 1) % n], order[(i + 1) % n])
+    return out if n > 1 else []
+
+
+def _source_sets(batch: PairTensors) -> list[tuple[Tensor, Tensor]]:
+    """Per source kind, (keyframe index [2V], camera index [2V]) of the source of each target."""
+    num_views = batch.num_views
+    kf = torch.arange(2).repeat_interleave(num_views)
+    cam = torch.arange(num_views).repeat(2)
+    sets = [(1 - kf, cam)]  # temporal
+    neighbours = neighbour_views(batch.cam_to_ego)
+    for side in range(2 if neighbours else 0):
+        sets.append((kf, torch.tensor([neighbours[v][side] for v in cam.tolist()])))
+    return sets
+
+
+class TrainStep(nn.Module):
+    def __init__(self, model: DrivingSceneModel, config: TrainConfig, perceptual: nn.Module | None):
+        super().__init__()
+        self.model = model
+        self.config = config
+        self.perceptual = perceptual
+
+    def forward(self, batch: PairTensors, step: int) -> tuple[Tensor, dict[str, Tensor]]:
+        stage = self.config.stage
+        amp = torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.config.amp)
+        terms: dict[str, Tensor] = {}
+        if stage == "dynamic":
+            self.model.depth_net.eval()
+            self.model.gaussian_head.eval()
+            with torch.no_grad(), amp:
+                static = predict_static(self.model, batch)
+        else:
+            with amp:
+                static = predict_static(self.model, batch)
+            terms.update(self.static_terms(static, batch, step))
+        if stage != "static":
+            terms.update(self.dynamic_terms(static, batch, step, amp))
+        w = self.config.weights
+        weight = {"loc": w.loc, "smooth": w.smooth, "render": w.render, "warp": w.warp, "consist": w.consist}
+        loss = sum(weight[k] * v for k, v in terms.items() if k in weight)
+        return loss, terms
+
+    # -- stage 1 ---------------------------------------------------------------------------
+    def static_terms(self, static: StaticPrediction, batch: PairTensors, step: int) -> dict[str, Tensor]:
+        out_depths = static.depth_output.depths
+        targets = batch.images.flatten(0, 1).float()  # [2V, 3, H, W]
+        loc = sum(self.location_loss(d.unflatten(0, (2, batch.num_views)), batch, targets) for d in out_depths) / len(out_depths)
+        smooth = sum(
+            smoothness_loss(disp.float(), targets) / (2**s) for s, disp in enumerate(static.depth_output.disparities)
+        )
+        terms = {"loc": loc, "smooth": smooth}
+        if step % self.config.render_every == 0:
+            terms["render"] = self.render_term(static, batch, step, scene_flow=None)
+        return terms
+
+    def location_loss(self, depth: Tensor, batch: PairTensors, targets: Tensor) -> Tensor:
+        """L_loc for all 2V targets with depth ``[2, V, H, W]``."""
+        c2l = batch.cam_to_local.flatten(0, 1)  # [2V, 4, 4]
+        k = batch.intrinsics.repeat(2, 1, 1)
+        num_views = batch.num_views
+        warped, valid, identity = [], [], []
+        for i, (src_kf, src_cam) in enumerate(_source_sets(batch)):
+            src = src_kf * num_views + src_cam
+            flow, z = rigid_flow(depth.flatten(0, 1).float(), k, c2l, c2l[src], dst_intrinsics=k[src])
+            image, inside = backward_warp(targets[src], flow)
+            warped.append(image)
+            valid.append(inside & (z > 0.1))
+            if i == 0:
+                identity.append(targets[src])
+        loss, _ = reprojection_loss(targets, warped, valid, identity)
+        return loss
+
+    # -- rendering, both stages --------------------------------------------------------------
+    def render_term(self, static: StaticPrediction, batch: PairTensors, step: int, scene_flow: Tensor | None) -> Tensor:
+        """Gaussians rendered into views they did not come from (module docstring)."""
+        ref_focal = self.model.config.depth.ref_focal
+        sky = sky_mask(static.depth, batch.intrinsics, ref_focal, TRAIN_LIFT)
+        height, width = batch.image_size
+        with torch.no_grad():
+            sky_sh = fit_sky_from_pixels(batch.images, sky, batch.cam_to_local.double(), batch.intrinsics)
+        if batch.eval_images is not None and step % 2 == 0:
+            m = step // 2 % batch.eval_images.shape[0]
+            gaussians = assemble(static, batch, sky, scene_flow)
+            t, cams, target = batch.eval_times[m], batch.eval_cam_to_local[m], batch.eval_images[m]
+        else:
+            k = step // 2 % 2  # render keyframe k from the other keyframe's Gaussians
+            gaussians = assemble(static, batch, sky, scene_flow, keyframes=(1 - k,))
+            t, cams, target = float(k), batch.cam_to_local[k], batch.images[k]
+        out = render_gaussians(gaussians, t, invert_rigid(cams), batch.intrinsics, height, width, sky_sh=sky_sh)
+        pred = out.colors.permute(0, 3, 1, 2).clamp(0, 1)
+        return render_loss(pred, target, self.perceptual, self.config.weights.render_lpips)
+
+    # -- stage 2 ---------------------------------------------------------------------------
+    def dynamic_terms(self, static: StaticPrediction, batch: PairTensors, step: int, amp) -> dict[str, Tensor]:
+        depth = static.depth.float()
+        with amp:
+            flow = predict_flow(self.model, batch, depth)
+        targets = batch.images.flatten(0, 1)
+        sources = batch.images.flip(0).flatten(0, 1)
+        w = self.config.weights
+        levels = len(flow.residuals)
+        warp = 0.0
+        for level, residual in enumerate(flow.residuals):
+            total = (flow.rigid + residual).flatten(0, 1)
+            warped, inside = backward_warp(sources, total)
+            finest = level == levels - 1
+            lpips = self.perceptual if finest else None
+            warp = warp + warp_loss(warped, targets, inside, lpips, w.warp_ssim, w.warp_lpips) / 2 ** (levels - 1 - level)
+        total = flow.total
+        consist = consistency_loss(total[0], total[1]) + consistency_loss(total[1], total[0])
+        terms = {"warp": warp, "consist": consist}
+        if step % self.config.render_every == 0:
+            sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
+            scene_flow, _ = lift_scene_flow(depth, total, flow.residual, sky, batch, TRAIN_LIFT)
+            terms["render"] = self.render_term(static, batch, step, scene_flow)
+        terms["residual_px"] = flow.residual.detach().norm(dim=-1).mean()
+        return terms
+
+
+def is_finite(loss: Tensor) -> bool:
+    return bool(torch.isfinite(loss).item()) and not math.isnan(float(loss))

@@ -1,0 +1,149 @@
+"""The training loop: seeded, resumable, optionally distributed (torchrun, gloo on CPU).
+
+    drivingscene train --stage static  --data DIR --out runs/static
+    drivingscene train --stage dynamic --data DIR --out runs/dynamic --init runs/static/model.safetensors
+    torchrun --nproc-per-node 2 -m drivingscene train ...   (DistributedDataParallel)
+
+Every ``ckpt_every`` steps the weights, optimiser state and RNG state are saved atomically
+(safetensors + JSON); ``--resume`` continues from the last complete checkpoint after a kill.
+Logs are JSON lines in ``OUT/log.jsonl``; the resolved config is ``OUT/config.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from tqdm import tqdm
+
+from drivingscene.data.npz import atomic_write
+from drivingscene.errors import InputError
+from drivingscene.models.model import DrivingSceneModel
+from drivingscene.train.checkpoint import export_weights, load_checkpoint, restore, save_checkpoint
+from drivingscene.train.config import TrainConfig
+from drivingscene.train.data import PairSequence, list_pairs
+from drivingscene.train.stages import TrainStep, is_finite
+from drivingscene.train.validate import validate
+
+log = logging.getLogger(__name__)
+MAX_BAD_STEPS = 20
+
+
+def _distributed() -> tuple[int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("gloo")
+    return (dist.get_rank(), world) if world > 1 else (0, 1)
+
+
+def _trainable(model: DrivingSceneModel, stage: str) -> list[torch.nn.Parameter]:
+    frozen = {"static": (model.flow_net,), "dynamic": (model.depth_net, model.gaussian_head), "joint": ()}[stage]
+    for module in (model.depth_net, model.gaussian_head, model.flow_net):
+        module.requires_grad_(module not in frozen)
+    return [p for p in model.parameters() if p.requires_grad]
+
+
+def _load_init(model: DrivingSceneModel, path: str) -> None:
+    from safetensors.torch import load_file
+
+    try:
+        state = load_file(path)
+    except (OSError, ValueError) as e:
+        raise InputError(f"{path}: --init: expected a .safetensors weights file: {e}") from None
+    state = {k[len("model.model."):] if k.startswith("model.model.") else k: v for k, v in state.items()}
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if unexpected or len(missing) == len(model.state_dict()):
+        raise InputError(f"{path}: --init: weights do not match the model ({len(unexpected)} unexpected tensors)")
+
+
+def _prepare_out(config: TrainConfig, resume: bool, rank: int):
+    out = Path(config.out)
+    ckpt = load_checkpoint(out) if resume else None
+    if resume and ckpt is None:
+        raise InputError(f"{out}: --resume: no checkpoint there (latest.json missing)")
+    if not resume and (out / "latest.json").exists():
+        raise InputError(f"{out}: a run is already there; pass --resume to continue it or choose another --out")
+    if ckpt is not None:
+        saved = TrainConfig.from_dict(json.loads((out / "config.json").read_text()))
+        if saved.model != config.model or saved.stage != config.stage:
+            raise InputError(f"{out}/config.json: --resume: the saved stage/model config differs from this command's")
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write(out / "config.json", lambda f: f.write(config.to_json().encode()))
+    return out, ckpt
+
+
+def train(config: TrainConfig, resume: bool = False, show_progress: bool = True) -> Path:
+    """Run (or resume) a training job; returns the exported weights path."""
+    rank, world = _distributed()
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed + rank)
+    out, ckpt = _prepare_out(config, resume, rank)
+    model = DrivingSceneModel(config.model)
+    if config.init and ckpt is None:
+        _load_init(model, config.init)
+    params = _trainable(model, config.stage)
+    from drivingscene.eval.lpips import load_perceptual
+
+    perceptual = load_perceptual(config.lpips)
+    step_module = TrainStep(model, config, perceptual)
+    runner = step_module
+    if world > 1:
+        runner = torch.nn.parallel.DistributedDataParallel(step_module, find_unused_parameters=True)
+    optimizer = torch.optim.Adam(params, lr=config.lr)
+    start = restore(model, optimizer, *ckpt) if ckpt is not None else 0
+    data = PairSequence(list_pairs(config.data), config.seed, rank, world)
+    val_files = list_pairs(config.val_data)[: config.val_pairs] if config.val_data and rank == 0 else []
+    info = {"stage": config.stage, "lpips": perceptual.name, "world": world}
+    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, disable=not show_progress or rank != 0, desc=config.stage)
+    bad = 0
+    for step in bar:
+        model.train()
+        tic = time.perf_counter()
+        optimizer.zero_grad(set_to_none=True)
+        loss_sum, terms_sum = 0.0, {}
+        for slot in range(config.batch_pairs):
+            loss, terms = runner(data.get(step, slot, config.batch_pairs), step)
+            if not is_finite(loss):
+                break
+            (loss / config.batch_pairs).backward()
+            loss_sum += float(loss) / config.batch_pairs
+            for k, v in terms.items():
+                terms_sum[k] = terms_sum.get(k, 0.0) + float(v) / config.batch_pairs
+        if not is_finite(torch.tensor(loss_sum)) or len(terms_sum) == 0:
+            bad += 1
+            log.warning("step %d: non-finite loss, skipped (%d in a row)", step, bad)
+            if bad >= MAX_BAD_STEPS:
+                raise RuntimeError(f"training diverged: {bad} non-finite steps in a row at step {step}")
+            continue
+        bad = 0
+        torch.nn.utils.clip_grad_norm_(params, 10.0)
+        optimizer.step()
+        seconds = time.perf_counter() - tic
+        if rank == 0:
+            _after_step(config, out, model, optimizer, step + 1, loss_sum, terms_sum, seconds, info, val_files, bar)
+    if rank == 0:
+        save_checkpoint(out, config.steps, model, optimizer, info, config.keep_checkpoints)
+        path = export_weights(model, config.model.to_dict(), out / "model.safetensors", {**info, "steps": config.steps})
+    if world > 1:
+        dist.barrier()
+        dist.destroy_process_group()
+    return out / "model.safetensors"
+
+
+def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info, val_files, bar) -> None:
+    record = {"step": step, "loss": loss, "seconds": round(seconds, 3), **{k: round(v, 6) for k, v in terms.items()}}
+    if step % config.val_every == 0 and val_files:
+        record["val"] = validate(model, val_files, config)
+        model.train()
+    if step % config.log_every == 0 or "val" in record:
+        with open(out / "log.jsonl", "a") as f:
+            f.write(json.dumps(record) + "\n")
+        bar.set_postfix(loss=f"{loss:.4f}", s_per_step=f"{seconds:.2f}")
+    if step % config.ckpt_every == 0:
+        save_checkpoint(out, step, model, optimizer, info, config.keep_checkpoints)

@@ -1,0 +1,97 @@
+"""Each loss against its definition on constructed inputs."""
+
+from __future__ import annotations
+
+import torch
+
+from drivingscene.train.losses import (
+    consistency_loss,
+    photometric_error,
+    render_loss,
+    reprojection_loss,
+    smoothness_loss,
+    warp_loss,
+)
+
+
+def _image(seed=0, h=16, w=20):
+    return torch.rand(1, 3, h, w, generator=torch.Generator().manual_seed(seed))
+
+
+def test_photometric_error_is_zero_for_identical_and_grows_with_difference():
+    a = _image()
+    assert photometric_error(a, a).abs().max() < 1e-5
+    small = photometric_error((a + 0.05).clamp(0, 1), a).mean()
+    large = photometric_error((a + 0.3).clamp(0, 1), a).mean()
+    assert 0 < small < large
+
+
+def test_reprojection_takes_the_best_valid_source_per_pixel():
+    target = _image(0)
+    good, bad = target.clone(), _image(1)
+    ones = torch.ones(1, 16, 20, dtype=torch.bool)
+    loss, used = reprojection_loss(target, [bad, good], [ones, ones])
+    assert loss < 1e-4 and used.all()
+    # The good source is invalid on the left half: those pixels must use the bad source.
+    left = ones.clone()
+    left[..., :10] = False
+    loss_left, _ = reprojection_loss(target, [bad, good], [ones, left])
+    expected = photometric_error(bad, target)[..., :10].sum() / (16 * 20)
+    torch.testing.assert_close(loss_left, expected, rtol=1e-4, atol=1e-6)
+
+
+def test_automask_drops_pixels_an_unwarped_source_explains():
+    target = _image(0)
+    warped = (target + 0.2).clamp(0, 1)
+    ones = torch.ones(1, 16, 20, dtype=torch.bool)
+    _, used = reprojection_loss(target, [warped], [ones], identity=[target.clone()])
+    assert not used.any()  # the identity matches perfectly everywhere: nothing to learn from
+    _, used = reprojection_loss(target, [warped], [ones], identity=[_image(3)])
+    assert used.float().mean() > 0.5
+
+
+def test_no_valid_source_gives_zero_loss_not_nan():
+    target = _image()
+    loss, used = reprojection_loss(target, [_image(1)], [torch.zeros(1, 16, 20, dtype=torch.bool)])
+    assert loss == 0 and not used.any()
+
+
+def test_smoothness_prefers_depth_edges_at_image_edges():
+    image = torch.zeros(1, 3, 16, 20)
+    image[..., 10:] = 1.0  # an image edge between columns 9 and 10
+    flat = torch.ones(1, 1, 16, 20)
+    aligned = flat.clone()
+    aligned[..., 10:] = 2.0
+    misaligned = flat.clone()
+    misaligned[..., 5:] = 2.0
+    assert smoothness_loss(flat, image) < 1e-6
+    assert smoothness_loss(aligned, image) < smoothness_loss(misaligned, image)
+
+
+def test_render_loss_is_l2_without_perceptual_term():
+    a, b = _image(0), _image(1)
+    torch.testing.assert_close(render_loss(a, b, None), (a - b).square().mean())
+
+
+def test_render_loss_adds_weighted_perceptual_term():
+    a, b = _image(0), _image(1)
+    fake = lambda x, y: torch.full((x.shape[0],), 2.0)  # noqa: E731
+    torch.testing.assert_close(render_loss(a, b, fake, 0.05), (a - b).square().mean() + 0.1)
+
+
+def test_warp_loss_ignores_invalid_pixels():
+    target = _image(0)
+    warped = target.clone()
+    warped[..., :8, :] = 1 - warped[..., :8, :]
+    valid = torch.ones(1, 16, 20, dtype=torch.bool)
+    valid[:, :8] = False
+    # Only the 3x3 SSIM windows straddling the mask border see the invalid rows.
+    assert warp_loss(warped, target, valid, None) < 0.01
+    assert warp_loss(warped, target, torch.ones_like(valid), None) > 0.1
+
+
+def test_consistency_loss_zero_for_inverse_flows_and_positive_otherwise():
+    fw = torch.zeros(1, 12, 16, 2)
+    fw[..., 0] = 2.0
+    assert consistency_loss(fw, -fw) < 1e-6
+    torch.testing.assert_close(consistency_loss(fw, fw), torch.tensor(4.0))
