@@ -185,29 +185,100 @@ def composite(
     num_cams, channels = backgrounds.shape
     used = int((pair_ids >= 0).sum(1).max()) if pair_ids.numel() else 0
     pair_ids = pair_ids[:, : max(used, 1)].long()  # drop layers no pixel uses
-    valid = pair_ids >= 0
     packed = torch.cat([means2d, conics, opacities[:, None], depths[:, None], colors], dim=1)  # [M, 7 + C]
     if packed.shape[0] == 0:
         packed = packed.new_zeros(1, packed.shape[1])
-    g = packed[pair_ids.clamp(min=0)]  # [P, L, 7 + C]
-    v, u = torch.meshgrid(
-        torch.arange(height, dtype=packed.dtype), torch.arange(width, dtype=packed.dtype), indexing="ij"
-    )
-    u = u.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)  # [P, 1]
-    v = v.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)
-    sigma = _half_sq_mahalanobis(u - g[..., 0], v - g[..., 1], g[..., 2:5])  # [P, L]
-    alpha = torch.clamp(g[..., 5] * torch.exp(-sigma), max=MAX_ALPHA)
-    alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
-    trans = torch.cumprod(1.0 - alpha, dim=1)  # [P, L] transmittance after each layer
-    weights = alpha * torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
-    weight_sum = weights.sum(1)  # [P]
-    bg = backgrounds[:, None, :].expand(num_cams, height * width, channels).reshape(-1, channels)
-    rgb = (weights[..., None] * g[..., 7:]).sum(1) + trans[:, -1:] * bg  # [P, C]
-    depth_sum = (weights * g[..., 6]).sum(1)
-    has = weight_sum >= MIN_WEIGHT_SUM
-    depth = torch.where(has, depth_sum / torch.where(has, weight_sum, torch.ones_like(weight_sum)), torch.zeros_like(depth_sum))
+    rgb, depth, alpha = _Composite.apply(packed, backgrounds, pair_ids, width, height)
     return (
         rgb.reshape(num_cams, height, width, channels),
         depth.reshape(num_cams, height, width),
-        weight_sum.reshape(num_cams, height, width),
+        alpha.reshape(num_cams, height, width),
     )
+
+
+class _Composite(torch.autograd.Function):
+    """Front-to-back compositing over ``[P, L]`` gathered splats with a hand-written backward.
+
+    Backward (Kerbl et al. 2023, supplementary; ``v_k = dL/dw_k``, ``T_k`` transmittance before k):
+    ``dL/dalpha_k = v_k T_k - (sum_{j>k} v_j w_j + (dL/drgb . bg) T_L) / (1 - alpha_k)``.
+    """
+
+    @staticmethod
+    def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int):
+        g = _gather(packed, backgrounds, pair_ids, width, height)
+        trans = torch.cumprod(1.0 - g.alpha, dim=1)  # [P, L] after each layer
+        trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+        weights = g.alpha * trans_before
+        weight_sum = weights.sum(1)  # [P]
+        rgb = torch.stack([(weights * c).sum(1) for c in g.colors], dim=-1) + trans[:, -1:] * g.bg  # [P, C]
+        has = weight_sum >= MIN_WEIGHT_SUM
+        depth = torch.where(has, (weights * g.z).sum(1) / torch.where(has, weight_sum, torch.ones_like(weight_sum)), 0.0)
+        ctx.save_for_backward(packed, backgrounds, pair_ids, trans_before, trans[:, -1], depth)
+        ctx.size = (width, height)
+        return rgb, depth, weight_sum
+
+    @staticmethod
+    def backward(ctx, grad_rgb: Tensor, grad_depth: Tensor, grad_alpha: Tensor):
+        packed, backgrounds, pair_ids, trans_before, trans_final, depth = ctx.saved_tensors
+        g = _gather(packed, backgrounds, pair_ids, *ctx.size)
+        weights = g.alpha * trans_before  # [P, L]
+        weight_sum = weights.sum(1)
+        has = weight_sum >= MIN_WEIGHT_SUM
+        grad_d = torch.where(has, grad_depth / torch.where(has, weight_sum, torch.ones_like(weight_sum)), 0.0)
+        # dL/dw_k: colour, expected depth (z_k - D) / S and alpha (sum of w) terms.
+        v = grad_alpha[:, None] + grad_d[:, None] * (g.z - depth[:, None])
+        for ch, c in enumerate(g.colors):
+            v = v + grad_rgb[:, ch : ch + 1] * c
+        vw = v * weights
+        behind = torch.cumsum(vw.flip(1), dim=1).flip(1) - vw  # sum over j > k of v_j w_j
+        behind = behind + ((grad_rgb * g.bg).sum(-1) * trans_final)[:, None]
+        grad_alpha_k = v * trans_before - behind / (1.0 - g.alpha)
+        grad_raw = torch.where(g.passes, grad_alpha_k, 0.0)  # clamp at 0.99 and empty slots stop gradients
+        grad_sigma = -grad_raw * g.raw
+        grads = [
+            -grad_sigma * (g.ca * g.dx + g.cb * g.dy),  # mean x
+            -grad_sigma * (g.cb * g.dx + g.cc * g.dy),  # mean y
+            0.5 * grad_sigma * g.dx * g.dx,  # conic a
+            grad_sigma * g.dx * g.dy,  # conic b
+            0.5 * grad_sigma * g.dy * g.dy,  # conic c
+            grad_raw * g.raw_over_opacity,  # opacity
+            weights * grad_d[:, None],  # depth
+        ] + [weights * grad_rgb[:, ch : ch + 1] for ch in range(len(g.colors))]
+        grad_packed = torch.zeros_like(packed).index_add_(0, pair_ids.clamp(min=0).reshape(-1), torch.stack(grads, -1).flatten(0, 1))
+        num_cams, channels = backgrounds.shape
+        grad_bg = (grad_rgb * trans_final[:, None]).reshape(num_cams, -1, channels).sum(1)
+        return grad_packed, grad_bg, None, None, None
+
+
+@dataclass(frozen=True)
+class _Gathered:
+    """Per (pixel, layer) quantities ``[P, L]`` recomputed by forward and backward."""
+
+    dx: Tensor
+    dy: Tensor
+    ca: Tensor
+    cb: Tensor
+    cc: Tensor
+    z: Tensor
+    colors: list  # C tensors [P, L]
+    raw: Tensor  # opacity * exp(-sigma)
+    raw_over_opacity: Tensor  # exp(-sigma)
+    alpha: Tensor  # min(raw, 0.99), 0 in empty slots
+    passes: Tensor  # bool: slot used and raw <= 0.99 (alpha has a gradient)
+    bg: Tensor  # [P, C] background of each pixel
+
+
+def _gather(packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int) -> _Gathered:
+    valid = pair_ids >= 0
+    rows = packed.index_select(0, pair_ids.clamp(min=0).reshape(-1)).view(*pair_ids.shape, -1)  # [P, L, 7 + C]
+    mx, my, ca, cb, cc, opac, z, *colors = rows.unbind(-1)
+    num_cams, channels = backgrounds.shape
+    v, u = torch.meshgrid(torch.arange(height, dtype=packed.dtype), torch.arange(width, dtype=packed.dtype), indexing="ij")
+    u = u.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)  # [P, 1]
+    v = v.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)
+    dx, dy = u - mx, v - my
+    e = torch.exp(-(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy))
+    raw = opac * e
+    alpha = torch.where(valid, torch.clamp(raw, max=MAX_ALPHA), 0.0)
+    bg = backgrounds[:, None, :].expand(num_cams, height * width, channels).reshape(-1, channels)
+    return _Gathered(dx, dy, ca, cb, cc, z, colors, raw, e, alpha, valid & (raw <= MAX_ALPHA), bg)

@@ -3,7 +3,8 @@
 Culling happens once, without grad, over all ``B x N`` pairs (``project.py`` rules plus opacity
 < 1/255, which can never contribute); the ``M`` survivors are then projected again with grad so that
 autograd only sees Gaussians that can reach a pixel. Sorting is by camera, then camera-space ``z`` of
-the centre, ties broken by Gaussian index (a stable sort), which is the compositing order.
+the centre (evaluated in float64 whatever the input dtype), ties broken by Gaussian index (a stable
+sort), which is the compositing order.
 """
 
 from __future__ import annotations
@@ -65,7 +66,10 @@ def make_splats(
         full = project_covariances(means[None], covars[None], viewmats[:, None], Ks[:, None], width, height, **kw)
         visible = (full.radii > 0) & (opacities >= MIN_ALPHA)[None]  # [B, N]
         cam_ids, gs_ids = visible.nonzero(as_tuple=True)
-        order = torch.sort(full.depths[cam_ids, gs_ids], stable=True).indices
+        # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a
+        # fronto-parallel wall, a ground-plane row) does not depend on float32 rounding.
+        z64 = means.detach().double() @ viewmats[:, 2, :3].detach().double().T + viewmats[:, 2, 3].detach().double()  # [N, B]
+        order = torch.sort(z64[gs_ids, cam_ids], stable=True).indices
         order = order[torch.sort(cam_ids[order], stable=True).indices]
         cam_ids, gs_ids = cam_ids[order], gs_ids[order]
         counts = torch.bincount(cam_ids, minlength=num_cams)

@@ -1,0 +1,72 @@
+"""Backend choice, the optional C++ build (and its fallback), and torch/C++ agreement at full size."""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import pytest
+import torch
+
+from drivingscene.bench.raster_speed import surround_scene
+from drivingscene.errors import InputError
+from drivingscene.render import cpp, rasterize
+from drivingscene.render.composite import find_pairs_cpp, find_pairs_torch, pair_inputs
+from drivingscene.render.rasterize import choose_backend
+from drivingscene.render.splats import make_splats
+
+
+def test_torch_and_cpp_choose_identical_pairs_and_images_at_full_size(cpp_op):
+    scene = surround_scene(96, 176)  # 6 views, ~101k Gaussians
+    kw = dict(sh_degree=None, near=0.01, far=1e10, eps2d=0.3)
+    s = make_splats(**{k: v for k, v in scene.items()}, **kw)
+    inp = pair_inputs(s.means2d, s.conics, s.opacities, s.camera_offsets, 176, 96)
+    for max_layers in (8, 32):
+        ids_cpp = find_pairs_cpp(cpp_op, inp, 176, 96, max_layers)
+        ids_torch = find_pairs_torch(inp, 176, 96, max_layers)
+        assert ids_cpp.shape == ids_torch.shape == (6 * 96 * 176, max_layers)
+        assert (ids_cpp >= 0).sum() > 6 * 96 * 176 * max_layers // 2
+        assert torch.equal(ids_cpp, ids_torch)
+    a = rasterize(**scene, backend="cpp")
+    b = rasterize(**scene, backend="torch")
+    assert torch.equal(a.colors, b.colors) and torch.equal(a.depths, b.depths) and torch.equal(a.alphas, b.alphas)
+
+
+def test_auto_uses_cpp_when_built_and_torch_otherwise(cpp_op, monkeypatch):
+    means = torch.zeros(1, 3)
+    assert choose_backend("auto", means) == "cpp"
+    monkeypatch.setattr(cpp, "load_extension", lambda: None)
+    assert choose_backend("auto", means) == "torch"
+    with pytest.raises(InputError, match="could not be built"):
+        choose_backend("cpp", means)
+
+
+def test_failed_build_logs_a_warning_and_returns_none(tmp_path, monkeypatch, caplog):
+    broken = tmp_path / "broken.cpp"
+    broken.write_text('#error "deliberately broken"\n')
+    monkeypatch.setattr(cpp, "SOURCES", (broken,))
+    with caplog.at_level(logging.WARNING, logger="drivingscene.render.cpp"):
+        assert cpp.build_extension(tmp_path / "build") is None
+    assert "pure-torch path" in caplog.text
+
+
+def test_missing_source_and_env_switch_disable_the_compiled_path(tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(cpp, "SOURCES", (tmp_path / "absent.cpp",))
+    with caplog.at_level(logging.WARNING, logger="drivingscene.render.cpp"):
+        assert cpp.build_extension(tmp_path / "build") is None
+    assert "not installed" in caplog.text
+    monkeypatch.setenv("DRIVINGSCENE_NO_CPP", "1")
+    cpp.load_extension.cache_clear()
+    try:
+        assert cpp.load_extension() is None
+    finally:
+        monkeypatch.delenv("DRIVINGSCENE_NO_CPP")
+        cpp.load_extension.cache_clear()
+
+
+def test_gsplat_is_never_chosen_or_imported_on_cpu():
+    means = torch.zeros(1, 3)
+    assert choose_backend("auto", means) in ("cpp", "torch")
+    with pytest.raises(InputError, match="gsplat"):
+        choose_backend("gsplat", means)
+    assert "gsplat" not in sys.modules
