@@ -40,6 +40,7 @@ class FramePair:
     eval_images: np.ndarray | None = None  # [M, V, H, W, 3] uint8
     eval_timestamps: np.ndarray | None = None  # [M] float64, seconds
     eval_ego_to_world: np.ndarray | None = None  # [M, 4, 4] float64
+    eval_dynamic: np.ndarray | None = None  # [M, V, H, W] bool
 
     @property
     def num_views(self) -> int:

@@ -41,6 +41,7 @@ OPTIONAL = {
     "eval_images": KeySpec("uint8", ("M", "V", "H", "W", 3), "intermediate frames"),
     "eval_timestamps": KeySpec("float64", ("M",), "intermediate times"),
     "eval_ego_to_world": KeySpec("float64", ("M", 4, 4), "ego poses at intermediate times"),
+    "eval_dynamic": KeySpec("bool", ("M", "V", "H", "W"), "moving-object mask at intermediate times"),
 }
 REQUIRED_KEYS = tuple(REQUIRED)
 OPTIONAL_KEYS = tuple(OPTIONAL)
@@ -210,6 +211,8 @@ def check_header(arrays: dict[str, np.ndarray], name: str, version: int, source:
 def validate_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> list[Problem]:
     """Every problem of a frame pair given as a dict of arrays (as read from the file)."""
     problems, dims = check_keys(arrays, REQUIRED, OPTIONAL, source)
+    if "eval_dynamic" in arrays and "eval_images" not in arrays:
+        problems.append(Problem(source, "eval_dynamic", "present only with eval_images, eval_timestamps, eval_ego_to_world", "it alone"))
     present_eval = [k for k in EVAL_KEYS if k in arrays]
     if present_eval and len(present_eval) != len(EVAL_KEYS):
         for key in set(EVAL_KEYS) - set(present_eval):
