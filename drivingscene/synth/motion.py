@@ -92,6 +92,15 @@ class RoadFrame:
         h = self.heading(s)
         return f - np.asarray(d) * np.sin(h), l + np.asarray(d) * np.cos(h)
 
+    def to_sd(self, x: float, y: float) -> tuple[float, float]:
+        """Inverse of ``to_xy`` (within half a turn of the origin)."""
+        if abs(self.curvature) < 1e-12:
+            return float(x), float(y)
+        radius = 1.0 / self.curvature
+        sign = np.sign(radius)
+        theta = np.arctan2(sign * x, sign * (radius - y))
+        return float(theta / self.curvature), float(radius - sign * np.hypot(x, y - radius))
+
     def lane_path(self, d: float, s_start: float, forward: bool = True) -> Path:
         """The path along the lane at lateral offset ``d``, starting at ``s_start``, either direction."""
         x, y = self.to_xy(s_start, d)

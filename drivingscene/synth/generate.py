@@ -1,0 +1,92 @@
+"""Composition root: (config, seed) -> a ``FramePair`` with every ground-truth key."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivingscene.data import FramePair
+from drivingscene.synth.config import SynthConfig, eval_fractions, validate_config
+from drivingscene.synth.ground_truth import keyframe_truth
+from drivingscene.synth.render import SynthRenderer, View
+from drivingscene.synth.rig import Rig, make_rig
+from drivingscene.synth.scene import Scene, build_scene
+
+
+def scene_view(scene: Scene, rig: Rig, t: float) -> View:
+    """Camera and object poses at time t (seconds)."""
+    return View(scene.ego_to_world(t)[None] @ rig.cam_to_ego, scene.road_to_world, scene.agents_to_world(t))
+
+
+def shading_uniforms(scene: Scene, config: SynthConfig) -> dict:
+    light = scene.lighting
+    return {
+        "u_sun_dir": light.sun_dir, "u_sun_color": light.sun_color, "u_ambient": light.ambient,
+        "u_haze_color": light.sky_horizon, "u_haze_distance": light.haze_distance,
+        "u_texture": float(config.texture_strength), "u_ground_z": float(scene.road_to_world[2, 3]),
+        "u_zenith": light.sky_zenith, "u_horizon": light.sky_horizon, "u_cloud_cover": light.cloud_cover,
+        "u_cloud_offset": light.cloud_offset,
+    }
+
+
+def file_rig(config: SynthConfig) -> Rig:
+    """The rig as stored in the file (float32), used for rendering too so the file is exact."""
+    rig = make_rig(config.height, config.width)
+    return Rig(rig.camera_names, rig.intrinsics.astype(np.float32).astype(np.float64),
+               rig.cam_to_ego.astype(np.float32).astype(np.float64), rig.height, rig.width)
+
+
+def finish_images(colours: np.ndarray, fractions: list[float], config: SynthConfig, seed: int) -> np.ndarray:
+    """Exposure gain, noise and blackout on float images ``[T, V, H, W, 3]`` at normalised times
+    ``fractions``; returns uint8. Keyframe 1 gets gain ``exposure_change``, others interpolate."""
+    rng = np.random.default_rng([seed, 3])
+    out = np.empty(colours.shape, np.uint8)
+    for i, (image, frac) in enumerate(zip(colours, fractions)):
+        gain = 1.0 + (config.exposure_change - 1.0) * frac
+        value = image.astype(np.float64) * gain
+        if config.noise_std > 0:
+            value = value + rng.normal(0.0, config.noise_std, value.shape)
+        out[i] = np.round(np.clip(value, 0.0, 1.0) * 255.0).astype(np.uint8)
+    if config.blackout_camera is not None:
+        out[:, make_rig(8, 8).camera_names.index(config.blackout_camera)] = 0
+    return out
+
+
+def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None = None) -> FramePair:
+    """One frame pair of the benchmark with exact ground truth (deterministic in config and seed).
+
+    Pass a ``SynthRenderer`` to reuse its GL context and programs across pairs.
+    """
+    validate_config(config)
+    scene = build_scene(config, seed)
+    rig = file_rig(config)
+    renderer = renderer if renderer is not None else SynthRenderer()
+    t0, t1 = scene.keyframe_times
+    fractions = [0.0, 1.0, *eval_fractions(config.num_eval)]
+    times = [t0 + f * config.keyframe_gap for f in fractions]
+    views = [scene_view(scene, rig, t) for t in times]
+    size = (config.height, config.width)
+    gpu = renderer.upload(scene.static_vertices, [a.vertices for a in scene.agents])
+    try:
+        shading = shading_uniforms(scene, config)
+        colours = np.stack([renderer.render_color(gpu, v, rig.intrinsics, size, config.supersample, shading) for v in views])
+        buffers = [renderer.render_geometry(gpu, views[k], views[1 - k], rig.intrinsics, size) for k in (0, 1)]
+    finally:
+        gpu.release()
+    truths = [keyframe_truth(*buffers[k], rig.intrinsics, views[k].cams_to_world, views[1 - k].cams_to_world) for k in (0, 1)]
+    images = finish_images(colours, fractions, config, seed)
+    has_eval = config.num_eval > 0
+    return FramePair(
+        images=images[:2],
+        intrinsics=rig.intrinsics.astype(np.float32),
+        cam_to_ego=rig.cam_to_ego.astype(np.float32),
+        ego_to_world=np.stack([scene.ego_to_world(t0), scene.ego_to_world(t1)]),
+        timestamps=np.array([t0, t1], np.float64),
+        camera_names=rig.camera_names,
+        gt_depth=np.stack([t.depth for t in truths]),
+        gt_flow=np.stack([t.flow for t in truths]),
+        gt_scene_flow=np.stack([t.scene_flow for t in truths]),
+        gt_dynamic=np.stack([t.dynamic for t in truths]),
+        eval_images=images[2:] if has_eval else None,
+        eval_timestamps=np.array(times[2:], np.float64) if has_eval else None,
+        eval_ego_to_world=np.stack([scene.ego_to_world(t) for t in times[2:]]) if has_eval else None,
+    )

@@ -1,0 +1,68 @@
+"""Preview images of a generated pair: the 6 cameras at keyframe 0, the evaluation frames and
+keyframe 1, and the ground truth (depth, flow, dynamic mask) of a few cameras."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from drivingscene import viz
+from drivingscene.data import FramePair
+
+# Cameras left to right as a panorama seen from inside the car.
+PANORAMA = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT")
+
+
+def _order(pair: FramePair) -> list[int]:
+    names = list(pair.camera_names)
+    return [names.index(n) for n in PANORAMA if n in names] or list(range(pair.num_views))
+
+
+def camera_sheet(pair: FramePair) -> np.ndarray:
+    """Rows: keyframe 0, each evaluation frame, keyframe 1; columns: cameras (panorama order)."""
+    order = _order(pair)
+    frames = [(pair.images[0], "t0")]
+    for m in range(pair.num_eval):
+        frames.append((pair.eval_images[m], f"t={float(pair.normalised_time(pair.eval_timestamps[m])):.2f}"))
+    frames.append((pair.images[1], "t1"))
+    rows = [[images[v] for v in order] for images, _ in frames]
+    labels = [[f"{pair.camera_names[v]} {tag}" for v in order] for _, tag in frames]
+    return viz.contact_sheet(rows, labels)
+
+
+def ground_truth_sheet(pair: FramePair, cameras: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_BACK"),
+                       keyframe: int = 0) -> np.ndarray:
+    """Per camera (rows): image, inverse depth, flow keyframe 0->1 (colour wheel), dynamic mask, and
+    the flow legend at the end of the first row."""
+    names = list(pair.camera_names)
+    views = [names.index(c) for c in cameras if c in names]
+    flow = pair.gt_flow[keyframe]
+    scale = float(np.percentile(np.linalg.norm(flow[views], axis=-1), 99)) or 1.0
+    rows, labels = [], []
+    for v in views:
+        image = pair.images[keyframe, v]
+        rows.append([
+            image,
+            viz.depth_to_rgb(pair.gt_depth[keyframe, v], vmin=1.0, vmax=80.0),
+            viz.flow_to_rgb(flow[v], scale),
+            viz.mask_to_rgb(pair.gt_dynamic[keyframe, v], background=image),
+        ])
+        labels.append([names[v], "depth 1-80 m (inverse)", f"flow, max {scale:.0f} px", "dynamic"])
+    legend = viz.flow_legend(min(96, pair.image_size[0]))
+    rows[0].append(legend)
+    labels[0].append("")
+    for row, lab in zip(rows[1:], labels[1:]):
+        row.append(np.full_like(legend, 255))
+        lab.append("")
+    return viz.contact_sheet(rows, labels)
+
+
+def write_previews(pair: FramePair, folder: str | os.PathLike, prefix: str = "synth") -> list[Path]:
+    """Write ``<prefix>_contact_sheet.png`` and ``<prefix>_ground_truth.png`` into ``folder``."""
+    folder = Path(folder)
+    out = [viz.save_png(folder / f"{prefix}_contact_sheet.png", camera_sheet(pair))]
+    if pair.gt_depth is not None and pair.gt_flow is not None and pair.gt_dynamic is not None:
+        out.append(viz.save_png(folder / f"{prefix}_ground_truth.png", ground_truth_sheet(pair)))
+    return out
