@@ -23,6 +23,7 @@ from torch import Tensor
 
 from drivingscene.errors import InputError
 
+BLEND_MODES = ("all", "fade", "nearest")
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * sh[:, 0] + 0.5 (3DGS convention)
 
 
@@ -150,6 +151,23 @@ class Gaussians:
         t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
         step = torch.where(self.keyframes == 0, t, 1 - t)
         return self.means + step[:, None] * self.flows
+
+    def time_weights(self, t: float | Tensor, mode: str = "all") -> Tensor:
+        """Opacity multipliers ``[N]`` for showing both keyframes' Gaussians at time t.
+
+        "all": both sets fully opaque (each keyframe fills what the other did not see);
+        "fade": keyframe-0 Gaussians weighted 1 - t and keyframe-1 Gaussians t (cross-fade);
+        "nearest": only the keyframe nearer in time (keyframe 0 for t < 0.5).
+        """
+        t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
+        k1 = self.keyframes == 1
+        if mode == "all":
+            return torch.ones_like(self.opacity_logits)
+        if mode == "fade":
+            return torch.where(k1, t, 1 - t).expand_as(self.opacity_logits)
+        if mode == "nearest":
+            return torch.where(k1, (t >= 0.5).to(t.dtype), (t < 0.5).to(t.dtype)).expand_as(self.opacity_logits)
+        raise InputError(f"blend mode: expected one of {', '.join(BLEND_MODES)}, found {mode!r}")
 
     def at_time(self, t: float | Tensor) -> Gaussians:
         """The Gaussians moved to time t, as static Gaussians of keyframe 0 (for export/rendering)."""

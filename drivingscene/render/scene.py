@@ -5,7 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians
+from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.render.rasterize import RenderOutput, rasterize
 from drivingscene.render.sky import ray_directions, sky_colors
 
@@ -20,17 +22,19 @@ def render_gaussians(
     *,
     sky_sh: Tensor | None = None,  # [K, 3]
     background: Tensor | None = None,  # [3], used when there is no sky model
+    blend: str = "all",  # how both keyframes' Gaussians combine at t (Gaussians.time_weights)
     **raster_kwargs,
 ) -> RenderOutput:
     """Colour, depth and alpha ``[B, H, W, ...]`` of the Gaussians moved to normalised time t."""
     g = gaussians
+    opacities = g.opacities * g.time_weights(t, blend)
     degree = g.sh_degree
     colors = g.colors() if degree == 0 else g.sh
     out = rasterize(
         g.means_at(t),
         g.quats,
         g.scales,
-        g.opacities,
+        opacities,
         colors,
         world_to_cam.float(),
         intrinsics.float(),
@@ -45,3 +49,20 @@ def render_gaussians(
     cam_to_world = torch.linalg.inv(world_to_cam.double()).float()
     sky = sky_colors(sky_sh, ray_directions(cam_to_world, intrinsics.float(), height, width))
     return RenderOutput(colors=out.colors + (1 - out.alphas[..., None]) * sky, depths=out.depths, alphas=out.alphas)
+
+
+def render_eval_frames(recon, pair, blend: str = "all", **raster_kwargs) -> Tensor:
+    """Renders ``[M, V, H, W, 3]`` of a reconstruction at the scene's intermediate frames, with the
+    rig placed at the exact ego poses recorded for those frames (not interpolated)."""
+    if pair.num_eval == 0:
+        raise InputError("the scene has no intermediate frames (eval_images) to render")
+    height, width = recon.image_size
+    cam_to_ego = torch.from_numpy(recon.cam_to_ego).double()
+    k = torch.from_numpy(recon.intrinsics).float()
+    g = recon.visible()
+    frames = []
+    for m, t in enumerate(pair.normalised_time(pair.eval_timestamps)):
+        cam_to_world = torch.from_numpy(pair.eval_ego_to_world[m]) @ cam_to_ego
+        out = render_gaussians(g, float(t), invert_rigid(cam_to_world), k, height, width, sky_sh=recon.sky_sh, blend=blend, **raster_kwargs)
+        frames.append(out.colors.clamp(0, 1))
+    return torch.stack(frames)
