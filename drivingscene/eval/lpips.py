@@ -129,7 +129,7 @@ class PerceptualMetric(nn.Module):
         # channels_last: oneDNN's fast path for these convolutions and pools on CPU (~1.3x).
         h = h.contiguous(memory_format=torch.channels_last)
         features = []
-        for index, layer in enumerate(self.features[: self.taps[-1] + 1]):
+        for index, layer in enumerate(self.features):
             h = layer(h)
             if index in self.taps:
                 features.append(_unit_normalise(h.float() if h.dtype in (torch.bfloat16, torch.float16) else h))
