@@ -61,13 +61,13 @@ def test_stlpips_matches_reference_implementation(key):
     net, height, width = key
     metric = load_perceptual("stlpips", net)
     x, y = box_blur_shift_pairs(height, width)
-    with torch.no_grad():
-        values = metric(x, y)
-        spatial = metric.spatial_map(x, y)
     ref = REFERENCE[key]
-    np.testing.assert_allclose(values.numpy(), ref["values"], rtol=0, atol=1e-4)
-    np.testing.assert_allclose(spatial.mean(dim=(1, 2)).numpy(), ref["map_means"], rtol=0, atol=1e-4)
-    np.testing.assert_allclose(spatial[:, 10, 20].numpy(), ref["map_pixels"], rtol=0, atol=1e-4)
+    with torch.no_grad():
+        np.testing.assert_allclose(metric(x, y).numpy(), ref["values"], rtol=0, atol=1e-4)
+        if (height, width) == (64, 96):  # the map at one size is enough (and halves the cost)
+            spatial = metric.spatial_map(x, y)
+            np.testing.assert_allclose(spatial.mean(dim=(1, 2)).numpy(), ref["map_means"], rtol=0, atol=1e-4)
+            np.testing.assert_allclose(spatial[:, 10, 20].numpy(), ref["map_pixels"], rtol=0, atol=1e-4)
     assert metric.name == f"ST-LPIPS ({net})"
 
 
@@ -191,7 +191,7 @@ def test_original_lpips_loads_torchvision_trunk_and_heads(tmp_path, monkeypatch,
     _write_fake_lpips(tmp_path / "lpips", net)
     metric = load_perceptual("lpips", net, lpips_dir=tmp_path / "lpips")
     assert metric.name == f"LPIPS ({net})"
-    x, y = box_blur_shift_pairs(40, 56)
+    x, y = (images[:2] for images in box_blur_shift_pairs(32, 40))
     fresh = PerceptualMetric(PerceptualConfig("lpips", net))  # a copy in float64: the cached one is shared
     fresh.load_state_dict(metric.state_dict())
     with torch.no_grad():
