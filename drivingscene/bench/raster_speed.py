@@ -18,11 +18,10 @@ import resource
 import statistics
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
-from torch import Tensor
-
-from drivingscene.geometry import invert_rigid
+if TYPE_CHECKING:  # torch is imported inside the functions: `drivingscene --help` stays fast
+    from torch import Tensor
 
 DEFAULT_SIZES = ("48x88", "96x176", "176x320")
 # Axis-aligned boxes (x0, x1, y0, y1, z0, z1) in metres: parked cars and a kiosk.
@@ -33,6 +32,10 @@ SKY_DISTANCE = 80.0
 
 def surround_rig(height: int, width: int, num_views: int = 6, hfov_deg: float = 70.0) -> tuple[Tensor, Tensor]:
     """World-to-camera ``[V, 4, 4]`` and intrinsics ``[V, 3, 3]`` of a ring of cameras 1.5 m above the ground."""
+    import torch
+
+    from drivingscene.geometry import invert_rigid
+
     f = 0.5 * width / math.tan(math.radians(hfov_deg) / 2)
     Ks = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]]).repeat(num_views, 1, 1)
     cam_to_world = torch.eye(4).repeat(num_views, 1, 1)
@@ -47,6 +50,8 @@ def surround_rig(height: int, width: int, num_views: int = 6, hfov_deg: float = 
 
 def _ray_depth(origin: Tensor, dirs: Tensor) -> Tensor:
     """Ray parameter ``[R]`` of the first hit along ``dirs`` ``[R, 3]`` (camera z = 1 units)."""
+    import torch
+
     big = torch.full(dirs.shape[:1], float("inf"))
     t = torch.where(dirs[:, 2] < 0, -origin[2] / dirs[:, 2], big)  # ground z = 0
     x0, x1, y0, y1, wall_h = STREET
@@ -67,6 +72,10 @@ def _ray_depth(origin: Tensor, dirs: Tensor) -> Tensor:
 
 def surround_scene(height: int, width: int, seed: int = 0) -> dict[str, Tensor]:
     """Gaussians (one per pixel of 6 views) plus the cameras, as keyword arguments of ``rasterize``."""
+    import torch
+
+    from drivingscene.geometry import invert_rigid
+
     g = torch.Generator().manual_seed(seed)
     viewmats, Ks = surround_rig(height, width)
     cam_to_world = invert_rigid(viewmats)
@@ -90,3 +99,141 @@ def surround_scene(height: int, width: int, seed: int = 0) -> dict[str, Tensor]:
         width=width,
         height=height,
     )
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _peak_rss_bytes() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
+
+
+def _timed(fn, repeats: int) -> list[float]:
+    fn()  # warm-up (and the one-time C++ build/load)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int | None = None) -> dict:
+    """Forward and forward+backward times (s) and peak RSS above the scene's baseline (MiB) for one case."""
+    import torch
+
+    from drivingscene.render import rasterize
+
+    if threads:
+        torch.set_num_threads(threads)
+    height, width = (int(x) for x in size.split("x"))
+    scene = surround_scene(height, width)
+    grad_keys = ("means", "quats", "scales", "opacities", "colors")
+
+    def forward():
+        with torch.no_grad():
+            rasterize(**scene, max_layers=max_layers, backend=backend)
+
+    def forward_backward():
+        params = {k: (v.detach().requires_grad_(True) if k in grad_keys else v) for k, v in scene.items()}
+        out = rasterize(**params, max_layers=max_layers, backend=backend)
+        (out.colors.sum() + 0.01 * out.depths.sum() + out.alphas.sum()).backward()
+
+    base = _rss_bytes()
+    fwd = _timed(forward, repeats)
+    peak_fwd = _peak_rss_bytes() - base
+    fwd_bwd = _timed(forward_backward, repeats)
+    peak_fwd_bwd = _peak_rss_bytes() - base
+    return dict(
+        size=size, backend=backend, gaussians=len(scene["means"]), max_layers=max_layers,
+        fwd=statistics.median(fwd), fwd_min=min(fwd), fwd_bwd=statistics.median(fwd_bwd), fwd_bwd_min=min(fwd_bwd),
+        peak_fwd_mib=peak_fwd / 2**20, peak_fwd_bwd_mib=peak_fwd_bwd / 2**20, threads=torch.get_num_threads(),
+    )  # fmt: skip
+
+
+def machine_description() -> str:
+    """CPU model, logical cores, torch version and threads, load average (the machines are shared)."""
+    import torch
+
+    model = platform.processor() or "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    return f"{model}, {os.cpu_count()} logical cores, torch {torch.__version__} with {torch.get_num_threads()} threads, load average {load}"
+
+
+def markdown_table(rows: list[dict]) -> str:
+    head = (
+        "| views × size | Gaussians | backend | max_layers | forward s (median / min) | forward+backward s (median / min) "
+        "| peak RSS fwd / fwd+bwd MiB |\n|---|---|---|---|---|---|---|\n"
+    )
+    lines = [
+        f"| 6×{r['size'].replace('x', '×')} | {r['gaussians']:,} | {r['backend']} | {r['max_layers']} "
+        f"| {r['fwd']:.3f} / {r['fwd_min']:.3f} | {r['fwd_bwd']:.3f} / {r['fwd_bwd_min']:.3f} "
+        f"| {r['peak_fwd_mib']:.0f} / {r['peak_fwd_bwd_mib']:.0f} |"
+        for r in rows
+    ]
+    return head + "\n".join(lines) + "\n"
+
+
+def layers_study(size: str, layer_counts: list[int]) -> str:
+    """Markdown table: error of capped renders against the uncapped render (equal to the reference)."""
+    import torch
+
+    from drivingscene.render import rasterize
+
+    height, width = (int(x) for x in size.split("x"))
+    scene = surround_scene(height, width)
+    with torch.no_grad():
+        full = rasterize(**scene, max_layers=1024)
+        lines = ["| max_layers | colour max abs err | colour mean abs err | alpha mean abs err | depth mean rel err |", "|---|---|---|---|---|"]
+        for k in layer_counts:
+            out = rasterize(**scene, max_layers=k)
+            dc = (out.colors - full.colors).abs()
+            dd = ((out.depths - full.depths).abs() / full.depths.clamp(min=1e-3))[full.alphas > 0.5]
+            da = (out.alphas - full.alphas).abs()
+            lines.append(f"| {k} | {dc.max():.4f} | {dc.mean():.5f} | {da.mean():.5f} | {dd.mean():.5f} |")
+    return "\n".join(lines) + "\n"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--sizes", default=",".join(DEFAULT_SIZES), help="comma-separated HxW per view (6 views)")
+    parser.add_argument("--backends", default="cpp,torch", help="comma-separated: cpp, torch")
+    parser.add_argument("--max-layers", type=int, default=None, help="layer cap per pixel (default: rasterize's)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs after one warm-up (median reported)")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    parser.add_argument("--layers-study", default="", help="comma-separated max_layers to compare (skips timing)")
+    parser.add_argument("--study-size", default="96x176", help="HxW per view for --layers-study")
+    parser.add_argument("--in-process", action="store_true", help="no subprocess per case (peak RSS then cumulative)")
+    parser.add_argument("--out", type=Path, default=Path("out/bench/raster.md"), help="markdown report path")
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivingscene.render import DEFAULT_MAX_LAYERS
+
+    args.max_layers = args.max_layers or DEFAULT_MAX_LAYERS
+    if args.layers_study:
+        report = layers_study(args.study_size, [int(k) for k in args.layers_study.split(",")])
+        report = f"Scene 6×{args.study_size}, reference: the same scene with max_layers=1024.\n\n{report}"
+    else:
+        cases = [(s, b) for s in args.sizes.split(",") for b in args.backends.split(",")]
+        rows = []
+        ctx = multiprocessing.get_context("spawn")
+        for size, backend in cases:
+            call = (size, backend, args.max_layers, args.repeats, args.threads)
+            if args.in_process:
+                rows.append(measure(*call))
+            else:
+                with ctx.Pool(1) as pool:  # fresh process: its peak RSS is this case's own
+                    rows.append(pool.apply(measure, call))
+            print(markdown_table(rows[-1:]).splitlines()[-1], flush=True)
+        report = f"Machine: {machine_description()}.\n\n{markdown_table(rows)}"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(report)
+    print(report)
+    return 0

@@ -11,6 +11,7 @@ import importlib
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
     # name: (module, help)
+    "raster": ("drivingscene.bench.raster_speed", "CPU Gaussian rasterizer: forward / forward+backward time, peak memory"),
 }
 
 

@@ -22,11 +22,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from drivingscene.render.splats import Splats
+
 MAX_ALPHA = 0.99
 MIN_TRANSMITTANCE = 1e-4
 SIGMA_CUT = 4.5  # 3-sigma ellipse: 0.5 * 3**2
 MIN_WEIGHT_SUM = 1e-6  # below this accumulated alpha, expected depth is reported as 0
 _CHUNK = 1 << 22  # candidate (splat, pixel) pairs evaluated at once by the torch pair finder
+_PIXEL_CHUNK = 8192  # pixels composited at once (keeps [pixels, layers] temporaries near cache size)
 
 
 @dataclass(frozen=True)
@@ -41,14 +44,15 @@ class PairInputs:
     camera_offsets: Tensor  # [B + 1] int64
 
 
-def pair_inputs(means2d: Tensor, conics: Tensor, opacities: Tensor, camera_offsets: Tensor, width: int, height: int) -> PairInputs:
+def pair_inputs(splats: Splats, width: int, height: int) -> PairInputs:
     """Cut thresholds and pixel boxes of the ellipses ``sigma <= sigma_max`` (with a small margin)."""
     with torch.no_grad():
-        means2d, conics, opacities = means2d.detach(), conics.detach(), opacities.detach()
+        means2d, conics, opacities = splats.means2d.detach(), splats.conics.detach(), splats.opacities.detach()
+        radii, camera_offsets = splats.radii, splats.camera_offsets
         sigma_max = torch.clamp(torch.log(255.0 * opacities), max=SIGMA_CUT)
         q = conics.double()
         det = q[:, 0] * q[:, 2] - q[:, 1] * q[:, 1]
-        ok = (det > 0) & (sigma_max > 0)
+        ok = (det > 0) & (sigma_max > 0) & (radii > 0)
         det = torch.where(ok, det, torch.ones_like(det))
         two_s = 2.0 * sigma_max.double().clamp(min=0.0)
         # Extent of {dᵀ Q d <= 2 sigma_max} along x is sqrt(2 sigma_max (Q⁻¹)_xx) = sqrt(2 sigma_max c / det).
@@ -183,8 +187,6 @@ def composite(
     ``sum w z / sum w``, 0 where ``sum w < 1e-6``) and accumulated alpha ``[B, H, W]`` (``sum w``).
     """
     num_cams, channels = backgrounds.shape
-    used = int((pair_ids >= 0).sum(1).max()) if pair_ids.numel() else 0
-    pair_ids = pair_ids[:, : max(used, 1)].long()  # drop layers no pixel uses
     packed = torch.cat([means2d, conics, opacities[:, None], depths[:, None], colors], dim=1)  # [M, 7 + C]
     if packed.shape[0] == 0:
         packed = packed.new_zeros(1, packed.shape[1])
@@ -196,63 +198,90 @@ def composite(
     )
 
 
+def _pixel_chunks(pair_ids: Tensor):
+    """``(start, ids)`` for blocks of pixels (cache-sized), trailing layers unused in the block dropped."""
+    for start in range(0, pair_ids.shape[0], _PIXEL_CHUNK):
+        ids = pair_ids[start : start + _PIXEL_CHUNK]
+        used = int((ids >= 0).sum(1).max()) if ids.numel() else 0
+        yield start, ids[:, : max(used, 1)].long()
+
+
 class _Composite(torch.autograd.Function):
     """Front-to-back compositing over ``[P, L]`` gathered splats with a hand-written backward.
 
     Backward (Kerbl et al. 2023, supplementary; ``v_k = dL/dw_k``, ``T_k`` transmittance before k):
     ``dL/dalpha_k = v_k T_k - (sum_{j>k} v_j w_j + (dL/drgb . bg) T_L) / (1 - alpha_k)``.
+    Both passes run over blocks of pixels so that the ``[pixels, layers]`` temporaries stay in cache.
     """
 
     @staticmethod
     def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int):
-        g = _gather(packed, backgrounds, pair_ids, width, height)
-        trans = torch.cumprod(1.0 - g.alpha, dim=1)  # [P, L] after each layer
-        trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
-        weights = g.alpha * trans_before
-        weight_sum = weights.sum(1)  # [P]
-        rgb = torch.stack([(weights * c).sum(1) for c in g.colors], dim=-1) + trans[:, -1:] * g.bg  # [P, C]
-        has = weight_sum >= MIN_WEIGHT_SUM
-        depth = torch.where(has, (weights * g.z).sum(1) / torch.where(has, weight_sum, torch.ones_like(weight_sum)), 0.0)
-        ctx.save_for_backward(packed, backgrounds, pair_ids, trans_before, trans[:, -1], depth)
+        num_pixels, channels = pair_ids.shape[0], backgrounds.shape[1]
+        rgb = packed.new_empty(num_pixels, channels)
+        depth = packed.new_empty(num_pixels)
+        weight_sum = packed.new_empty(num_pixels)
+        for start, ids in _pixel_chunks(pair_ids):
+            g = _gather(packed, backgrounds, ids, start, width, height)
+            trans = torch.cumprod(1.0 - g.alpha, dim=1)  # [p, L] after each layer
+            weights = g.alpha * torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+            end = start + len(ids)
+            ws = weights.sum(1)
+            weight_sum[start:end] = ws
+            rgb[start:end] = torch.stack([(weights * c).sum(1) for c in g.colors], dim=-1) + trans[:, -1:] * g.bg
+            has = ws >= MIN_WEIGHT_SUM
+            depth[start:end] = torch.where(has, (weights * g.z).sum(1) / torch.where(has, ws, torch.ones_like(ws)), 0.0)
+        ctx.save_for_backward(packed, backgrounds, pair_ids, depth, weight_sum)
         ctx.size = (width, height)
         return rgb, depth, weight_sum
 
     @staticmethod
     def backward(ctx, grad_rgb: Tensor, grad_depth: Tensor, grad_alpha: Tensor):
-        packed, backgrounds, pair_ids, trans_before, trans_final, depth = ctx.saved_tensors
-        g = _gather(packed, backgrounds, pair_ids, *ctx.size)
-        weights = g.alpha * trans_before  # [P, L]
-        weight_sum = weights.sum(1)
+        packed, backgrounds, pair_ids, depth, weight_sum = ctx.saved_tensors
+        grad_packed = torch.zeros_like(packed)
         has = weight_sum >= MIN_WEIGHT_SUM
         grad_d = torch.where(has, grad_depth / torch.where(has, weight_sum, torch.ones_like(weight_sum)), 0.0)
-        # dL/dw_k: colour, expected depth (z_k - D) / S and alpha (sum of w) terms.
-        v = grad_alpha[:, None] + grad_d[:, None] * (g.z - depth[:, None])
-        for ch, c in enumerate(g.colors):
-            v = v + grad_rgb[:, ch : ch + 1] * c
-        vw = v * weights
-        behind = torch.cumsum(vw.flip(1), dim=1).flip(1) - vw  # sum over j > k of v_j w_j
-        behind = behind + ((grad_rgb * g.bg).sum(-1) * trans_final)[:, None]
-        grad_alpha_k = v * trans_before - behind / (1.0 - g.alpha)
-        grad_raw = torch.where(g.passes, grad_alpha_k, 0.0)  # clamp at 0.99 and empty slots stop gradients
-        grad_sigma = -grad_raw * g.raw
-        grads = [
-            -grad_sigma * (g.ca * g.dx + g.cb * g.dy),  # mean x
-            -grad_sigma * (g.cb * g.dx + g.cc * g.dy),  # mean y
-            0.5 * grad_sigma * g.dx * g.dx,  # conic a
-            grad_sigma * g.dx * g.dy,  # conic b
-            0.5 * grad_sigma * g.dy * g.dy,  # conic c
-            grad_raw * g.raw_over_opacity,  # opacity
-            weights * grad_d[:, None],  # depth
-        ] + [weights * grad_rgb[:, ch : ch + 1] for ch in range(len(g.colors))]
-        grad_packed = torch.zeros_like(packed).index_add_(0, pair_ids.clamp(min=0).reshape(-1), torch.stack(grads, -1).flatten(0, 1))
+        trans_final = torch.empty_like(weight_sum)
+        for start, ids in _pixel_chunks(pair_ids):
+            end = start + len(ids)
+            g = _gather(packed, backgrounds, ids, start, *ctx.size)
+            trans = torch.cumprod(1.0 - g.alpha, dim=1)
+            trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+            trans_final[start:end] = trans[:, -1]
+            grads = _chunk_grads(g, trans_before, trans[:, -1], grad_rgb[start:end], grad_d[start:end], grad_alpha[start:end], depth[start:end])
+            grad_packed.index_add_(0, ids.clamp(min=0).reshape(-1), grads.flatten(0, 1))
         num_cams, channels = backgrounds.shape
         grad_bg = (grad_rgb * trans_final[:, None]).reshape(num_cams, -1, channels).sum(1)
         return grad_packed, grad_bg, None, None, None
 
 
+def _chunk_grads(g, trans_before: Tensor, trans_final: Tensor, grad_rgb: Tensor, grad_d: Tensor, grad_alpha: Tensor, depth: Tensor) -> Tensor:
+    """Gradients ``[p, L, 7 + C]`` w.r.t. the gathered splat rows of one pixel block (``grad_d = dL/dD / S``)."""
+    weights = g.alpha * trans_before  # [p, L]
+    # dL/dw_k: colour, expected depth (z_k - D) / S and alpha (sum of w) terms.
+    v = grad_alpha[:, None] + grad_d[:, None] * (g.z - depth[:, None])
+    for ch, c in enumerate(g.colors):
+        v = v + grad_rgb[:, ch : ch + 1] * c
+    vw = v * weights
+    behind = torch.cumsum(vw.flip(1), dim=1).flip(1) - vw  # sum over j > k of v_j w_j
+    behind = behind + ((grad_rgb * g.bg).sum(-1) * trans_final)[:, None]
+    grad_alpha_k = v * trans_before - behind / (1.0 - g.alpha)
+    grad_raw = torch.where(g.passes, grad_alpha_k, 0.0)  # clamp at 0.99 and empty slots stop gradients
+    grad_sigma = -grad_raw * g.raw
+    grads = [
+        -grad_sigma * (g.ca * g.dx + g.cb * g.dy),  # mean x
+        -grad_sigma * (g.cb * g.dx + g.cc * g.dy),  # mean y
+        0.5 * grad_sigma * g.dx * g.dx,  # conic a
+        grad_sigma * g.dx * g.dy,  # conic b
+        0.5 * grad_sigma * g.dy * g.dy,  # conic c
+        grad_raw * g.raw_over_opacity,  # opacity
+        weights * grad_d[:, None],  # depth
+    ] + [weights * grad_rgb[:, ch : ch + 1] for ch in range(len(g.colors))]
+    return torch.stack(grads, -1)
+
+
 @dataclass(frozen=True)
 class _Gathered:
-    """Per (pixel, layer) quantities ``[P, L]`` recomputed by forward and backward."""
+    """Per (pixel, layer) quantities ``[p, L]`` of one pixel block, recomputed by forward and backward."""
 
     dx: Tensor
     dy: Tensor
@@ -260,25 +289,25 @@ class _Gathered:
     cb: Tensor
     cc: Tensor
     z: Tensor
-    colors: list  # C tensors [P, L]
+    colors: list  # C tensors [p, L]
     raw: Tensor  # opacity * exp(-sigma)
     raw_over_opacity: Tensor  # exp(-sigma)
     alpha: Tensor  # min(raw, 0.99), 0 in empty slots
     passes: Tensor  # bool: slot used and raw <= 0.99 (alpha has a gradient)
-    bg: Tensor  # [P, C] background of each pixel
+    bg: Tensor  # [p, C] background of each pixel
 
 
-def _gather(packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int) -> _Gathered:
-    valid = pair_ids >= 0
-    rows = packed.index_select(0, pair_ids.clamp(min=0).reshape(-1)).view(*pair_ids.shape, -1)  # [P, L, 7 + C]
+def _gather(packed: Tensor, backgrounds: Tensor, ids: Tensor, start: int, width: int, height: int) -> _Gathered:
+    """Gather the splat rows of pixels ``start .. start + len(ids)`` (global index over cameras)."""
+    valid = ids >= 0
+    rows = packed.index_select(0, ids.clamp(min=0).reshape(-1)).view(*ids.shape, -1)  # [p, L, 7 + C]
     mx, my, ca, cb, cc, opac, z, *colors = rows.unbind(-1)
-    num_cams, channels = backgrounds.shape
-    v, u = torch.meshgrid(torch.arange(height, dtype=packed.dtype), torch.arange(width, dtype=packed.dtype), indexing="ij")
-    u = u.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)  # [P, 1]
-    v = v.reshape(1, -1).expand(num_cams, -1).reshape(-1, 1)
+    pix = torch.arange(start, start + ids.shape[0])
+    u = (pix % width).to(packed.dtype)[:, None]  # [p, 1]
+    v = ((pix // width) % height).to(packed.dtype)[:, None]
     dx, dy = u - mx, v - my
     e = torch.exp(-(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy))
     raw = opac * e
     alpha = torch.where(valid, torch.clamp(raw, max=MAX_ALPHA), 0.0)
-    bg = backgrounds[:, None, :].expand(num_cams, height * width, channels).reshape(-1, channels)
+    bg = backgrounds[pix // (width * height)]  # [p, C]
     return _Gathered(dx, dy, ca, cb, cc, z, colors, raw, e, alpha, valid & (raw <= MAX_ALPHA), bg)

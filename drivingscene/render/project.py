@@ -43,7 +43,7 @@ class Projection:
 def covariances_3d(quats: Tensor, scales: Tensor) -> Tensor:
     """World covariances ``Σ = R S Sᵀ Rᵀ`` ``[..., 3, 3]`` (m²) from quats ``[..., 4]`` and scales ``[..., 3]`` (m)."""
     rs = quat_to_matrix(quats) * scales[..., None, :]  # [..., 3, 3] = R diag(s)
-    return rs @ rs.transpose(-1, -2)
+    return (rs[..., :, None, :] * rs[..., None, :, :]).sum(-1)  # elementwise: batched 3x3 bmm is slow on CPU
 
 
 def project_covariances(
@@ -60,45 +60,84 @@ def project_covariances(
 ) -> Projection:
     """Project Gaussians; all leading dims broadcast (e.g. means ``[1, N, 3]`` with viewmats ``[B, 1, 4, 4]``)."""
     rot = viewmats[..., :3, :3]
-    p_cam = (rot @ means[..., None]).squeeze(-1) + viewmats[..., :3, 3]  # [..., 3]
+    p_cam = (rot * means[..., None, :]).sum(-1) + viewmats[..., :3, 3]  # [..., 3]
     z = p_cam[..., 2]
     in_depth = (z >= near) & (z <= far)
     z_safe = torch.where(in_depth & (z > 0), z, torch.ones_like(z))  # finite values for culled entries
     p_safe = torch.cat([p_cam[..., :2], z_safe[..., None]], dim=-1)
     means2d = project(p_safe[..., None, :], Ks)[0][..., 0, :]  # [..., 2]
-    jac = _projection_jacobian(p_safe, Ks, width, height)  # [..., 2, 3]
-    t = jac @ rot  # [..., 2, 3]
-    cov2d = t @ covars @ t.transpose(-1, -2)  # [..., 2, 2]
-    a = cov2d[..., 0, 0] + eps2d
-    b = cov2d[..., 0, 1]
-    c = cov2d[..., 1, 1] + eps2d
+    (j00, j01, j02), (j11, j12) = _projection_jacobian(p_safe, Ks, width, height)
+    # Rows of T = J W (J[1, 0] = 0), then Σ2D = T Σ Tᵀ; written out to avoid batched tiny matmuls.
+    t0 = j00[..., None] * rot[..., 0, :] + j01[..., None] * rot[..., 1, :] + j02[..., None] * rot[..., 2, :]
+    t1 = j11[..., None] * rot[..., 1, :] + j12[..., None] * rot[..., 2, :]
+    cov_t0 = (covars * t0[..., None, :]).sum(-1)  # [..., 3] = Σ t0
+    cov_t1 = (covars * t1[..., None, :]).sum(-1)
+    a = (t0 * cov_t0).sum(-1) + eps2d
+    b = (t1 * cov_t0).sum(-1)
+    c = (t1 * cov_t1).sum(-1) + eps2d
     det = a * c - b * b
     det_safe = torch.where(det > 0, det, torch.ones_like(det))
     conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
     with torch.no_grad():
         mid = 0.5 * (a + c)
         radius = 3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.0)))
-        u, v = means2d[..., 0], means2d[..., 1]
-        on_image = (u + radius >= 0) & (u - radius <= width - 1) & (v + radius >= 0) & (v - radius <= height - 1)
-        radii = torch.where(in_depth & (det > 0) & on_image, radius, torch.zeros_like(radius))
+        radii = torch.where(in_depth & (det > 0) & _touches_image(means2d, radius, width, height), radius, 0.0)
     return Projection(means2d=means2d, conics=conics, depths=z, radii=radii)
 
 
-def _projection_jacobian(p_cam: Tensor, Ks: Tensor, width: int, height: int) -> Tensor:
-    """Jacobian ``[..., 2, 3]`` of (u, v) w.r.t. camera point ``[..., 3]`` (z > 0), off-image clamp as 3DGS."""
+def _touches_image(means2d: Tensor, radius: Tensor, width: int, height: int) -> Tensor:
+    """Whether circles ``[...]`` around ``means2d`` ``[..., 2]`` contain a pixel-centre coordinate range."""
+    u, v = means2d[..., 0], means2d[..., 1]
+    return (u + radius >= 0) & (u - radius <= width - 1) & (v + radius >= 0) & (v - radius <= height - 1)
+
+
+def _clamped_directions(p_cam: Tensor, Ks: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """``x/z, y/z`` ``[...]`` clamped to the image plus the 3DGS margin (image spans -0.5 .. W-0.5 px)."""
     x, y, z = p_cam.unbind(-1)
     fx, fy = Ks[..., 0, 0], Ks[..., 1, 1]
     cx, cy = Ks[..., 0, 2], Ks[..., 1, 2]
-    # Image spans u in [-0.5, W - 0.5] with integer pixel centres.
     margin_x = JACOBIAN_CLAMP_MARGIN * 0.5 * width / fx
     margin_y = JACOBIAN_CLAMP_MARGIN * 0.5 * height / fy
     tx = torch.maximum(torch.minimum(x / z, (width - 0.5 - cx) / fx + margin_x), -(cx + 0.5) / fx - margin_x)
     ty = torch.maximum(torch.minimum(y / z, (height - 0.5 - cy) / fy + margin_y), -(cy + 0.5) / fy - margin_y)
-    zero = torch.zeros_like(z)
-    inv_z = 1.0 / z
-    jn = torch.stack([inv_z, zero, -tx * inv_z, zero, inv_z, -ty * inv_z], dim=-1)  # d(x/z, y/z)/dp
-    jn = jn.unflatten(-1, (2, 3))
-    return Ks[..., :2, :2] @ jn
+    return tx, ty
+
+
+def _projection_jacobian(p_cam: Tensor, Ks: Tensor, width: int, height: int):
+    """Nonzero entries of the 2x3 Jacobian of (u, v) w.r.t. the camera point ``[..., 3]`` (z > 0)."""
+    tx, ty = _clamped_directions(p_cam, Ks, width, height)
+    inv_z = 1.0 / p_cam[..., 2]
+    fx, skew, fy = Ks[..., 0, 0], Ks[..., 0, 1], Ks[..., 1, 1]
+    return (fx * inv_z, skew * inv_z, -(fx * tx + skew * ty) * inv_z), (fy * inv_z, -fy * ty * inv_z)
+
+
+def cull_bound(
+    means: Tensor,  # [N, 3] world
+    max_scales: Tensor,  # [N] largest scale, metres
+    viewmats: Tensor,  # [B, 4, 4]
+    Ks: Tensor,  # [B, 3, 3]
+    width: int,
+    height: int,
+    *,
+    near: float,
+    far: float,
+    eps2d: float,
+) -> Tensor:
+    """Cheap conservative visibility ``[B, N]`` (no covariance): ``radii > 0`` implies True.
+
+    Uses ``λmax(Σ2D) <= ||J||² max(scales)² + eps2d`` with ``||J|| <= ||K[:2, :2]||_F sqrt(1 + tx² + ty²) / z``.
+    """
+    p_cam = torch.einsum("nj,bij->bni", means, viewmats[:, :3, :3]) + viewmats[:, None, :3, 3]  # [B, N, 3]
+    z = p_cam[..., 2]
+    in_depth = (z >= near) & (z <= far)
+    p_cam = torch.where(in_depth[..., None] & (z[..., None] > 0), p_cam, torch.ones_like(p_cam))
+    k = Ks[:, None]
+    means2d = project(p_cam, Ks)[0]  # [B, N, 2]
+    tx, ty = _clamped_directions(p_cam, k, width, height)
+    k_norm = torch.sqrt(k[..., 0, 0] ** 2 + k[..., 0, 1] ** 2 + k[..., 1, 1] ** 2)
+    j_norm = k_norm * torch.sqrt(1 + tx * tx + ty * ty) / p_cam[..., 2]
+    radius = 3.0 * torch.sqrt((j_norm * max_scales) ** 2 + eps2d) * (1 + 1e-4) + 1e-3
+    return in_depth & _touches_image(means2d, radius, width, height)
 
 
 def project_gaussians(

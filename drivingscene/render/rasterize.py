@@ -78,7 +78,7 @@ def rasterize(
     s = make_splats(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=sh_degree, near=near, far=far, eps2d=eps2d
     )
-    inp = pair_inputs(s.means2d, s.conics, s.opacities, s.camera_offsets, width, height)
+    inp = pair_inputs(s, width, height)
     if chosen == "cpp":
         from drivingscene.render.cpp import load_extension
 

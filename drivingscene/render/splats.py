@@ -1,8 +1,9 @@
 """Visible (camera, Gaussian) pairs, projected and sorted front to back per camera.
 
-Culling happens once, without grad, over all ``B x N`` pairs (``project.py`` rules plus opacity
-< 1/255, which can never contribute); the ``M`` survivors are then projected again with grad so that
-autograd only sees Gaussians that can reach a pixel. Sorting is by camera, then camera-space ``z`` of
+A cheap conservative cull without grad over all ``B x N`` pairs (``project.cull_bound``: depth
+range, a bound on the footprint, opacity < 1/255 which can never contribute) keeps ``M`` candidates;
+only these are projected with grad, so autograd only sees Gaussians that may reach a pixel. The exact
+culling rule (``radii == 0``) is applied by the pair finder. Sorting is by camera, then camera-space ``z`` of
 the centre (evaluated in float64 whatever the input dtype), ties broken by Gaussian index (a stable
 sort), which is the compositing order.
 """
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from drivingscene.render.project import covariances_3d, project_covariances
+from drivingscene.render.project import covariances_3d, cull_bound, project_covariances
 from drivingscene.render.sh import sh_to_color
 
 MIN_ALPHA = 1.0 / 255.0
@@ -22,8 +23,8 @@ MIN_ALPHA = 1.0 / 255.0
 
 @dataclass(frozen=True)
 class Splats:
-    """``M`` visible (camera, Gaussian) pairs in compositing order; camera ``b`` owns rows
-    ``camera_offsets[b]:camera_offsets[b+1]``."""
+    """``M`` candidate (camera, Gaussian) pairs in compositing order; camera ``b`` owns rows
+    ``camera_offsets[b]:camera_offsets[b+1]``. Rows with ``radii == 0`` are culled and never contribute."""
 
     means2d: Tensor  # [M, 2] pixels
     conics: Tensor  # [M, 3] px^-2
@@ -60,21 +61,26 @@ def make_splats(
 ) -> Splats:
     """Cull, sort and project (with grad) the visible pairs; SH colours evaluated per camera."""
     num_cams = viewmats.shape[0]
-    covars = covariances_3d(quats, scales)  # [N, 3, 3]
-    kw = dict(near=near, far=far, eps2d=eps2d)
     with torch.no_grad():
-        full = project_covariances(means[None], covars[None], viewmats[:, None], Ks[:, None], width, height, **kw)
-        visible = (full.radii > 0) & (opacities >= MIN_ALPHA)[None]  # [B, N]
-        cam_ids, gs_ids = visible.nonzero(as_tuple=True)
+        # Conservative cull without covariances; the exact rule (radii > 0) is applied after projection.
+        maybe = cull_bound(
+            means.detach(), scales.detach().amax(-1), viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d
+        )
+        maybe &= (opacities.detach() >= MIN_ALPHA)[None]  # [B, N]
+        cam_ids, gs_ids = maybe.nonzero(as_tuple=True)
         # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a
         # fronto-parallel wall, a ground-plane row) does not depend on float32 rounding.
-        z64 = means.detach().double() @ viewmats[:, 2, :3].detach().double().T + viewmats[:, 2, 3].detach().double()  # [N, B]
-        order = torch.sort(z64[gs_ids, cam_ids], stable=True).indices
+        rot_z = viewmats[:, 2, :3].double()
+        z64 = (means.detach()[gs_ids].double() * rot_z[cam_ids]).sum(-1) + viewmats[cam_ids, 2, 3].double()
+        order = torch.sort(z64, stable=True).indices
         order = order[torch.sort(cam_ids[order], stable=True).indices]
         cam_ids, gs_ids = cam_ids[order], gs_ids[order]
         counts = torch.bincount(cam_ids, minlength=num_cams)
         offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
-    proj = project_covariances(means[gs_ids], covars[gs_ids], viewmats[cam_ids], Ks[cam_ids], width, height, **kw)
+    covars = covariances_3d(quats, scales)  # [N, 3, 3]
+    proj = project_covariances(
+        means[gs_ids], covars[gs_ids], viewmats[cam_ids], Ks[cam_ids], width, height, near=near, far=far, eps2d=eps2d
+    )
     if sh_degree is None:
         splat_colors = colors[gs_ids]
     else:

@@ -60,5 +60,5 @@ def max_contributors(scene: dict) -> int:
 
     kw = {k: scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "width", "height")}
     s = make_splats(**kw, sh_degree=scene.get("sh_degree"), near=0.01, far=1e10, eps2d=0.3)
-    ids = find_pairs_torch(pair_inputs(s.means2d, s.conics, s.opacities, s.camera_offsets, scene["width"], scene["height"]), scene["width"], scene["height"], 1024)
+    ids = find_pairs_torch(pair_inputs(s, scene["width"], scene["height"]), scene["width"], scene["height"], 1024)
     return int((ids >= 0).sum(1).max())

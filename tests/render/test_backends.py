@@ -20,7 +20,7 @@ def test_torch_and_cpp_choose_identical_pairs_and_images_at_full_size(cpp_op):
     scene = surround_scene(96, 176)  # 6 views, ~101k Gaussians
     kw = dict(sh_degree=None, near=0.01, far=1e10, eps2d=0.3)
     s = make_splats(**{k: v for k, v in scene.items()}, **kw)
-    inp = pair_inputs(s.means2d, s.conics, s.opacities, s.camera_offsets, 176, 96)
+    inp = pair_inputs(s, 176, 96)
     for max_layers in (8, 32):
         ids_cpp = find_pairs_cpp(cpp_op, inp, 176, 96, max_layers)
         ids_torch = find_pairs_torch(inp, 176, 96, max_layers)
