@@ -1,0 +1,284 @@
+"""GPU side of the viewer: splat data textures, the sorted order, and the draw calls (moderngl).
+
+One pass per view: the sky (``shaders/sky.glsl``) fills the target, then the splats
+(``shaders/splat.glsl``) are blended back to front over it with ``(SRC_ALPHA, ONE_MINUS_SRC_ALPHA)``
+for colour and ``(ONE, ONE_MINUS_SRC_ALPHA)`` for alpha, so the target ends as
+``sum_i w_i c_i + T sky`` with alpha ``sum_i w_i`` — exactly ``render_gaussians``. Positions at time t
+are computed in the vertex shader from (mean, flow, keyframe): scrubbing time uploads nothing but the
+new order. ``present`` draws a target into the window (colour-mapping depth).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.camera import ViewCamera
+from app.splats import BLEND_MODES, SplatArrays, covariances
+from drivingscene.gl import load_program
+
+TEX_W = 4096
+MODES = ("rgb", "depth", "dynamic", "flow")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    mode: str = "rgb"
+    blend: str = "all"
+    show_selection: bool = True
+    flow_max: float = 1.0  # metres at the top of the flow-magnitude colour map
+    near: float = 0.01  # metres (camera z), as the torch rasterizer
+    far: float = 1e10
+    eps2d: float = 0.3
+
+
+def _rows(n: int) -> int:
+    return max(1, -(-n // TEX_W))
+
+
+def _pad(a: np.ndarray, texels: int) -> np.ndarray:
+    """``a`` ``[n, C]`` zero-padded to ``texels`` rows (a whole number of texture rows)."""
+    out = np.zeros((texels,) + a.shape[1:], a.dtype)
+    out[: len(a)] = a
+    return out
+
+
+def _lut_texture(ctx, rgb: np.ndarray):
+    tex = ctx.texture((len(rgb), 1), 3, np.ascontiguousarray(rgb, np.uint8).tobytes())
+    tex.repeat_x = tex.repeat_y = False
+    return tex
+
+
+def depth_lut() -> np.ndarray:
+    """``[256, 3]`` uint8: ``drivingscene.viz.depth_to_rgb``'s map sampled linearly in inverse depth."""
+    from drivingscene.viz import depth_to_rgb
+
+    x = np.linspace(0.0, 1.0, 256)
+    depths = 1.0 / (0.5 + 0.5 * x)  # with vmin=1, vmax=2 the map position is exactly x
+    return depth_to_rgb(depths[None], vmin=1.0, vmax=2.0)[0]
+
+
+def flow_lut() -> np.ndarray:
+    import matplotlib
+
+    return np.round(matplotlib.colormaps["inferno"](np.linspace(0.0, 1.0, 256))[:, :3] * 255).astype(np.uint8)
+
+
+class Target:
+    """An offscreen colour target (RGBA, ``dtype`` 'f1', 'f2' or 'f4') of a given size."""
+
+    def __init__(self, ctx, width: int, height: int, dtype: str):
+        self.width, self.height, self.dtype = width, height, dtype
+        self.texture = ctx.texture((width, height), 4, dtype=dtype)
+        self.texture.repeat_x = self.texture.repeat_y = False
+        self.fbo = ctx.framebuffer(color_attachments=[self.texture])
+
+    def read(self) -> np.ndarray:
+        """``[H, W, 4]`` in image row order (row 0 = top), float32 or uint8."""
+        dt = {"f1": np.uint8, "f2": np.float16, "f4": np.float32}[self.dtype]
+        data = np.frombuffer(self.fbo.read(components=4, dtype=self.dtype), dt).reshape(self.height, self.width, 4)
+        return data[::-1].astype(np.float32 if dt != np.uint8 else np.uint8)
+
+    def release(self) -> None:
+        self.fbo.release()
+        self.texture.release()
+
+
+class SplatRenderer:
+    """Owns the GL programs and the splat textures of one scene."""
+
+    def __init__(self, ctx, color_dtype: str = "f2"):
+        self.ctx = ctx
+        self.color_dtype = color_dtype
+        defines = {"TEX_W": TEX_W}
+        self.splat_prog = load_program(ctx, "splat", defines)
+        self.sky_prog = load_program(ctx, "sky")
+        self.present_prog = load_program(ctx, "present")
+        self.empty_vao = ctx.vertex_array(self.splat_prog, [])
+        self.sky_vao = ctx.vertex_array(self.sky_prog, [])
+        self.present_vao = ctx.vertex_array(self.present_prog, [])
+        self.depth_lut = _lut_texture(ctx, depth_lut())
+        self.flow_lut = _lut_texture(ctx, flow_lut())
+        self._textures: dict[str, object] = {}
+        self._targets: dict[tuple, Target] = {}
+        self.count = 0  # splats in the current order
+        self.num = 0
+        self.sh_k = 1
+        self.sky = np.zeros((1, 3), np.float32)
+        self.origin = np.zeros(3)
+        self.upload_seconds = 0.0
+
+    # --- data -------------------------------------------------------------------------------
+    def _texture(self, name: str, texels: int, components: int, dtype: str, data: bytes):
+        size = (TEX_W, _rows(texels))
+        tex = self._textures.get(name)
+        if tex is None or tex.size != size or tex.components != components:
+            if tex is not None:
+                tex.release()
+            tex = self.ctx.texture(size, components, dtype=dtype)
+            tex.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
+            self._textures[name] = tex
+        tex.write(data)
+        return tex
+
+    def set_splats(self, splats: SplatArrays, origin: np.ndarray) -> None:
+        """Upload every per-Gaussian texture (positions relative to ``origin``)."""
+        n = len(splats)
+        self.num, self.origin = n, np.asarray(origin, np.float64)
+        texels = _rows(n) * TEX_W
+        means = (splats.means.astype(np.float64) - self.origin).astype(np.float32)
+        pos = np.concatenate([means, splats.keyframes[:, None].astype(np.float32)], axis=1)
+        self._texture("pos", texels, 4, "f4", _pad(pos, texels).tobytes())
+        self.set_flows(splats)
+        cov = covariances(splats.quats, splats.log_scales).astype(np.float32)
+        self._texture("cov_a", texels, 4, "f4", _pad(cov[:, :4], texels).tobytes())
+        self._cov_b_base = cov[:, 4:6]
+        self._write_cov_b(splats)
+        self.sh_k = splats.sh.shape[1]
+        sh = np.concatenate([splats.sh.reshape(-1, 3), np.zeros((n * self.sh_k, 1), np.float32)], axis=1)
+        sh_texels = _rows(n * self.sh_k) * TEX_W
+        self._texture("sh", sh_texels, 4, "f4", _pad(sh, sh_texels).tobytes())
+        self.set_flags(np.zeros(n, np.uint8))
+        self.set_order(np.zeros(0, np.uint32))
+
+    def _write_cov_b(self, splats: SplatArrays) -> None:
+        texels = _rows(self.num) * TEX_W
+        mag = np.linalg.norm(splats.flows, axis=1).astype(np.float32)[:, None]
+        cov_b = np.concatenate([self._cov_b_base, mag, np.zeros_like(mag)], axis=1)
+        self._texture("cov_b", texels, 4, "f4", _pad(cov_b, texels).tobytes())
+
+    def set_flows(self, splats: SplatArrays) -> None:
+        """Re-upload flows and opacities (after an edit of the flows)."""
+        texels = _rows(self.num) * TEX_W
+        opacity = splats.opacities.astype(np.float32)[:, None]
+        self._texture("motion", texels, 4, "f4", _pad(np.concatenate([splats.flows, opacity], axis=1), texels).tobytes())
+        if "cov_b" in self._textures:
+            self._write_cov_b(splats)
+
+    def set_flags(self, flags: np.ndarray) -> None:
+        """Per-Gaussian bits ``[N]`` uint8: 1 hidden, 2 selected."""
+        texels = _rows(self.num) * TEX_W
+        self._texture("flags", texels, 1, "u1", _pad(flags.astype(np.uint8), texels).tobytes())
+
+    def set_order(self, order: np.ndarray) -> float:
+        """Upload a front-to-back order ``[count]`` (uint32); returns the seconds it took."""
+        start = time.perf_counter()
+        self.count = len(order)
+        tex = self._textures.get("order")
+        rows = _rows(max(self.num, 1))
+        if tex is None or tex.size != (TEX_W, rows):
+            if tex is not None:
+                tex.release()
+            tex = self.ctx.texture((TEX_W, rows), 1, dtype="u4")
+            tex.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
+            self._textures["order"] = tex
+        if self.count:
+            used = _rows(self.count)
+            tex.write(_pad(order.astype(np.uint32), used * TEX_W).tobytes(), viewport=(0, 0, TEX_W, used))
+        self.upload_seconds = time.perf_counter() - start
+        return self.upload_seconds
+
+    def set_sky(self, sky_sh: np.ndarray | None) -> None:
+        """Sky SH coefficients ``[S, 3]``; None gives a neutral grey background."""
+        if sky_sh is None:
+            sky_sh = np.array([[(0.18 - 0.5) / 0.28209479177387814] * 3], np.float32)
+        self.sky = np.asarray(sky_sh, np.float32)[:16]
+
+    # --- drawing ----------------------------------------------------------------------------
+    def target(self, width: int, height: int, dtype: str | None = None, name: str = "view") -> Target:
+        key = (width, height, dtype or self.color_dtype, name)
+        if key not in self._targets:
+            if len(self._targets) > 6:
+                for t in self._targets.values():
+                    t.release()
+                self._targets.clear()
+            self._targets[key] = Target(self.ctx, width, height, key[2])
+        return self._targets[key]
+
+    def render(self, camera: ViewCamera, t: float, opts: RenderOptions = RenderOptions()) -> Target:
+        """Sky + splats of the current order into a target of the camera's size."""
+        depth_mode = opts.mode == "depth"
+        target = self.target(camera.width, camera.height, "f4" if depth_mode else None)
+        target.fbo.use()
+        self.ctx.viewport = (0, 0, camera.width, camera.height)
+        self.ctx.disable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
+        cam = camera.shifted(self.origin)
+        if depth_mode:
+            target.fbo.clear(0.0, 0.0, 0.0, 0.0)
+        else:
+            self._draw_sky(cam)
+        if self.count:
+            self._draw_splats(cam, t, opts)
+        return target
+
+    def _camera_uniforms(self, prog, cam: ViewCamera) -> None:
+        k = cam.intrinsics
+        prog["u_intr"].value = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        prog["u_skew"].value = k[0, 1]
+        prog["u_size"].value = (cam.width, cam.height)
+
+    def _draw_sky(self, cam: ViewCamera) -> None:
+        prog = self.sky_prog
+        self.ctx.disable(self.ctx.BLEND)
+        self._camera_uniforms(prog, cam)
+        prog["u_cam_rot"].write(cam.cam_to_world[:3, :3].T.astype("f4").tobytes())
+        sky = np.zeros((16, 3), np.float32)
+        sky[: len(self.sky)] = self.sky
+        prog["u_sky"].write(sky.tobytes())
+        prog["u_sky_k"].value = len(self.sky)
+        self.sky_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
+
+    def _draw_splats(self, cam: ViewCamera, t: float, opts: RenderOptions) -> None:
+        prog = self.splat_prog
+        units = ("pos", "motion", "cov_a", "cov_b", "sh", "flags", "order")
+        for unit, name in enumerate(units):
+            self._textures[name].use(unit)
+            prog[f"u_{name}"].value = unit
+        self.flow_lut.use(len(units))
+        prog["u_lut"].value = len(units)
+        self._camera_uniforms(prog, cam)
+        prog["u_view"].write(cam.world_to_cam.T.astype("f4").tobytes())
+        prog["u_cam_centre"].value = tuple(cam.centre)
+        prog["u_count"].value = self.count
+        prog["u_sh_k"].value = self.sh_k
+        prog["u_t"].value = float(t)
+        prog["u_blend"].value = BLEND_MODES.index(opts.blend)
+        prog["u_mode"].value = MODES.index(opts.mode)
+        prog["u_flow_max"].value = max(opts.flow_max, 1e-6)
+        prog["u_show_selection"].value = opts.show_selection
+        prog["u_near"].value, prog["u_far"].value, prog["u_eps2d"].value = opts.near, min(opts.far, 3e38), opts.eps2d
+        self.ctx.enable(self.ctx.BLEND)
+        self.ctx.blend_func = (self.ctx.SRC_ALPHA, self.ctx.ONE_MINUS_SRC_ALPHA, self.ctx.ONE, self.ctx.ONE_MINUS_SRC_ALPHA)
+        self.empty_vao.render(mode=self.ctx.TRIANGLES, vertices=6 * self.count)
+        self.ctx.disable(self.ctx.BLEND)
+
+    def present(self, target: Target, viewport: tuple[int, int, int, int], opts: RenderOptions, depth_range=(1.0, 100.0), fbo=None) -> None:
+        """Draw ``target`` into ``viewport`` (x, y, w, h; GL bottom-left origin) of ``fbo`` (default: the screen)."""
+        (fbo or self.ctx.screen).use()
+        self.ctx.viewport = viewport
+        self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
+        target.texture.filter = (self.ctx.LINEAR, self.ctx.LINEAR)
+        target.texture.use(0)
+        self.depth_lut.use(1)
+        prog = self.present_prog
+        prog["u_image"].value, prog["u_lut"].value = 0, 1
+        prog["u_mode"].value = 1 if opts.mode == "depth" else 0
+        prog["u_depth_range"].value = tuple(float(x) for x in depth_range)
+        self.present_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
+
+    def render_image(self, camera: ViewCamera, t: float, opts: RenderOptions, depth_range=(1.0, 100.0)) -> np.ndarray:
+        """Finished RGB ``[H, W, 3]`` uint8 of the current order (depth colour-mapped)."""
+        target = self.render(camera, t, opts)
+        out = self.target(camera.width, camera.height, "f1", name="image")
+        self.present(target, (0, 0, camera.width, camera.height), opts, depth_range, fbo=out.fbo)
+        return out.read()[..., :3].copy()
+
+    def release(self) -> None:
+        for tex in self._textures.values():
+            tex.release()
+        for t in self._targets.values():
+            t.release()
+        self._textures.clear()
+        self._targets.clear()

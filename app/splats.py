@@ -1,0 +1,144 @@
+"""The viewer's editable copy of the Gaussians: numpy columns, replaced (never mutated) by edits.
+
+Edits build new arrays instead of writing in place, so a sort running on another thread always sees
+one consistent snapshot. ``origin`` is subtracted from every position on the GPU so that float32
+stays precise for scenes far from the world origin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+import torch
+
+from drivingscene.gaussians.core import Gaussians
+
+BLEND_MODES = ("all", "fade", "nearest")  # Gaussians.time_weights
+
+
+@dataclass(frozen=True, eq=False)
+class SplatArrays:
+    """Columns of N Gaussians as stored in files (raw log scales and logits), float32 unless noted."""
+
+    means: np.ndarray  # [N, 3] world, at their keyframe
+    quats: np.ndarray  # [N, 4] w, x, y, z
+    log_scales: np.ndarray  # [N, 3]
+    opacity_logits: np.ndarray  # [N]
+    sh: np.ndarray  # [N, K, 3]
+    flows: np.ndarray  # [N, 3] world displacement towards the other keyframe
+    keyframes: np.ndarray  # [N] uint8
+    cameras: np.ndarray  # [N] int16
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @classmethod
+    def from_gaussians(cls, g: Gaussians) -> SplatArrays:
+        g = g.detach().to("cpu")
+        f32 = lambda t: np.ascontiguousarray(t.float().numpy())  # noqa: E731
+        return cls(
+            means=f32(g.means),
+            quats=f32(g.quats),
+            log_scales=f32(g.log_scales),
+            opacity_logits=f32(g.opacity_logits),
+            sh=f32(g.sh),
+            flows=f32(g.flows),
+            keyframes=g.keyframes.numpy().astype(np.uint8),
+            cameras=g.cameras.numpy().astype(np.int16),
+        )
+
+    def to_gaussians(self, mask: np.ndarray | None = None) -> Gaussians:
+        """Torch Gaussians (all, or the rows where ``mask`` is true)."""
+        sel = slice(None) if mask is None else mask
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a[sel]))  # noqa: E731
+        return Gaussians(
+            means=t(self.means),
+            quats=t(self.quats),
+            log_scales=t(self.log_scales),
+            opacity_logits=t(self.opacity_logits),
+            sh=t(self.sh),
+            flows=t(self.flows),
+            keyframes=t(self.keyframes).to(torch.int64),
+            cameras=t(self.cameras).to(torch.int64),
+        )
+
+    @property
+    def sh_degree(self) -> int:
+        return round(self.sh.shape[1] ** 0.5) - 1
+
+    @property
+    def opacities(self) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-self.opacity_logits.astype(np.float64)))
+
+    @property
+    def dynamic(self) -> np.ndarray:
+        """``[N]`` bool: Gaussians with a non-zero flow (as ``Gaussians.dynamic``)."""
+        return np.abs(self.flows).max(axis=1) > 0 if len(self) else np.zeros(0, bool)
+
+    def means_at(self, t: float) -> np.ndarray:
+        """``[N, 3]`` positions at normalised time t (``Gaussians.means_at``)."""
+        step = np.where(self.keyframes == 0, np.float32(t), np.float32(1.0 - t))
+        return self.means + step[:, None] * self.flows
+
+    def time_weights(self, t: float, mode: str) -> np.ndarray:
+        """``[N]`` opacity multipliers of ``Gaussians.time_weights`` (modes all/fade/nearest)."""
+        k1 = self.keyframes == 1
+        if mode == "fade":
+            return np.where(k1, t, 1.0 - t).astype(np.float32)
+        if mode == "nearest":
+            return np.where(k1, float(t >= 0.5), float(t < 0.5)).astype(np.float32)
+        return np.ones(len(self), np.float32)
+
+    def take(self, mask_or_index: np.ndarray) -> SplatArrays:
+        return SplatArrays(**{f.name: getattr(self, f.name)[mask_or_index] for f in fields(self)})
+
+    def with_flows(self, flows: np.ndarray) -> SplatArrays:
+        return replace(self, flows=np.ascontiguousarray(flows, dtype=np.float32))
+
+    def nbytes(self) -> int:
+        return sum(getattr(self, f.name).nbytes for f in fields(self))
+
+
+def insert_rows(base: SplatArrays, index: np.ndarray, rows: SplatArrays) -> SplatArrays:
+    """``base`` with ``rows`` put back at the sorted positions ``index`` of the result (undo of a delete)."""
+    n = len(base) + len(rows)
+    keep = np.ones(n, bool)
+    keep[index] = False
+    out = {}
+    for f in fields(base):
+        a, r = getattr(base, f.name), getattr(rows, f.name)
+        merged = np.empty((n,) + a.shape[1:], a.dtype)
+        merged[keep] = a
+        merged[index] = r
+        out[f.name] = merged
+    return SplatArrays(**out)
+
+
+def insert_mask(base: np.ndarray, index: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """A 1-D ``base`` with ``values`` inserted at the result positions ``index``."""
+    n = len(base) + len(values)
+    keep = np.ones(n, bool)
+    keep[index] = False
+    out = np.empty(n, base.dtype)
+    out[keep] = base
+    out[index] = values
+    return out
+
+
+def covariances(quats: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
+    """World covariances ``Σ = R S Sᵀ Rᵀ`` as the upper triangle ``[N, 6]`` (xx, xy, xz, yy, yz, zz), float64."""
+    q = quats.astype(np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    rot = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        axis=1,
+    ).reshape(-1, 3, 3)
+    rs = rot * np.exp(log_scales.astype(np.float64))[:, None, :]
+    cov = np.einsum("nij,nkj->nik", rs, rs)
+    return np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
