@@ -51,6 +51,7 @@ uniform float u_haze_distance;
 uniform vec3 u_cam_pos;
 uniform float u_texture;
 uniform float u_ground_z;
+uniform float u_band_scale;
 
 in vec3 v_obj;
 in vec3 v_normal_obj;
@@ -91,8 +92,14 @@ float vnoise3(vec3 p) {
                   mix(hash3(i + vec3(0, 1, 1)), hash3(i + vec3(1, 1, 1)), f.x), f.y);
     return 2.0 * mix(a, b, f.z) - 1.0;
 }
-// weight of a pattern of spatial frequency `freq` (cycles per metre) given the footprint `fw` (metres per sample)
-float band(float freq, float fw) { return 1.0 - smoothstep(0.2, 0.5, freq * fw); }
+// Weight of a pattern of spatial frequency `freq` (cycles per metre) given the footprint `fw` (metres
+// per rendered sample): patterns finer than about 1.5 output pixels (u_band_scale = supersampling
+// factor) fade out, so the box filter is not left to alias them differently in every frame.
+float band(float freq, float fw) { return 1.0 - smoothstep(0.3, 0.7, freq * fw * u_band_scale); }
+// footprint of a sample in the units of p: geometric mean of the two screen axes (grazing views keep
+// detail across the line of sight)
+float footprint2(vec2 p) { return sqrt(max(length(dFdx(p)) * length(dFdy(p)), 1e-12)); }
+float footprint3(vec3 p) { return sqrt(max(length(dFdx(p)) * length(dFdy(p)), 1e-12)); }
 float fbm2(vec2 p, float freq, float fw) {  // three octaves, band-limited
     float s = 0.0, amp = 0.5;
     for (int i = 0; i < 3; ++i) {
@@ -110,15 +117,19 @@ float grid_line(float x, float period, float width, float fw) {
 }
 
 vec3 asphalt(vec2 uv, float fw) {
-    float n = 0.7 * fbm2(uv, 0.18, fw) + 0.6 * fbm2(uv + 31.0, 1.1, fw) + 0.45 * vnoise(uv * 7.0) * band(7.0, fw);
-    float patch_ = smoothstep(0.35, 0.45, vnoise(uv * 0.09 + 5.0)) * 0.12;
-    return v_color * (1.0 + u_texture * (0.33 * n - patch_));
+    float n = 0.6 * fbm2(uv, 0.15, fw) + 0.55 * fbm2(uv + 31.0, 0.8, fw) + 0.4 * vnoise(uv * 5.0) * band(5.0, fw);
+    float patch_ = smoothstep(0.3, 0.42, vnoise(uv * vec2(0.07, 0.25) + 5.0)) * 0.16;
+    float stain = smoothstep(0.55, 0.75, vnoise(uv * 0.6 + 13.0)) * 0.18 * band(0.6, fw);
+    // darker wheel tracks along the lanes (uv.y is the lateral offset d)
+    float lane = fract(uv.y / 3.4 + 0.5);
+    float tracks = (aa_band(lane - 0.28, 0.07, fw) + aa_band(lane - 0.72, 0.07, fw)) * 0.08 * band(3.0, fw);
+    return v_color * (1.0 + u_texture * (0.32 * n - patch_ - stain - tracks));
 }
 vec3 sidewalk(vec2 uv, float fw) {
     vec2 tile = floor(uv / 0.6);
     float joints = max(grid_line(uv.x, 0.6, 0.025, fw), grid_line(uv.y, 0.6, 0.025, fw));
-    float t = (hash2(tile + 7.0) - 0.5) * 0.22 * band(1.0 / 0.6, fw) + 0.25 * fbm2(uv, 0.6, fw);
-    return v_color * (1.0 + u_texture * t) * (1.0 - 0.35 * u_texture * joints);
+    float t = (hash2(tile + 7.0) - 0.5) * 0.3 * band(1.0 / 0.6, fw) + 0.3 * fbm2(uv, 0.5, fw);
+    return v_color * (1.0 + u_texture * t) * (1.0 - 0.4 * u_texture * joints);
 }
 vec3 kerb(vec2 uv, float fw) {
     float joints = grid_line(uv.x, 1.0, 0.02, fw);
@@ -188,8 +199,8 @@ vec3 facade(vec2 uv, float fw, inout float gloss) {
     float t = u_texture;
 #if MATERIAL == MAT_plaster
     {
-        wall *= 1.0 + t * (0.16 * fbm2(uv, 0.35, fw) + 0.05 * vnoise(uv * vec2(3.0, 0.6)) * band(3.0, fw)
-                           + 0.04 * vnoise(uv * 13.0) * band(13.0, fw));
+        wall *= 1.0 + t * (0.24 * fbm2(uv, 0.3, fw) + 0.08 * vnoise(uv * vec2(2.5, 0.5)) * band(2.5, fw)
+                           - 0.12 * smoothstep(1.2, 0.0, uv.y) * (0.6 + 0.4 * vnoise(uv * 1.3)));  // grime
     }
 #elif MATERIAL == MAT_brick
     {
@@ -293,8 +304,8 @@ vec3 albedo(float fw_uv, float fw_obj, inout float gloss) {
 vec3 to_linear(vec3 c) { return pow(max(c, 0.0), vec3(2.2)); }
 
 void main() {
-    float fw_uv = max(max(fwidth(v_uv.x), fwidth(v_uv.y)), 1e-5);
-    float fw_obj = max(length(fwidth(v_obj)), 1e-5);
+    float fw_uv = footprint2(v_uv);
+    float fw_obj = footprint3(v_obj);
     float gloss = 0.0;
     vec3 base = albedo(fw_uv, fw_obj, gloss);
     vec3 colour;
@@ -310,8 +321,8 @@ void main() {
         float low = mix(0.75, 1.0, smoothstep(0.0, 1.2, v_world.z - u_ground_z));  // darker near the ground
         vec3 lin = to_linear(base) * (u_sun_color * sun + u_ambient * sky * low);
         vec3 h = normalize(view + u_sun_dir);
-        lin += gloss * 0.35 * u_sun_color * pow(max(dot(n, h), 0.0), 60.0) * step(0.0, dot(n, u_sun_dir));
-        colour = pow(lin, vec3(1.0 / 2.2));
+        lin += gloss * 0.12 * u_sun_color * pow(max(dot(n, h), 0.0), 30.0) * step(0.0, dot(n, u_sun_dir));  // weak: view-dependent
+        colour = pow(1.0 - exp(-1.6 * lin), vec3(1.0 / 2.2));  // soft shoulder instead of clipping
     }
 #endif
     float haze = 1.0 - exp(-v_dist / u_haze_distance);

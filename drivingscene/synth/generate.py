@@ -24,7 +24,7 @@ def shading_uniforms(scene: Scene, config: SynthConfig) -> dict:
         "u_haze_color": light.sky_horizon, "u_haze_distance": light.haze_distance,
         "u_texture": float(config.texture_strength), "u_ground_z": float(scene.road_to_world[2, 3]),
         "u_zenith": light.sky_zenith, "u_horizon": light.sky_horizon, "u_cloud_cover": light.cloud_cover,
-        "u_cloud_offset": light.cloud_offset,
+        "u_cloud_offset": light.cloud_offset, "u_band_scale": float(config.supersample),
     }
 
 
@@ -51,6 +51,12 @@ def finish_images(colours: np.ndarray, fractions: list[float], config: SynthConf
     return out
 
 
+def _dynamic_mask(buffers: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """``[V, H, W]`` bool: pixels showing a moving object, from a geometry pass."""
+    now, other, _ = buffers
+    return (other[..., 3] > 0.5) & (now[..., 3] > 0.5)
+
+
 def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None = None) -> FramePair:
     """One frame pair of the benchmark with exact ground truth (deterministic in config and seed).
 
@@ -70,6 +76,7 @@ def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None
         shading = shading_uniforms(scene, config)
         colours = np.stack([renderer.render_color(gpu, v, rig.intrinsics, size, config.supersample, shading) for v in views])
         buffers = [renderer.render_geometry(gpu, views[k], views[1 - k], rig.intrinsics, size) for k in (0, 1)]
+        eval_dynamic = [_dynamic_mask(renderer.render_geometry(gpu, v, v, rig.intrinsics, size)) for v in views[2:]]
     finally:
         gpu.release()
     truths = [keyframe_truth(*buffers[k], rig.intrinsics, views[k].cams_to_world, views[1 - k].cams_to_world) for k in (0, 1)]
@@ -89,4 +96,5 @@ def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None
         eval_images=images[2:] if has_eval else None,
         eval_timestamps=np.array(times[2:], np.float64) if has_eval else None,
         eval_ego_to_world=np.stack([scene.ego_to_world(t) for t in times[2:]]) if has_eval else None,
+        eval_dynamic=np.stack(eval_dynamic) if has_eval else None,
     )

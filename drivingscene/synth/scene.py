@@ -58,8 +58,8 @@ def sample_lighting(rng: np.random.Generator) -> Lighting:
     elevation, azimuth = np.radians(rng.uniform(22, 62)), rng.uniform(-np.pi, np.pi)
     sun = (np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation))
     warm = rng.uniform(0, 1)
-    sun_color = np.array([1.0, 0.93 - 0.05 * warm, 0.82 - 0.12 * warm]) * rng.uniform(2.4, 3.0)
-    ambient = np.array([0.55, 0.62, 0.78]) * rng.uniform(0.55, 0.8)
+    sun_color = np.array([1.0, 0.93 - 0.05 * warm, 0.82 - 0.12 * warm]) * rng.uniform(1.7, 2.2)
+    ambient = np.array([0.55, 0.62, 0.78]) * rng.uniform(0.45, 0.65)
     zenith = np.array([0.25, 0.45, 0.78]) * rng.uniform(0.85, 1.1)
     horizon = np.array([0.72, 0.80, 0.88]) * rng.uniform(0.92, 1.05)
     return Lighting(

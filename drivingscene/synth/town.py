@@ -56,7 +56,7 @@ class Layout:
 
 
 def sample_layout(rng: np.random.Generator) -> Layout:
-    curvature = 0.0 if rng.uniform() < 0.25 else rng.choice([-1, 1]) * rng.uniform(1 / 450, 1 / 160)
+    curvature = 0.0 if rng.uniform() < 0.15 else rng.choice([-1, 1]) * rng.uniform(1 / 450, 1 / 160)
     has_cross = rng.uniform() < 0.8
     cross_s = float(rng.choice([-1, 1], p=[0.25, 0.75]) * rng.uniform(16, 42)) if has_cross else None
     return Layout(

@@ -56,7 +56,7 @@ def _vehicle(rng: np.random.Generator) -> tuple[str, np.ndarray]:
 def _lane_vehicle(lay: Layout, rng, t0: float, speed_scale: float, oncoming: bool) -> Agent:
     lane = int(rng.integers(lay.lanes_per_dir))
     d = (lane + 0.5) * lay.lane_width * (1 if oncoming else -1)
-    s = rng.uniform(-30, 80) if oncoming else rng.choice([-1, 1], p=[0.35, 0.65]) * rng.uniform(7, 55)
+    s = rng.uniform(-25, 60) if oncoming else rng.choice([-1, 1], p=[0.35, 0.65]) * rng.uniform(7, 40)
     kind, verts = _vehicle(rng)
     speed = rng.uniform(5, 13) * speed_scale
     return Agent("oncoming" if oncoming else "follow", Mover(lay.road.lane_path(d, s, not oncoming), speed, 0.0, t0),
@@ -66,7 +66,7 @@ def _lane_vehicle(lay: Layout, rng, t0: float, speed_scale: float, oncoming: boo
 def _crossing_vehicle(lay: Layout, rng, t0: float, speed_scale: float) -> Agent:
     direction = int(rng.choice([-1, 1]))
     lane_s = lay.cross_s + direction * lay.cross_half / 2  # right-hand traffic
-    d = rng.uniform(-60, 60)
+    d = rng.uniform(-45, 45)
     kind, verts = _vehicle(rng)
     path = lay.road.radial_path(lane_s, d, direction > 0)
     return Agent("crossing", Mover(path, rng.uniform(4, 11) * speed_scale, 0.0, t0), verts, 0.0, vehicle_circles(kind))
@@ -94,7 +94,7 @@ def _turning_vehicle(lay: Layout, rng, t0: float, speed_scale: float) -> Agent:
 def _walker(lay: Layout, rng, t0: float, speed_scale: float) -> Agent:
     side = int(rng.choice([-1, 1]))
     offset = lay.half(side) + rng.uniform(2.0, max(2.1, lay.sidewalk - 0.4))
-    path = lay.road.lane_path(side * offset, rng.uniform(-35, 60), bool(rng.uniform() < 0.5))
+    path = lay.road.lane_path(side * offset, rng.uniform(-25, 40), bool(rng.uniform() < 0.5))
     verts = objects.pedestrian_mesh(rng, rng.uniform())
     return Agent("walker", Mover(path, rng.uniform(0.9, 1.8) * speed_scale, 0.0, t0), verts, SIDEWALK_HEIGHT,
                  np.array([[0.0, 0.0, 0.4]]))
