@@ -13,7 +13,7 @@ import sys
 from drivingscene import __version__
 from drivingscene.errors import DrivingSceneError
 
-COMMAND_MODULES = ("scene", "export", "recon", "train", "bench")
+COMMAND_MODULES = ("scene", "synth", "export", "recon", "train", "bench")
 
 
 class OneLineParser(argparse.ArgumentParser):
