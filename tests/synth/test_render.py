@@ -43,7 +43,7 @@ def test_depth_of_a_ground_plane_is_the_ray_plane_intersection(renderer):
     covered = other[..., 3] > 0.5
     assert near.sum() > 1000 and np.all(covered[near]) and not np.any(covered[down > 0])
     np.testing.assert_allclose(now[..., 2][near], depth[near], rtol=1e-4)  # float32 interpolation of a 1 km quad at grazing angles
-    np.testing.assert_allclose(now[..., :3][near], (rays * depth[..., None])[near], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(now[..., :3][near], (rays * depth[..., None])[near], rtol=1e-4, atol=2e-4)  # half a pixel would be ~0.5 m here
     assert np.all(flow3[covered] == 0) and not np.any(now[..., 3][covered])  # static
 
 
