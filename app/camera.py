@@ -208,3 +208,63 @@ def fit_rect(src_w: int, src_h: int, dst_w: int, dst_h: int) -> tuple[int, int, 
     s = min(dst_w / src_w, dst_h / src_h)
     w, h = max(1, round(src_w * s)), max(1, round(src_h * s))
     return (dst_w - w) // 2, (dst_h - h) // 2, w, h
+
+
+def ego_pose(recon, t: float) -> np.ndarray:
+    """Ego-to-world ``[4, 4]`` float64 at normalised time t (SE(3) interpolation of the keyframes)."""
+    return recon.ego_to_world_at(float(t)).numpy()
+
+
+class CameraController:
+    """Which camera the 3D view shows: the navigation camera (in the world or following the ego),
+    or a rig camera snapped at the current time."""
+
+    def __init__(self, fov_y_deg: float = 60.0):
+        self.nav = NavCamera(fov_y_deg)
+        self.rig_index: int | None = None  # snapped to this rig camera
+        self.follow_ego = False
+        self.fly_mode = False  # left drag looks around instead of orbiting
+
+    def frame_to_world(self, recon, t: float) -> np.ndarray | None:
+        return ego_pose(recon, t) if self.follow_ego and recon.num_views else None
+
+    def view(self, recon, t: float, width: int, height: int) -> ViewCamera:
+        """The camera at time t for a viewport of ``width`` x ``height`` (rig views keep the rig K/size)."""
+        if self.rig_index is not None and self.rig_index < recon.num_views:
+            return rig_camera(recon.cam_to_world_at(float(t))[self.rig_index].numpy(), recon.intrinsics[self.rig_index], recon.image_size)
+        return self.nav.view(width, height, self.frame_to_world(recon, t))
+
+    def snap(self, index: int | None) -> None:
+        self.rig_index = index
+
+    def unsnap(self, recon, t: float) -> None:
+        """Leave the rig camera, continuing from its pose with the navigation camera."""
+        if self.rig_index is None:
+            return
+        cam_to_world = recon.cam_to_world_at(float(t))[self.rig_index].numpy()
+        frame = self.frame_to_world(recon, t)
+        self.nav.set_pose(cam_to_world if frame is None else invert_rigid(frame) @ cam_to_world, distance=10.0)
+        self.rig_index = None
+
+    def set_follow(self, recon, t: float, on: bool) -> None:
+        """Switch follow-ego mode without moving the view at time t."""
+        if on == self.follow_ego or not recon.num_views:
+            return
+        cam = self.nav.cam_to_frame()
+        ego = ego_pose(recon, t)
+        self.nav.set_pose(invert_rigid(ego) @ cam if on else ego @ cam)
+        self.follow_ego = on
+
+    def reset(self, recon, t: float, points: np.ndarray | None = None) -> None:
+        """A chase view above and behind the ego (driving scenes), or frame all (other files)."""
+        self.rig_index = None
+        if recon.num_views:
+            ego = ego_pose(recon, t) if not self.follow_ego else np.eye(4)
+            forward = ego[:3, 0]
+            self.nav.yaw = math.atan2(forward[1], forward[0])
+            self.nav.pitch = -0.45
+            self.nav.distance = 28.0
+            self.nav.target = ego[:3, 3] + 10.0 * np.array([math.cos(self.nav.yaw), math.sin(self.nav.yaw), 0.0])
+        elif points is not None:
+            self.nav.yaw, self.nav.pitch = -2.2, -0.4
+            self.nav.frame_points(points)

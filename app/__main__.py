@@ -1,0 +1,119 @@
+"""``drivingscene-view``: open a scene, a reconstruction or a 3DGS PLY in the viewer, or render headless.
+
+    drivingscene-view                         the bundled demo scene (assets/demo_scene.npz)
+    drivingscene-view scene.npz               reconstruct with the model (``--method oracle``: ground truth)
+    drivingscene-view recon.npz | splats.ply  open a saved reconstruction or another tool's 3DGS PLY
+    drivingscene-view scene.npz --headless --out DIR [--time T ...] [--camera NAME ...]
+    drivingscene-view --bench OUT.md [scene]  performance on llvmpipe at 1280x720
+
+Errors are one line on stderr (exit code 2); in the window they also appear in the status bar and the
+window stays up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from app.loader import METHODS
+from app.renderer import MODES
+from app.splats import BLEND_MODES
+from drivingscene.errors import DrivingSceneError
+
+PROG = "drivingscene-view"
+DEMO_SCENE = "demo_scene.npz"
+
+
+class OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def unit_interval(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], found {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1] (0 = keyframe 0, 1 = keyframe 1), found {value:g}")
+    return value
+
+
+def image_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1280x720, found {text!r}") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise argparse.ArgumentTypeError(f"expected 16-8192 pixels per side, found {w}x{h}")
+    return w, h
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = OneLineParser(prog=PROG, description="DrivingScene viewer and editor: scrub time, inspect depth and flow, edit, export.")
+    p.add_argument("path", nargs="?", type=Path, metavar="FILE", help="scene.npz, recon.npz or 3DGS .ply (default: the demo scene)")
+    p.add_argument("--method", choices=METHODS, default="auto",
+                   help="for a scene.npz: the model (auto: when its weights exist) or the ground-truth oracle")
+    p.add_argument("--weights", type=Path, default=None, help="model weights .safetensors (JSON config beside it)")
+    p.add_argument("--headless", action="store_true", help="render to files through EGL, no window")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder of --headless")
+    p.add_argument("--time", type=unit_interval, action="append", metavar="T", help="normalised time (repeatable; default 0, 0.5, 1)")
+    p.add_argument("--camera", action="append", metavar="NAME", help="rig camera to render (repeatable; default all)")
+    p.add_argument("--mode", choices=MODES, default="rgb", help="what to render (headless)")
+    p.add_argument("--blend", choices=BLEND_MODES, default="all", help="how both keyframes' Gaussians combine at time t")
+    p.add_argument("--size", type=image_size, default=(1280, 720), metavar="WxH", help="overview / window size")
+    p.add_argument("--no-ply", action="store_true", help="headless: skip the PLY")
+    p.add_argument("--force", action="store_true", help="headless/bench: overwrite existing output files")
+    p.add_argument("--bench", type=Path, default=None, metavar="OUT.md", help="measure rendering performance, write a table")
+    p.add_argument("--frames", type=int, default=40, help="--bench: frames per measurement")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    from drivingscene.resources import asset_path
+
+    if args.headless and args.out is None:
+        parser.error("--headless needs --out DIR")
+    if args.out is not None and not args.headless:
+        parser.error("--out is only used with --headless")
+    if args.path is None:
+        args.path = asset_path(DEMO_SCENE)
+        args.demo = True
+    else:
+        args.demo = False
+    if args.headless or args.bench:
+        if not args.path.exists():
+            hint = " (generate it: drivingscene synth --seed 0 --out assets/demo_scene.npz)" if args.demo else ""
+            parser.exit(2, f"{PROG}: error: {args.path}: file not found{hint}\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    check_args(parser, args)
+    try:
+        if args.bench:
+            from app.bench import run_bench
+
+            return run_bench(args)
+        if args.headless:
+            from app.headless import run_headless
+
+            return run_headless(args)
+        from app.window import run_window
+
+        return run_window(args)
+    except DrivingSceneError as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,128 @@
+"""Exports: the current view as PNG, every rig camera at time t, a time-sweep MP4, PLY files, and the
+edited reconstruction. Exports write what the document holds now (deleted Gaussians are gone, hidden
+ones are left out) and never overwrite: ``free_path`` picks ``name-1.ext``, ``name-2.ext``, ... when
+the name is taken (the UI), or the caller refuses (the headless CLI without ``--force``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from app.camera import ViewCamera, rig_camera
+from app.renderer import RenderOptions
+from app.state import SceneDoc
+from app.viewport import Viewport
+from drivingscene.errors import InputError
+from drivingscene.viz import save_png
+
+PLY_KINDS = {"3dgs": "standard 3DGS at time t", "dynamic": "dynamic (keyframe positions + flow)", "points": "point cloud at time t"}
+
+
+def free_path(path: str | os.PathLike) -> Path:
+    """``path`` if nothing is there, else the first free ``stem-1.suffix``, ``stem-2.suffix``, ..."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    for i in range(1, 100000):
+        candidate = path.with_name(f"{path.stem}-{i}{path.suffix}")
+        if not candidate.exists():
+            return candidate
+    raise InputError(f"{path}: no free file name left beside it")
+
+
+def _prepare(path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return free_path(path)
+
+
+def export_view(viewport: Viewport, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions, path: Path,
+                size: tuple[int, int] | None = None, depth_range=(2.0, 80.0)) -> Path:
+    """The view of ``camera`` at ``size`` (W, H; default the camera's) as a PNG, without overlays or selection tint."""
+    if size is not None and (size[0] < 1 or size[1] < 1 or size[0] > 8192 or size[1] > 8192):
+        raise InputError(f"PNG size: expected 1-8192 pixels per side, found {size[0]}x{size[1]}")
+    cam = camera if size is None else camera.resized(*size)
+    image = viewport.image(doc, cam, t, _clean(opts), depth_range)
+    return save_png(_prepare(Path(path)), image)
+
+
+def _clean(opts: RenderOptions) -> RenderOptions:
+    from dataclasses import replace
+
+    return replace(opts, show_selection=False)
+
+
+def rig_views(doc: SceneDoc, t: float) -> list[tuple[str, ViewCamera]]:
+    recon = doc.recon
+    cams = recon.cam_to_world_at(float(t)).numpy()
+    return [(name, rig_camera(cams[v], recon.intrinsics[v], recon.image_size)) for v, name in enumerate(recon.camera_names)]
+
+
+def export_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOptions, folder: Path,
+                     depth_range=(2.0, 80.0), names: list[str] | None = None) -> list[Path]:
+    """One PNG per rig camera at time t, at the rig's resolution with its exact intrinsics."""
+    if not doc.num_views:
+        raise InputError("this file has no rig cameras (a PLY from another tool); export the current view instead")
+    views = rig_views(doc, t)
+    if names:
+        unknown = [n for n in names if n not in dict(views)]
+        if unknown:
+            raise InputError(f"--camera: unknown camera {unknown[0]!r}; expected one of {', '.join(doc.recon.camera_names)}")
+        views = [(n, c) for n, c in views if n in names]
+    out = []
+    for name, cam in views:
+        image = viewport.image(doc, cam, t, _clean(opts), depth_range)
+        out.append(save_png(_prepare(Path(folder) / f"{name}_t{t:.3f}.png"), image))
+    return out
+
+
+def export_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float], ViewCamera], opts: RenderOptions, path: Path,
+                 frames: int = 48, fps: float = 24.0, depth_range=(2.0, 80.0), progress: Callable[[float], None] | None = None) -> Path:
+    """An MP4 (OpenCV, mp4v) sweeping t from 0 to 1 over ``frames`` frames with ``camera_at(t)``."""
+    import cv2
+
+    if frames < 2:
+        raise InputError(f"video frames: expected at least 2, found {frames}")
+    path = _prepare(Path(path))
+    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+    writer = None
+    try:
+        for i, t in enumerate(np.linspace(0.0, 1.0, frames)):
+            cam = camera_at(float(t))
+            cam = cam.resized(cam.width - cam.width % 2, cam.height - cam.height % 2)  # even sizes for the codec
+            image = viewport.image(doc, cam, float(t), _clean(opts), depth_range)
+            if writer is None:
+                writer = cv2.VideoWriter(str(partial), cv2.VideoWriter_fourcc(*"mp4v"), fps, (image.shape[1], image.shape[0]))
+                if not writer.isOpened():
+                    raise InputError(f"{path}: OpenCV could not open an MP4 writer (mp4v)")
+            writer.write(np.ascontiguousarray(image[..., ::-1]))
+            if progress:
+                progress((i + 1) / frames)
+    finally:
+        if writer is not None:
+            writer.release()
+    os.replace(partial, path)
+    return path
+
+
+def export_ply(doc: SceneDoc, path: Path, kind: str = "3dgs", t: float | None = 0.0) -> Path:
+    """A PLY of the visible Gaussians: "3dgs" or "points" at time t, "dynamic" with flows (no t)."""
+    from drivingscene.export.ply import write_ply
+
+    if kind not in PLY_KINDS:
+        raise InputError(f"PLY kind: expected one of {', '.join(PLY_KINDS)}, found {kind!r}")
+    return write_ply(doc.visible_gaussians(), _prepare(Path(path)), kind=kind, t=None if kind == "dynamic" else t)
+
+
+def save_edited(doc: SceneDoc, path: Path) -> Path:
+    """The edited reconstruction as recon.npz (hidden Gaussians kept and flagged)."""
+    from drivingscene.gaussians.recon import save_reconstruction
+
+    if not doc.num_views:
+        raise InputError("a PLY opened from another tool has no rig to store in recon.npz; export a PLY instead")
+    out = save_reconstruction(doc.to_reconstruction(), _prepare(Path(path)))
+    doc.edited = False
+    return out
