@@ -65,18 +65,18 @@ flat in vec2 v_extra;
 
 out vec4 fragColor;
 
-uint hash_u(uint x) {
-    x ^= x >> 16; x *= 0x7feb352du; x ^= x >> 15; x *= 0x846ca68bu; x ^= x >> 16;
-    return x;
-}
+// Integer hashes of lattice points (one multiply-xorshift round per coordinate: cheap on llvmpipe).
 float hash2(vec2 p) {
     ivec2 i = ivec2(floor(p));
-    return float(hash_u(uint(i.x) * 1597334677u ^ hash_u(uint(i.y) + 0x9e3779b9u)) & 0xffffffu) / 16777215.0;
+    uint h = uint(i.x) * 0x27d4eb2du ^ uint(i.y) * 0x165667b1u;
+    h ^= h >> 15; h *= 0x2c1b3c6du; h ^= h >> 12;
+    return float(h & 0xffffffu) / 16777215.0;
 }
 float hash3(vec3 p) {
     ivec3 i = ivec3(floor(p));
-    return float(hash_u(uint(i.x) * 1597334677u ^ hash_u(uint(i.y) * 3812015801u ^ hash_u(uint(i.z) + 0x9e3779b9u)))
-                 & 0xffffffu) / 16777215.0;
+    uint h = uint(i.x) * 0x27d4eb2du ^ uint(i.y) * 0x165667b1u ^ uint(i.z) * 0x9e3779b1u;
+    h ^= h >> 15; h *= 0x2c1b3c6du; h ^= h >> 12;
+    return float(h & 0xffffffu) / 16777215.0;
 }
 float vnoise(vec2 p) {  // value noise in [-1, 1]
     vec2 i = floor(p), f = fract(p);

@@ -12,6 +12,7 @@ import importlib
 BENCHMARKS: dict[str, tuple[str, str]] = {
     # name: (module, help)
     "raster": ("drivingscene.bench.raster_speed", "CPU Gaussian rasterizer: forward / forward+backward time, peak memory"),
+    "synth": ("drivingscene.bench.synth_speed", "synthetic benchmark: seconds per pair with all ground truth, with/without writing"),
 }
 
 

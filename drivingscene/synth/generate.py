@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from drivingscene.data import FramePair
@@ -51,19 +53,37 @@ def finish_images(colours: np.ndarray, fractions: list[float], config: SynthConf
     return out
 
 
+class _Stopwatch:
+    """Records seconds between laps into ``out`` (does nothing when ``out`` is None)."""
+
+    def __init__(self, out: dict[str, float] | None) -> None:
+        self.out = out
+        self.last = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        if self.out is not None:
+            self.out[name] = self.out.get(name, 0.0) + now - self.last
+        self.last = now
+
+
 def _dynamic_mask(buffers: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
     """``[V, H, W]`` bool: pixels showing a moving object, from a geometry pass."""
     now, other, _ = buffers
     return (other[..., 3] > 0.5) & (now[..., 3] > 0.5)
 
 
-def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None = None) -> FramePair:
+def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None = None,
+                  timings: dict[str, float] | None = None) -> FramePair:
     """One frame pair of the benchmark with exact ground truth (deterministic in config and seed).
 
-    Pass a ``SynthRenderer`` to reuse its GL context and programs across pairs.
+    Pass a ``SynthRenderer`` to reuse its GL context and programs across pairs; pass a dict as
+    ``timings`` to receive the seconds spent in each stage (for the benchmark).
     """
+    clock = _Stopwatch(timings)
     validate_config(config)
     scene = build_scene(config, seed)
+    clock.lap("scene")
     rig = file_rig(config)
     renderer = renderer if renderer is not None else SynthRenderer()
     t0, t1 = scene.keyframe_times
@@ -75,12 +95,15 @@ def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None
     try:
         shading = shading_uniforms(scene, config)
         colours = np.stack([renderer.render_color(gpu, v, rig.intrinsics, size, config.supersample, shading) for v in views])
+        clock.lap("colour")
         buffers = [renderer.render_geometry(gpu, views[k], views[1 - k], rig.intrinsics, size) for k in (0, 1)]
         eval_dynamic = [_dynamic_mask(renderer.render_geometry(gpu, v, v, rig.intrinsics, size)) for v in views[2:]]
     finally:
         gpu.release()
     truths = [keyframe_truth(*buffers[k], rig.intrinsics, views[k].cams_to_world, views[1 - k].cams_to_world) for k in (0, 1)]
+    clock.lap("ground_truth")
     images = finish_images(colours, fractions, config, seed)
+    clock.lap("images")
     has_eval = config.num_eval > 0
     return FramePair(
         images=images[:2],

@@ -32,16 +32,19 @@ class KeyframeTruth:
 
 def pixel_rays(intrinsics: np.ndarray, height: int, width: int) -> np.ndarray:
     """Camera-frame rays ``[V, H, W, 3]`` (z = 1) through the pixel centres."""
+    k = np.asarray(intrinsics, np.float64)[:, None, None]
     v, u = np.meshgrid(np.arange(height, dtype=np.float64), np.arange(width, dtype=np.float64), indexing="ij")
-    pix = np.stack([u, v, np.ones_like(u)], -1)
-    return np.einsum("vij,hwj->vhwi", np.linalg.inv(np.asarray(intrinsics, np.float64)), pix)
+    y = (v - k[..., 1, 2]) / k[..., 1, 1]
+    x = (u - k[..., 0, 2] - k[..., 0, 1] * y) / k[..., 0, 0]
+    return np.stack([x, y, np.ones_like(x)], -1)
 
 
 def project_points(points: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     """Camera points ``[V, H, W, 3]`` to pixels ``[V, H, W, 2]``; z clamped to ``MIN_Z``."""
-    z = np.maximum(points[..., 2:3], MIN_Z)
-    uvw = np.einsum("vij,vhwj->vhwi", np.asarray(intrinsics, np.float64), points / z)
-    return uvw[..., :2]
+    k = np.asarray(intrinsics, np.float64)[:, None, None]
+    z = np.maximum(points[..., 2], MIN_Z)
+    x, y = points[..., 0] / z, points[..., 1] / z
+    return np.stack([k[..., 0, 0] * x + k[..., 0, 1] * y + k[..., 0, 2], k[..., 1, 1] * y + k[..., 1, 2]], -1)
 
 
 def keyframe_truth(
@@ -57,7 +60,7 @@ def keyframe_truth(
     covered = other[..., 3] > 0.5
     rays = pixel_rays(intrinsics, height, width)
     now_to_other = np.einsum("vij,vjk->vik", np.linalg.inv(cams_other_to_world)[:, :3, :3], cams_now_to_world[:, :3, :3])
-    at_infinity = np.einsum("vij,vhwj->vhwi", now_to_other, rays)
+    at_infinity = (rays.reshape(views, -1, 3) @ now_to_other.transpose(0, 2, 1)).reshape(rays.shape)
     target = np.where(covered[..., None], other[..., :3].astype(np.float64), at_infinity)
     grid = np.stack(np.meshgrid(np.arange(width), np.arange(height), indexing="xy"), -1).astype(np.float64)
     flow = project_points(target, intrinsics) - grid

@@ -3,11 +3,12 @@ the ground at the footprint centre): vehicles, pedestrians, trees, street furnit
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
-from drivingscene.synth.meshes import MeshBuilder, box, cylinder, ellipsoid, merge, prism, transform_vertices
+from drivingscene.synth.meshes import MATERIALS, MeshBuilder, box, cylinder, ellipsoid, merge, prism, transform_vertices
 from drivingscene.synth.motion import planar_pose
 
 CAR_COLOURS = np.array(
@@ -39,7 +40,17 @@ VEHICLES: dict[str, VehicleShape] = {
 
 
 def vehicle_mesh(kind: str, color, param: float) -> np.ndarray:
-    """A car, van or bus: lower body prism, glass cabin, four wheels. ``color`` is the paint."""
+    """A car, van or bus: lower body prism, glass cabin with windows, four wheels. ``color`` is the paint."""
+    out = _vehicle_template(kind).copy()
+    paint = out[:, 11] == MATERIALS["car_paint"]
+    out[paint, 8:11] = color
+    out[:, 12] = param
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _vehicle_template(kind: str) -> np.ndarray:
+    color, param = (0.5, 0.5, 0.5), 0.0
     v = VEHICLES[kind]
     half_l, half_w = v.length / 2, v.width / 2
     b = MeshBuilder()
