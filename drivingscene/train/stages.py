@@ -12,8 +12,6 @@ wrapped in DistributedDataParallel).
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor, nn
 
@@ -168,4 +166,4 @@ class TrainStep(nn.Module):
 
 
 def is_finite(loss: Tensor) -> bool:
-    return bool(torch.isfinite(loss).item()) and not math.isnan(float(loss))
+    return bool(torch.isfinite(loss.detach()).all())

@@ -112,9 +112,9 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
             if not is_finite(loss):
                 break
             (loss / config.batch_pairs).backward()
-            loss_sum += float(loss) / config.batch_pairs
+            loss_sum += float(loss.detach()) / config.batch_pairs
             for k, v in terms.items():
-                terms_sum[k] = terms_sum.get(k, 0.0) + float(v) / config.batch_pairs
+                terms_sum[k] = terms_sum.get(k, 0.0) + float(v.detach()) / config.batch_pairs
         if not is_finite(torch.tensor(loss_sum)) or len(terms_sum) == 0:
             bad += 1
             log.warning("step %d: non-finite loss, skipped (%d in a row)", step, bad)

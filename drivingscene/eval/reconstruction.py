@@ -1,0 +1,88 @@
+"""Scoring a reconstruction against a frame pair's ground truth.
+
+- novel views: the Gaussians rendered at the pair's intermediate frames (exact recorded ego poses)
+  against the real frames: PSNR, SSIM and the perceptual distance, over all pixels and over
+  dynamic pixels (``eval_dynamic``);
+- depth: the reconstruction's per-camera depth at both keyframes against ``gt_depth`` (0.1-80 m),
+  metric and median-scaled;
+- flow: end-point error of the rigid flow alone and of rigid + residual against ``gt_flow``, on
+  dynamic and on static pixels (both keyframes, both directions).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.eval.lpips import PerceptualMetric
+from drivingscene.eval.metrics import depth_metrics, lpips_distance, psnr, ssim
+from drivingscene.gaussians.recon import Reconstruction
+
+
+def _nanmean(x: torch.Tensor) -> float:
+    x = x.double().flatten()
+    x = x[~torch.isnan(x)]
+    return float(x.mean()) if x.numel() else math.nan
+
+
+def score_novel_views(recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None, blend: str = "all") -> dict[str, float]:
+    from drivingscene.render.scene import render_eval_frames
+
+    pred = render_eval_frames(recon, pair, blend=blend).flatten(0, 1).permute(0, 3, 1, 2)  # [MV, 3, H, W]
+    target = torch.from_numpy(pair.eval_images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
+    out = {"psnr": _nanmean(psnr(pred, target)), "ssim": _nanmean(ssim(pred, target))}
+    if perceptual is not None:
+        out["lpips"] = _nanmean(lpips_distance(pred, target, metric=perceptual))
+    if pair.eval_dynamic is not None:
+        dyn = torch.from_numpy(pair.eval_dynamic).flatten(0, 1)
+        out["psnr_dyn"] = _nanmean(psnr(pred, target, dyn))
+        out["ssim_dyn"] = _nanmean(ssim(pred, target, dyn))
+        if perceptual is not None:
+            out["lpips_dyn"] = _nanmean(lpips_distance(pred, target, dyn, metric=perceptual))
+        out["dynamic_share"] = float(dyn.float().mean())
+    return out
+
+
+def score_depth(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
+    if recon.depth is None or pair.gt_depth is None:
+        return {}
+    pred = torch.from_numpy(recon.depth).flatten(0, 1)
+    gt = torch.from_numpy(pair.gt_depth).flatten(0, 1)
+    out = {}
+    for prefix, scaled in (("depth", False), ("depth_ms", True)):
+        m = depth_metrics(pred, gt, median_scaling=scaled)
+        for name in ("abs_rel", "sq_rel", "rmse", "a1"):
+            out[f"{prefix}_{name}"] = _nanmean(getattr(m, name))
+    return out
+
+
+def score_flow(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
+    if recon.rigid_flow is None or pair.gt_flow is None or pair.gt_dynamic is None:
+        return {}
+    gt = torch.from_numpy(pair.gt_flow).flatten(0, 1)
+    dyn = torch.from_numpy(pair.gt_dynamic).flatten(0, 1)
+    valid = torch.from_numpy(pair.gt_depth > 0).flatten(0, 1) if pair.gt_depth is not None else torch.ones_like(dyn)
+    out = {}
+    for name, flow in (("rigid", recon.rigid_flow), ("total", recon.total_flow)):
+        pred = torch.from_numpy(np.ascontiguousarray(flow)).flatten(0, 1)
+        # Pool pixels over all images (images without dynamic pixels give NaN and are skipped).
+        errs = (pred.double() - gt.double()).norm(dim=-1)
+        out[f"epe_dyn_{name}"] = float(errs[dyn & valid].mean()) if (dyn & valid).any() else math.nan
+        out[f"epe_static_{name}"] = float(errs[~dyn & valid].mean()) if (~dyn & valid).any() else math.nan
+    return out
+
+
+@torch.no_grad()
+def score_reconstruction(
+    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None = None, blend: str = "all"
+) -> dict[str, float]:
+    """Every available score of ``recon`` on ``pair`` as a flat dict of floats (NaN = not defined)."""
+    out: dict[str, float] = {"gaussians": float(len(recon.visible())), "dynamic_gaussians": float(recon.visible().dynamic.sum())}
+    if pair.num_eval:
+        out.update(score_novel_views(recon, pair, perceptual, blend))
+    out.update(score_depth(recon, pair))
+    out.update(score_flow(recon, pair))
+    return out
