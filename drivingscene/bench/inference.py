@@ -1,0 +1,82 @@
+"""``drivingscene bench inference``: seconds to reconstruct one 6-camera pair (networks + Gaussian
+assembly), at several resolutions, with peak memory. The target is 176x320 in <= 0.5 s on 2 cores."""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+from drivingscene.bench.machine import current_rss_bytes, machine_description, peak_rss_bytes
+
+SIZES = ("96x176", "176x320", "352x640")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sizes", nargs="+", default=list(SIZES), metavar="HxW")
+    p.add_argument("--runs", type=int, default=5, help="timed runs per size after one warm-up")
+    p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--no-amp", action="store_true")
+    p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
+
+
+def _pair(size: str):
+    from drivingscene.cli.synth import parse_resolution
+    from drivingscene.synth.config import SynthConfig
+    from drivingscene.synth.generate import generate_pair
+
+    height, width = parse_resolution(size)
+    return generate_pair(SynthConfig(height=height, width=width), 200000)
+
+
+def measure(model, size: str, runs: int, amp: bool, threads: int) -> dict:
+    from drivingscene.methods.feedforward import InferenceOptions, reconstruct
+
+    pair = _pair(size)
+    options = InferenceOptions(amp=amp, threads=threads)
+    base = current_rss_bytes()
+    reconstruct(model, pair, options)  # warm-up
+    totals, parts = [], []
+    for _ in range(runs):
+        tic = time.perf_counter()
+        recon = reconstruct(model, pair, options)
+        totals.append(time.perf_counter() - tic)
+        parts.append(recon.meta["timings"])
+    part = {k: statistics.median(p[k] for p in parts) for k in parts[0]}
+    return dict(
+        size=size,
+        median=statistics.median(totals),
+        best=min(totals),
+        gaussians=len(recon.gaussians),
+        peak_mib=(peak_rss_bytes() - base) / 2**20,
+        **part,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from drivingscene.methods.feedforward import load_model
+
+    torch.set_num_threads(args.threads)
+    model = load_model(args.weights)
+    rows = [measure(model, size, args.runs, not args.no_amp, args.threads) for size in args.sizes]
+    lines = [
+        f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}` on "
+        f"{machine_description()}; bf16 autocast {'off' if args.no_amp else 'on'}; median of {args.runs} runs after a warm-up.",
+        "",
+        "| size (H×W) | total s (median) | best s | networks D+P s | flow (rigid + R + lift) s | assembly + sky s | Gaussians | peak RSS increase |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['size']} | {r['median']:.3f} | {r['best']:.3f} | {r['static_s']:.3f} | {r['flow_s']:.3f} | "
+            f"{r['assembly_s']:.3f} | {r['gaussians'] / 1e3:.0f}k | {r['peak_mib']:.0f} MiB |"
+        )
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        args.out.write_text(text)
+    return 0
