@@ -17,15 +17,27 @@ Two weight sets (``.name`` says which; report it beside every number, they are n
 - ``"LPIPS (alex|vgg)"``: the original LPIPS v0.1, used when the torchvision trunk and the LPIPS
   heads are on disk (``lpips_weights.py`` lists where they are searched).
 
-Differences from the reference code, all numerically neutral or intended: the two images run
-through the trunk as one batch; features are normalised and compared in float32 even under
-bf16 autocast; no dropout module (the reference's is inactive in eval mode).
+Differences from the reference code, all numerically neutral (< 2e-6) or intended: x and y go
+through the trunk in separate passes (backward then skips the target's input gradient) in
+channels_last layout; features are normalised and compared in float32 even under bf16
+autocast; no dropout module (the reference's is inactive in eval mode).
 
-Verified against the stlpips_pytorch reference (alex and vgg, 4 image pairs, |diff| < 1e-6):
-``tests/eval/test_lpips.py``. Cost on 2 shared CPU cores, fwd+bwd w.r.t. the prediction, batch
-6x3x96x176, ST-LPIPS alex: 0.38 s fp32, 0.24 s under ``torch.autocast("cpu", torch.bfloat16)``
-(forward only: 0.13 s / 0.10 s); ST-LPIPS vgg: 2.6 s fp32, 1.3 s bf16. bf16 changes values by
-about 1% relative.
+Verified against the stlpips_pytorch 0.0.2 reference (alex and vgg, two image sizes, 4 pairs,
+values and spatial maps agree to 2e-6): ``tests/eval/test_lpips.py``.
+
+Cost (ST-LPIPS, distance of a batch 6x3x96x176 to a fixed target, gradient w.r.t. the
+prediction, 2 CPU cores shared with other jobs, best of 10 runs, seconds):
+
+    ======================  ========  ============  ========  ============
+    trunk (machine load)    fwd fp32  fwd+bwd fp32  fwd bf16  fwd+bwd bf16
+    ======================  ========  ============  ========  ============
+    alex (load ~2)          0.10      0.20          0.064     0.17
+    alex (load ~6)          0.29      0.73          0.24      0.42
+    vgg  (load ~6)          1.9       3.2           1.2       2.5
+    ======================  ========  ============  ========  ============
+
+Medians were 2-5x the best under load. bf16 autocast (``torch.autocast("cpu", torch.bfloat16)``)
+changes the distance by 0.1-0.2% on textured images.
 """
 
 from __future__ import annotations
