@@ -65,18 +65,19 @@ flat in vec2 v_extra;
 
 out vec4 fragColor;
 
-// Integer hashes of lattice points (one multiply-xorshift round per coordinate: cheap on llvmpipe).
+// Integer hashes of lattice points: the coordinates combined, then one lowbias32 finaliser.
+uint mix32(uint h) {
+    h ^= h >> 16; h *= 0x7feb352du; h ^= h >> 15; h *= 0x846ca68bu; h ^= h >> 16;
+    return h;
+}
 float hash2(vec2 p) {
     ivec2 i = ivec2(floor(p));
-    uint h = uint(i.x) * 0x27d4eb2du ^ uint(i.y) * 0x165667b1u;
-    h ^= h >> 15; h *= 0x2c1b3c6du; h ^= h >> 12;
-    return float(h & 0xffffffu) / 16777215.0;
+    return float(mix32(uint(i.x) * 0x27d4eb2du + uint(i.y) * 0x165667b1u) & 0xffffffu) / 16777215.0;
 }
 float hash3(vec3 p) {
     ivec3 i = ivec3(floor(p));
-    uint h = uint(i.x) * 0x27d4eb2du ^ uint(i.y) * 0x165667b1u ^ uint(i.z) * 0x9e3779b1u;
-    h ^= h >> 15; h *= 0x2c1b3c6du; h ^= h >> 12;
-    return float(h & 0xffffffu) / 16777215.0;
+    return float(mix32(uint(i.x) * 0x27d4eb2du + uint(i.y) * 0x165667b1u + uint(i.z) * 0x9e3779b1u) & 0xffffffu)
+           / 16777215.0;
 }
 float vnoise(vec2 p) {  // value noise in [-1, 1]
     vec2 i = floor(p), f = fract(p);
@@ -153,7 +154,8 @@ vec3 shopfront(vec3 wall, vec2 uv, float fw, float spacing, float ground_h, floa
     vec3 interior = mix(vec3(0.07, 0.075, 0.08), vec3(0.32, 0.28, 0.24), hash2(vec2(bay, 5.0 + v_param * 17.0)));
     interior *= 0.7 + 0.3 * smoothstep(z0, top, uv.y) + 0.25 * u_texture * vnoise(uv * 1.7 + id * 40.0) * band(1.7, fw);
     vec3 frame_c = mix(vec3(0.12, 0.12, 0.13), vec3(0.75, 0.74, 0.7), step(0.5, fract(v_param * 3.7)));
-    vec3 fascia = mix(wall * 0.55, vec3(hash2(vec2(bay, 1.0)), hash2(vec2(bay, 2.0)), hash2(vec2(bay, 3.0))), 0.45);
+    vec3 sign = vec3(hash2(vec2(bay, 11.0 + v_param * 97.0)), hash2(vec2(bay + 0.5 * v_param, 23.0)), hash2(vec2(bay, 37.0 - v_param * 51.0)));
+    vec3 fascia = mix(wall * 0.5, mix(vec3(0.3), sign, 0.55), 0.7);
     vec3 c = mix(wall, wall * 0.6, aa_band(uv.y, 0.4, fw));  // plinth
     c = mix(c, fascia, aa_band(uv.y - (ground_h - 0.5), 0.3, fw) * in_front * step(0.35, fract(v_param * 5.3)));
     c = mix(c, frame_c, frame);
@@ -309,7 +311,13 @@ void main() {
     float gloss = 0.0;
     vec3 base = albedo(fw_uv, fw_obj, gloss);
     vec3 colour;
-#if MATERIAL == MAT_lamp
+#if MATERIAL == MAT_shadow
+    // uv runs over [-1, 1]^2 under the object; a soft rounded rectangle, fading with distance
+    vec2 q = max(abs(v_uv) - 0.55, 0.0) / 0.45;
+    float occlusion = (1.0 - smoothstep(0.0, 1.0, length(q))) * v_color.r * exp(-v_dist / u_haze_distance);
+    fragColor = vec4(vec3(1.0 - occlusion), 1.0);
+    return;
+#elif MATERIAL == MAT_lamp
     colour = base;
 #else
     {

@@ -21,6 +21,7 @@ MATERIALS: dict[str, int] = {
         (
             "ground", "asphalt", "paint", "kerb", "sidewalk", "plaster", "brick", "glass_facade", "roof", "foliage",
             "bark", "metal", "car_paint", "car_glass", "rubber", "cloth", "skin", "lamp", "concrete", "hair",
+            "shadow",  # last: contact shadows, colour pass only (multiplied onto the ground, no ground truth)
         )
     )
 }

@@ -42,8 +42,8 @@ class Path:
         out, dist, x, y, h = [], 0.0, self.x0, self.y0, self.heading0
         for length, curv in self.pieces:
             out.append((dist, x, y, h))
-            f, l = arc_offset(length, curv)
-            x, y = x + f * np.cos(h) - l * np.sin(h), y + f * np.sin(h) + l * np.cos(h)
+            fwd, left = arc_offset(length, curv)
+            x, y = x + fwd * np.cos(h) - left * np.sin(h), y + fwd * np.sin(h) + left * np.cos(h)
             h, dist = h + curv * length, dist + length
         return out
 
@@ -56,9 +56,8 @@ class Path:
                 idx = i
         dist, x, y, h = starts[idx]
         curv = self.pieces[idx][1]
-        f, l = arc_offset(u - dist, curv)
-        f, l = float(f), float(l)
-        return x + f * np.cos(h) - l * np.sin(h), y + f * np.sin(h) + l * np.cos(h), h + curv * (u - dist)
+        fwd, left = (float(a) for a in arc_offset(u - dist, curv))
+        return x + fwd * np.cos(h) - left * np.sin(h), y + fwd * np.sin(h) + left * np.cos(h), h + curv * (u - dist)
 
     @property
     def length(self) -> float:
@@ -88,9 +87,9 @@ class RoadFrame:
         return self.curvature * np.asarray(s, dtype=np.float64)
 
     def to_xy(self, s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        f, l = arc_offset(s, self.curvature)
+        fwd, left = arc_offset(s, self.curvature)
         h = self.heading(s)
-        return f - np.asarray(d) * np.sin(h), l + np.asarray(d) * np.cos(h)
+        return fwd - np.asarray(d) * np.sin(h), left + np.asarray(d) * np.cos(h)
 
     def to_sd(self, x: float, y: float) -> tuple[float, float]:
         """Inverse of ``to_xy`` (within half a turn of the origin)."""

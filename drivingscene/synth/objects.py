@@ -48,7 +48,7 @@ def vehicle_mesh(kind: str, color, param: float) -> np.ndarray:
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _vehicle_template(kind: str) -> np.ndarray:
     color, param = (0.5, 0.5, 0.5), 0.0
     v = VEHICLES[kind]
@@ -82,6 +82,18 @@ def _vehicle_template(kind: str) -> np.ndarray:
             w = MeshBuilder()
             w.add(wheel, "rubber", (0.06, 0.06, 0.06), param, (v.wheel_radius, 0.0))
             b.add_vertices(w.build(), m)
+    b.add_vertices(contact_shadow(half_l + 0.25, half_w + 0.2, 0.6))
+    return b.build()
+
+
+def contact_shadow(half_length: float, half_width: float, darkness: float) -> np.ndarray:
+    """A soft dark patch on the ground under an object (colour pass only): uv spans [-1, 1]^2."""
+    corners = np.array([[-half_length, -half_width, 0.02], [half_length, -half_width, 0.02],
+                        [half_length, half_width, 0.02], [-half_length, half_width, 0.02]])
+    uv = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    idx = [0, 1, 2, 0, 2, 3]
+    b = MeshBuilder()
+    b.add((corners[idx], np.tile([0.0, 0.0, 1.0], (6, 1)), uv[idx]), "shadow", (darkness, darkness, darkness))
     return b.build()
 
 
@@ -149,6 +161,10 @@ def pedestrian_mesh(rng: np.random.Generator, param: float) -> np.ndarray:
     b.add_vertices(head.build(), planar_pose(0.0, 0.0, 0.0, 1.6))
     verts = b.build()
     verts[:, 0:3] *= scale
+    b = MeshBuilder()
+    b.add_vertices(verts)
+    b.add_vertices(contact_shadow(0.4, 0.35, 0.45))
+    verts = b.build()
     return verts
 
 

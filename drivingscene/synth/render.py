@@ -31,6 +31,7 @@ DRAW_ORDER = tuple(
         "brick", "concrete", "glass_facade", "roof", "kerb", "sidewalk", "paint", "asphalt", "ground",
     )
 )
+SHADOW = MATERIALS["shadow"]
 
 
 def gl_projection(intrinsics: np.ndarray, height: int, width: int, near: float = NEAR, far: float = FAR) -> np.ndarray:
@@ -82,7 +83,7 @@ class GpuMesh:
     buffer: object  # moderngl.Buffer
     color_vaos: dict[int, tuple[object, int, int]]  # material -> (vertex array, first vertex, count)
     geometry_vao: object
-    count: int
+    count: int  # vertices of solid surfaces (the ground-truth pass draws these)
 
     def release(self) -> None:
         for vao, _, _ in self.color_vaos.values():
@@ -145,7 +146,8 @@ class SynthRenderer:
             vaos[int(material)] = (vao, int(first), int(last - first))
         skip = 4 * (VERTEX_FLOATS - 3)
         geometry_vao = self.ctx.vertex_array(self.geometry_prog, [(buf, f"3f {skip}x", "in_position")])
-        return GpuMesh(buf, vaos, geometry_vao, len(vertices))
+        solid = int(np.searchsorted(materials, SHADOW))  # shadows sort last and have no ground truth
+        return GpuMesh(buf, vaos, geometry_vao, solid)
 
     def _target(self, kind: str, width: int, height: int):
         key = (kind, width, height)
@@ -203,12 +205,30 @@ class SynthRenderer:
                         if "m_model_to_world" in prog:
                             prog["m_model_to_world"].write(model_to_world)
                         vao.render(first=first, vertices=count)
+            self._draw_shadows(models, proj)
             self.ctx.depth_func = "<="
             self.sky_prog["m_pixel_to_world"].write(_mat(cam_to_world[:3, :3] @ np.linalg.inv(k_s[v])))
             self.sky_prog["u_origin"].value = (0.0, float(v * hs))
             self.sky_prog["u_height"].value = float(hs)
             self._sky_vao.render()
         return self._resolve(tex, views, height, width, supersample)
+
+    def _draw_shadows(self, models, proj: bytes) -> None:
+        """Contact shadows: multiplied onto what is already drawn, depth-tested but not written."""
+        import moderngl
+
+        prog = self.color_progs[SHADOW]
+        prog["m_proj"].write(proj)
+        self.ctx.enable(moderngl.BLEND)
+        self.ctx.blend_func = moderngl.DST_COLOR, moderngl.ZERO
+        self.ctx.depth_mask = False
+        for mesh, model_to_cam, _ in models:
+            if SHADOW in mesh.color_vaos:
+                vao, first, count = mesh.color_vaos[SHADOW]
+                prog["m_model_to_cam"].write(model_to_cam)
+                vao.render(first=first, vertices=count)
+        self.ctx.depth_mask = True
+        self.ctx.disable(moderngl.BLEND)
 
     def _resolve(self, tex, views: int, height: int, width: int, factor: int) -> np.ndarray:
         import moderngl
@@ -252,7 +272,7 @@ class SynthRenderer:
                 prog["m_delta_world"].write(_mat(model_other - model_now))
                 prog["u_dynamic"].value = dynamic
                 prog["u_object_id"].value = object_id
-                mesh.geometry_vao.render()
+                mesh.geometry_vao.render(vertices=mesh.count)
         out = []
         for i in range(3):
             data = np.frombuffer(fbo.read(components=4, dtype="f4", attachment=i), np.float32)

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivingscene.synth import objects
 from drivingscene.synth.meshes import MeshBuilder
 from drivingscene.synth.motion import RoadFrame
 

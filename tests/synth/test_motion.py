@@ -14,9 +14,9 @@ def test_arc_offset_matches_numerical_integration(curvature):
     heading = curvature * u
     x = np.concatenate([[0], np.cumsum((np.cos(heading[1:]) + np.cos(heading[:-1])) / 2 * np.diff(u))])
     y = np.concatenate([[0], np.cumsum((np.sin(heading[1:]) + np.sin(heading[:-1])) / 2 * np.diff(u))])
-    f, l = arc_offset(u[::1000], curvature)
-    np.testing.assert_allclose(f, x[::1000], atol=1e-6)
-    np.testing.assert_allclose(l, y[::1000], atol=1e-6)
+    fwd, left = arc_offset(u[::1000], curvature)
+    np.testing.assert_allclose(fwd, x[::1000], atol=1e-6)
+    np.testing.assert_allclose(left, y[::1000], atol=1e-6)
 
 
 def test_path_is_continuous_and_turns_a_quarter():

@@ -19,7 +19,8 @@ def _plane(half: float = 500.0) -> np.ndarray:
     return b.build()
 
 
-def _view(rig, ego_to_world, static_to_world, agents=np.zeros((0, 4, 4))):
+def _view(rig, ego_to_world, static_to_world, agents=None):
+    agents = np.zeros((0, 4, 4)) if agents is None else agents
     return View(ego_to_world[None] @ rig.cam_to_ego, static_to_world, agents)
 
 
