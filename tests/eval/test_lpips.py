@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import kornia
 import numpy as np
@@ -315,3 +316,10 @@ def test_masked_lpips_uses_the_spatial_map(alex):
 def test_input_errors(alex, x_shape, y_shape, message):
     with pytest.raises(InputError, match=message):
         alex(torch.rand(x_shape), torch.rand(y_shape))
+
+
+def test_weights_are_read_without_importing_third_party_modules(alex, monkeypatch):
+    assert "stlpips_pytorch" not in sys.modules and "lpips" not in sys.modules
+    monkeypatch.setattr("drivingscene.eval.lpips_weights._package_dir", lambda name: None)
+    with pytest.raises(DrivingSceneError, match=r"ST-LPIPS \(vgg\) weights not found: install stlpips-pytorch==0.0.2"):
+        load_perceptual("stlpips", "vgg")
