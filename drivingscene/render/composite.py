@@ -59,11 +59,11 @@ def pair_inputs(splats: Splats, width: int, height: int) -> PairInputs:
         half = torch.stack([torch.sqrt(two_s * q[:, 2] / det), torch.sqrt(two_s * q[:, 0] / det)], dim=-1)
         half = half * (1 + 1e-3) + 1e-3
         centre = means2d.double()
-        lo = torch.ceil(centre - half).clamp(min=-1, max=max(width, height))
-        hi = torch.floor(centre + half).clamp(min=-1, max=max(width, height))
-        lo = torch.maximum(lo, torch.zeros_like(lo))
-        hi = torch.minimum(hi, torch.tensor([width - 1, height - 1], dtype=hi.dtype))
-        hi = torch.where(ok[:, None], hi, lo - 1)
+        ok &= torch.isfinite(centre).all(-1) & torch.isfinite(half).all(-1)  # never cast NaN/inf to int
+        size = torch.tensor([width - 1, height - 1], dtype=torch.float64)
+        lo = torch.where(ok[:, None], torch.ceil(centre - half), 0.0).clamp(min=0.0)
+        hi = torch.where(ok[:, None], torch.floor(centre + half), -1.0)
+        hi = torch.minimum(hi, size)
         boxes = torch.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], dim=-1).to(torch.int32)
         return PairInputs(
             means2d=means2d.contiguous(),
@@ -112,6 +112,9 @@ def _candidates(inp: PairInputs, width: int, height: int) -> tuple[Tensor, Tenso
         out_p.append((cam[j] * height + y)[keep] * width + x[keep])
         out_s.append(sigma[keep])
         start = stop
+    if not out_j:
+        empty = torch.zeros(0, dtype=torch.int64)
+        return empty, empty, inp.means2d.new_zeros(0)
     return torch.cat(out_j), torch.cat(out_p), torch.cat(out_s)
 
 

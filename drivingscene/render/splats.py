@@ -72,11 +72,11 @@ def make_splats(
         # fronto-parallel wall, a ground-plane row) does not depend on float32 rounding.
         rot_z = viewmats[:, 2, :3].double()
         z64 = (means.detach()[gs_ids].double() * rot_z[cam_ids]).sum(-1) + viewmats[cam_ids, 2, 3].double()
-        order = torch.sort(z64, stable=True).indices
-        order = order[torch.sort(cam_ids[order], stable=True).indices]
-        cam_ids, gs_ids = cam_ids[order], gs_ids[order]
         counts = torch.bincount(cam_ids, minlength=num_cams)
         offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+        bounds = offsets.tolist()  # nonzero() lists pairs camera by camera, Gaussians ascending
+        order = torch.cat([lo + torch.sort(z64[lo:hi], stable=True).indices for lo, hi in zip(bounds[:-1], bounds[1:])])
+        cam_ids, gs_ids = cam_ids[order], gs_ids[order]
     covars = covariances_3d(quats, scales)  # [N, 3, 3]
     proj = project_covariances(
         means[gs_ids], covars[gs_ids], viewmats[cam_ids], Ks[cam_ids], width, height, near=near, far=far, eps2d=eps2d

@@ -168,6 +168,17 @@ def test_gradcheck_torch_path_float64():
     assert torch.autograd.gradcheck(fn, (*inputs, bg), eps=1e-6, atol=1e-5)
 
 
+def test_no_visible_gaussians_render_the_background(backend):
+    scene = random_scene(num=6, num_cams=2)
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    for means in (torch.zeros(0, 3), scene["means"] * torch.tensor([1.0, 1.0, -1.0])):  # none, all behind
+        n = len(means)
+        empty = dict(scene, means=means, quats=scene["quats"][:n], scales=scene["scales"][:n],
+                     opacities=scene["opacities"][:n], colors=scene["colors"][:n])  # fmt: skip
+        out = rasterize(**empty, background=bg, backend=backend)
+        assert (out.colors == bg).all() and (out.alphas == 0).all() and (out.depths == 0).all()
+
+
 def test_invalid_inputs_raise_with_shapes():
     scene = random_scene(num=4, num_cams=1)
     with pytest.raises(InputError, match=r"quats must have shape \[4, 4\], found \[3, 4\]"):

@@ -29,15 +29,19 @@ struct Bins {
   std::vector<int32_t> ids;      // splat ids, depth order within each task
 };
 
+int64_t band_of(int32_t row, int64_t bands) {
+  return std::min<int64_t>(std::max<int32_t>(row, 0) / kBandRows, bands - 1);
+}
+
 // Band lists: for each (camera, band), the splats whose pixel box meets the band, in splat order.
-Bins bin_by_band(const int32_t* boxes, const int64_t* cam_offsets, int64_t num_cams, int64_t bands) {
+Bins bin_by_band(const int32_t* boxes, const int64_t* cam_offsets, int64_t num_cams, int64_t bands, int64_t height) {
   Bins bins;
   bins.offsets.assign(num_cams * bands + 1, 0);
   for (int64_t cam = 0; cam < num_cams; ++cam) {
     for (int64_t j = cam_offsets[cam]; j < cam_offsets[cam + 1]; ++j) {
       const int32_t* box = boxes + 4 * j;  // x0, x1, y0, y1 (inclusive, clipped)
-      if (box[0] > box[1] || box[2] > box[3]) continue;
-      for (int64_t band = box[2] / kBandRows; band <= box[3] / kBandRows; ++band) {
+      if (box[0] > box[1] || box[2] > box[3] || box[3] < 0 || box[2] >= height) continue;
+      for (int64_t band = band_of(box[2], bands); band <= band_of(box[3], bands); ++band) {
         ++bins.offsets[cam * bands + band + 1];
       }
     }
@@ -48,8 +52,8 @@ Bins bin_by_band(const int32_t* boxes, const int64_t* cam_offsets, int64_t num_c
   for (int64_t cam = 0; cam < num_cams; ++cam) {
     for (int64_t j = cam_offsets[cam]; j < cam_offsets[cam + 1]; ++j) {
       const int32_t* box = boxes + 4 * j;
-      if (box[0] > box[1] || box[2] > box[3]) continue;
-      for (int64_t band = box[2] / kBandRows; band <= box[3] / kBandRows; ++band) {
+      if (box[0] > box[1] || box[2] > box[3] || box[3] < 0 || box[2] >= height) continue;
+      for (int64_t band = band_of(box[2], bands); band <= band_of(box[3], bands); ++band) {
         bins.ids[cursor[cam * bands + band]++] = static_cast<int32_t>(j);
       }
     }
@@ -79,12 +83,13 @@ void scatter_band(const SplatArrays& s, const int32_t* ids, int64_t count, int64
     const float gx = s.means2d[2 * j], gy = s.means2d[2 * j + 1];
     const float a = s.conics[3 * j], b = s.conics[3 * j + 1], c = s.conics[3 * j + 2];
     const float opacity = s.opacities[j], sigma_max = s.sigma_max[j];
-    const int32_t* box = s.boxes + 4 * j;
+    const int32_t* box = s.boxes + 4 * j;  // clipped again here: out-of-range boxes must not write outside
+    const int x_lo = std::max<int>(box[0], 0), x_hi = std::min<int>(box[1], width - 1);
     const int y_lo = std::max<int>(box[2], row0), y_hi = std::min<int>(box[3], row1 - 1);
     for (int y = y_lo; y <= y_hi; ++y) {
       const float dy = static_cast<float>(y) - gy;
       const int row = (y - row0) * width;
-      for (int x = box[0]; x <= box[1]; ++x) {
+      for (int x = x_lo; x <= x_hi; ++x) {
         const int p = row + x;
         if (done[p]) continue;
         const float dx = static_cast<float>(x) - gx;
@@ -128,10 +133,18 @@ at::Tensor find_pairs(const at::Tensor& means2d, const at::Tensor& conics, const
   check_input(boxes, at::kInt, 4, "boxes");
   check_input(camera_offsets, at::kLong, 0, "camera_offsets");
   TORCH_CHECK(max_layers > 0 && width > 0 && height > 0, "width, height and max_layers must be positive");
+  const int64_t num_splats = means2d.size(0);
+  TORCH_CHECK(conics.size(0) == num_splats && opacities.numel() == num_splats && sigma_max.numel() == num_splats &&
+                  boxes.size(0) == num_splats,
+              "means2d, conics, opacities, sigma_max and boxes must have the same length");
   const int64_t num_cams = camera_offsets.numel() - 1;
+  TORCH_CHECK(num_cams >= 1, "camera_offsets must have B + 1 >= 2 entries");
+  const int64_t* offsets = camera_offsets.data_ptr<int64_t>();
+  TORCH_CHECK(offsets[0] == 0 && offsets[num_cams] == num_splats, "camera_offsets must run from 0 to M");
+  for (int64_t b = 0; b < num_cams; ++b) TORCH_CHECK(offsets[b] <= offsets[b + 1], "camera_offsets must not decrease");
   const int64_t bands = (height + kBandRows - 1) / kBandRows;
   at::Tensor out = at::full({num_cams * height * width, max_layers}, -1, means2d.options().dtype(at::kInt));
-  const Bins bins = bin_by_band(boxes.data_ptr<int32_t>(), camera_offsets.data_ptr<int64_t>(), num_cams, bands);
+  const Bins bins = bin_by_band(boxes.data_ptr<int32_t>(), camera_offsets.data_ptr<int64_t>(), num_cams, bands, height);
   const SplatArrays s{means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(),
                       sigma_max.data_ptr<float>(), boxes.data_ptr<int32_t>()};
   int32_t* out_ptr = out.data_ptr<int32_t>();
