@@ -22,7 +22,7 @@ out vec3 v_normal_obj;
 out vec3 v_world;
 out vec3 v_normal;
 out vec2 v_uv;
-out float v_dist;
+out vec3 v_cam;  // camera-frame position: affine, so exact when interpolated (a distance is not)
 flat out vec3 v_color;
 flat out float v_param;
 flat out vec2 v_extra;
@@ -35,7 +35,7 @@ void main() {
     v_world = (m_model_to_world * vec4(in_position, 1.0)).xyz;
     v_normal = mat3(m_model_to_world) * in_normal;
     v_uv = in_uv;
-    v_dist = length(cam.xyz);
+    v_cam = cam.xyz;
     v_color = in_color;
     v_param = in_param;
     v_extra = in_extra;
@@ -58,7 +58,7 @@ in vec3 v_normal_obj;
 in vec3 v_world;
 in vec3 v_normal;
 in vec2 v_uv;
-in float v_dist;
+in vec3 v_cam;
 flat in vec3 v_color;
 flat in float v_param;
 flat in vec2 v_extra;
@@ -306,6 +306,7 @@ vec3 albedo(float fw_uv, float fw_obj, inout float gloss) {
 vec3 to_linear(vec3 c) { return pow(max(c, 0.0), vec3(2.2)); }
 
 void main() {
+    float dist = length(v_cam);
     float fw_uv = footprint2(v_uv);
     float fw_obj = footprint3(v_obj);
     float gloss = 0.0;
@@ -314,7 +315,7 @@ void main() {
 #if MATERIAL == MAT_shadow
     // uv runs over [-1, 1]^2 under the object; a soft rounded rectangle, fading with distance
     vec2 q = max(abs(v_uv) - 0.55, 0.0) / 0.45;
-    float occlusion = (1.0 - smoothstep(0.0, 1.0, length(q))) * v_color.r * exp(-v_dist / u_haze_distance);
+    float occlusion = (1.0 - smoothstep(0.0, 1.0, length(q))) * v_color.r * exp(-dist / u_haze_distance);
     fragColor = vec4(vec3(1.0 - occlusion), 1.0);
     return;
 #elif MATERIAL == MAT_lamp
@@ -333,7 +334,7 @@ void main() {
         colour = pow(1.0 - exp(-1.6 * lin), vec3(1.0 / 2.2));  // soft shoulder instead of clipping
     }
 #endif
-    float haze = 1.0 - exp(-v_dist / u_haze_distance);
+    float haze = 1.0 - exp(-dist / u_haze_distance);
     fragColor = vec4(mix(colour, u_haze_color, haze), 1.0);
 }
 

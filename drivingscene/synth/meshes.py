@@ -35,7 +35,7 @@ class MeshBuilder:
 
     def add(self, tris, material: str, color, param: float = 0.0, extra=(0.0, 0.0)) -> None:
         """``tris`` is (positions [N, 3], normals [N, 3], uvs [N, 2]) with N a multiple of 3."""
-        pos, nrm, uv = tris
+        pos, nrm, uv = _outward(*tris)
         n = len(pos)
         if n == 0:
             return
@@ -57,6 +57,17 @@ class MeshBuilder:
         if not self._parts:
             return np.zeros((0, VERTEX_FLOATS), np.float32)
         return np.concatenate(self._parts).astype(np.float32, copy=False)
+
+
+def _outward(pos: np.ndarray, nrm: np.ndarray, uv: np.ndarray):
+    """Reorder each triangle so it winds counter-clockwise about its vertex normals (seen from
+    outside), which lets the renderer cull back faces."""
+    pos, nrm, uv = (np.asarray(a, np.float64).reshape(-1, 3, a.shape[-1]) for a in (pos, nrm, uv))
+    face = np.cross(pos[:, 1] - pos[:, 0], pos[:, 2] - pos[:, 0])
+    flip = np.einsum("ti,ti->t", face, nrm.sum(1)) < 0
+    order = np.where(flip[:, None], [0, 2, 1], [0, 1, 2])
+    pick = lambda a: np.take_along_axis(a, order[..., None], axis=1).reshape(-1, a.shape[-1])  # noqa: E731
+    return pick(pos), pick(nrm), pick(uv)
 
 
 def transform_vertices(vertices: np.ndarray, transform: np.ndarray) -> np.ndarray:
@@ -107,7 +118,7 @@ def merge(*tris_list):
 
 
 def cylinder(radius: float, z0: float, z1: float, segments: int = 8, caps: bool = True):
-    """A z-axis cylinder with smooth side normals; uv = (arc length, z)."""
+    """A z-axis cylinder with smooth side normals (and flat caps at both ends); uv = (arc length, z)."""
     ang = np.linspace(0, 2 * np.pi, segments + 1)
     c, s = np.cos(ang), np.sin(ang)
     corners = np.stack(
@@ -130,7 +141,9 @@ def cylinder(radius: float, z0: float, z1: float, segments: int = 8, caps: bool 
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     parts = [(pos, nrm, uv)]
     if caps:
-        parts.append(_fan(np.stack([radius * c[:-1], radius * s[:-1], np.full(segments, z1)], -1), (0, 0, 1)))
+        ring = np.stack([radius * c[:-1], radius * s[:-1], np.full(segments, z1)], -1)
+        parts.append(_fan(ring, (0, 0, 1)))
+        parts.append(_fan(ring[::-1] * [1, 1, 0] + [0, 0, z0], (0, 0, -1)))
     return merge(*parts)
 
 

@@ -32,6 +32,9 @@ DRAW_ORDER = tuple(
     )
 )
 SHADOW = MATERIALS["shadow"]
+# Meshes wind counter-clockwise about their outward normals; the projection flips rows (image row 0
+# at the top), which turns that into clockwise in window coordinates.
+FRONT_FACE = "ccw"
 
 
 def gl_projection(intrinsics: np.ndarray, height: int, width: int, near: float = NEAR, far: float = FAR) -> np.ndarray:
@@ -181,7 +184,8 @@ class SynthRenderer:
         fbo, tex = self._target("color", ws, views * hs)
         fbo.use()
         fbo.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
-        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        self.ctx.front_face = FRONT_FACE
         k_s = scale_intrinsics_np(intrinsics, supersample)
         for prog in [*self.color_progs.values(), self.sky_prog]:
             for name, value in shading.items():
@@ -206,11 +210,13 @@ class SynthRenderer:
                             prog["m_model_to_world"].write(model_to_world)
                         vao.render(first=first, vertices=count)
             self._draw_shadows(models, proj)
+            self.ctx.disable(moderngl.CULL_FACE)
             self.ctx.depth_func = "<="
             self.sky_prog["m_pixel_to_world"].write(_mat(cam_to_world[:3, :3] @ np.linalg.inv(k_s[v])))
             self.sky_prog["u_origin"].value = (0.0, float(v * hs))
             self.sky_prog["u_height"].value = float(hs)
             self._sky_vao.render()
+            self.ctx.enable(moderngl.CULL_FACE)
         return self._resolve(tex, views, height, width, supersample)
 
     def _draw_shadows(self, models, proj: bytes) -> None:
@@ -236,7 +242,7 @@ class SynthRenderer:
         fbo, _ = self._target("resolve", width, views * height)
         fbo.use()
         fbo.viewport = (0, 0, width, views * height)
-        self.ctx.disable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         prog, vao = self._downsample_vao(factor)
         tex.use(0)
         prog["u_image"].value = 0
@@ -256,7 +262,8 @@ class SynthRenderer:
         fbo, texs = self._target("geometry", width, views * height)
         fbo.use()
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        self.ctx.front_face = FRONT_FACE
         self.ctx.depth_func = "<"
         prog = self.geometry_prog
         objects = [(m, a, b, 1.0, i + 1.0) for i, (m, a, b) in enumerate(zip(gpu.agents, now.agents_to_world, other.agents_to_world))]

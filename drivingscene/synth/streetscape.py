@@ -65,6 +65,23 @@ def buildings(b: MeshBuilder, lay: Layout, rng: np.random.Generator) -> None:
             s += length
         if lay.cross_s is not None:
             _cross_buildings(b, lay, side, rng)
+    _vista_ends(b, lay, rng)
+
+
+def _vista_ends(b: MeshBuilder, lay: Layout, rng: np.random.Generator) -> None:
+    """Blocks across the far ends of the streets, so no view runs out onto the empty ground plane."""
+    width = lay.half_left + lay.half_right + 2 * lay.sidewalk + 40.0
+    for s_end, edge in ((lay.s_range[0], -1), (lay.s_range[1], 1)):
+        material, color, height = _building(rng)
+        verts = objects.building_mesh(rng.uniform(12, 20), width, max(height, 14.0), material, color, rng.uniform())
+        _place(b, lay, verts, s_end + edge * 10.0, (lay.half_left - lay.half_right) / 2, 0.0)
+    if lay.cross_s is None:
+        return
+    for side in (1, -1):
+        material, color, height = _building(rng)
+        verts = objects.building_mesh(2 * (lay.cross_half + lay.sidewalk) + 30.0, rng.uniform(12, 20), max(height, 14.0),
+                                      material, color, rng.uniform())
+        _place(b, lay, verts, lay.cross_s, side * (lay.cross_range + 8.0), 0.0)
 
 
 def _cross_buildings(b: MeshBuilder, lay: Layout, side: int, rng: np.random.Generator) -> None:
