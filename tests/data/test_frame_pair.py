@@ -208,3 +208,15 @@ def test_one_wrong_array_is_blamed_not_the_ones_that_agree():
     problems = validate_arrays(arrays, "scene.npz")
     assert [p.key for p in problems] == ["images"]
     assert "V=3" in str(problems[0])
+
+
+def test_saved_files_get_normal_permissions(tmp_path, small_pair):
+    import os
+    import stat
+
+    umask = os.umask(0o022)
+    try:
+        path = save_frame_pair(small_pair, tmp_path / "p.npz")
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
