@@ -17,13 +17,12 @@ import logging
 import sys
 from pathlib import Path
 
-from app.loader import METHODS
+from app.loader import DEMO_SCENE, METHODS
 from app.renderer import MODES
 from app.splats import BLEND_MODES
 from drivingscene.errors import DrivingSceneError
 
 PROG = "drivingscene-view"
-DEMO_SCENE = "demo_scene.npz"
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -61,9 +61,9 @@ def rig_views(doc: SceneDoc, t: float) -> list[tuple[str, ViewCamera]]:
     return [(name, rig_camera(cams[v], recon.intrinsics[v], recon.image_size)) for v, name in enumerate(recon.camera_names)]
 
 
-def export_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOptions, folder: Path,
-                     depth_range=(2.0, 80.0), names: list[str] | None = None) -> list[Path]:
-    """One PNG per rig camera at time t, at the rig's resolution with its exact intrinsics."""
+def iter_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOptions, folder: Path,
+                   depth_range=(2.0, 80.0), names: list[str] | None = None):
+    """Generator: one PNG per rig camera at time t (rig resolution, exact intrinsics); yields each path."""
     if not doc.num_views:
         raise InputError("this file has no rig cameras (a PLY from another tool); export the current view instead")
     views = rig_views(doc, t)
@@ -72,16 +72,20 @@ def export_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOp
         if unknown:
             raise InputError(f"--camera: unknown camera {unknown[0]!r}; expected one of {', '.join(doc.recon.camera_names)}")
         views = [(n, c) for n, c in views if n in names]
-    out = []
     for name, cam in views:
         image = viewport.image(doc, cam, t, _clean(opts), depth_range)
-        out.append(save_png(_prepare(Path(folder) / f"{name}_t{t:.3f}.png"), image))
-    return out
+        yield save_png(_prepare(Path(folder) / f"{name}_t{t:.3f}.png"), image)
 
 
-def export_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float], ViewCamera], opts: RenderOptions, path: Path,
-                 frames: int = 48, fps: float = 24.0, depth_range=(2.0, 80.0), progress: Callable[[float], None] | None = None) -> Path:
-    """An MP4 (OpenCV, mp4v) sweeping t from 0 to 1 over ``frames`` frames with ``camera_at(t)``."""
+def export_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOptions, folder: Path,
+                     depth_range=(2.0, 80.0), names: list[str] | None = None) -> list[Path]:
+    return list(iter_rig_views(viewport, doc, t, opts, folder, depth_range, names))
+
+
+def iter_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float], ViewCamera], opts: RenderOptions, path: Path,
+               frames: int = 48, fps: float = 24.0, depth_range=(2.0, 80.0)):
+    """Generator: an MP4 (OpenCV, mp4v) sweeping t from 0 to 1 with ``camera_at(t)``; yields the fraction
+    done after each frame and finally the path (written under a hidden name, renamed when complete)."""
     import cv2
 
     if frames < 2:
@@ -99,13 +103,18 @@ def export_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float],
                 if not writer.isOpened():
                     raise InputError(f"{path}: OpenCV could not open an MP4 writer (mp4v)")
             writer.write(np.ascontiguousarray(image[..., ::-1]))
-            if progress:
-                progress((i + 1) / frames)
+            yield (i + 1) / frames
     finally:
         if writer is not None:
             writer.release()
     os.replace(partial, path)
-    return path
+    yield path
+
+
+def export_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float], ViewCamera], opts: RenderOptions, path: Path,
+                 frames: int = 48, fps: float = 24.0, depth_range=(2.0, 80.0)) -> Path:
+    *_, out = iter_video(viewport, doc, camera_at, opts, path, frames, fps, depth_range)
+    return out
 
 
 def export_ply(doc: SceneDoc, path: Path, kind: str = "3dgs", t: float | None = 0.0) -> Path:

@@ -25,6 +25,7 @@ from drivingscene.gaussians.recon import Reconstruction
 log = logging.getLogger(__name__)
 
 METHODS = ("auto", "model", "oracle")
+DEMO_SCENE = "demo_scene.npz"  # in assets/
 Progress = Callable[[float | None, str], None]  # (fraction or None for "busy", message)
 
 

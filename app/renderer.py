@@ -86,31 +86,22 @@ class Target:
         self.texture.release()
 
 
-class SplatRenderer:
-    """Owns the GL programs and the splat textures of one scene."""
+class GpuSplats:
+    """The textures of one set of splats (the full scene, or a level of detail) and its current order."""
 
-    def __init__(self, ctx, color_dtype: str = "f2"):
+    def __init__(self, ctx):
         self.ctx = ctx
-        self.color_dtype = color_dtype
-        defines = {"TEX_W": TEX_W}
-        self.splat_prog = load_program(ctx, "splat", defines)
-        self.sky_prog = load_program(ctx, "sky")
-        self.present_prog = load_program(ctx, "present")
-        self.empty_vao = ctx.vertex_array(self.splat_prog, [])
-        self.sky_vao = ctx.vertex_array(self.sky_prog, [])
-        self.present_vao = ctx.vertex_array(self.present_prog, [])
-        self.depth_lut = _lut_texture(ctx, depth_lut())
-        self.flow_lut = _lut_texture(ctx, flow_lut())
         self._textures: dict[str, object] = {}
-        self._targets: dict[tuple, Target] = {}
         self.count = 0  # splats in the current order
         self.num = 0
         self.sh_k = 1
-        self.sky = np.zeros((1, 3), np.float32)
         self.origin = np.zeros(3)
-        self.upload_seconds = 0.0
+        self.cov_scale = 1.0
+        self._cov_b_base = np.zeros((0, 2), np.float32)
 
-    # --- data -------------------------------------------------------------------------------
+    def texture(self, name: str):
+        return self._textures[name]
+
     def _texture(self, name: str, texels: int, components: int, dtype: str, data: bytes):
         size = (TEX_W, _rows(texels))
         tex = self._textures.get(name)
@@ -131,11 +122,10 @@ class SplatRenderer:
         means = (splats.means.astype(np.float64) - self.origin).astype(np.float32)
         pos = np.concatenate([means, splats.keyframes[:, None].astype(np.float32)], axis=1)
         self._texture("pos", texels, 4, "f4", _pad(pos, texels).tobytes())
-        self.set_flows(splats)
         cov = covariances(splats.quats, splats.log_scales).astype(np.float32)
         self._texture("cov_a", texels, 4, "f4", _pad(cov[:, :4], texels).tobytes())
         self._cov_b_base = cov[:, 4:6]
-        self._write_cov_b(splats)
+        self.set_flows(splats)
         self.sh_k = splats.sh.shape[1]
         sh = np.concatenate([splats.sh.reshape(-1, 3), np.zeros((n * self.sh_k, 1), np.float32)], axis=1)
         sh_texels = _rows(n * self.sh_k) * TEX_W
@@ -143,19 +133,14 @@ class SplatRenderer:
         self.set_flags(np.zeros(n, np.uint8))
         self.set_order(np.zeros(0, np.uint32))
 
-    def _write_cov_b(self, splats: SplatArrays) -> None:
-        texels = _rows(self.num) * TEX_W
-        mag = np.linalg.norm(splats.flows, axis=1).astype(np.float32)[:, None]
-        cov_b = np.concatenate([self._cov_b_base, mag, np.zeros_like(mag)], axis=1)
-        self._texture("cov_b", texels, 4, "f4", _pad(cov_b, texels).tobytes())
-
     def set_flows(self, splats: SplatArrays) -> None:
-        """Re-upload flows and opacities (after an edit of the flows)."""
+        """Re-upload flows, opacities and flow magnitudes (after an edit of the flows)."""
         texels = _rows(self.num) * TEX_W
         opacity = splats.opacities.astype(np.float32)[:, None]
         self._texture("motion", texels, 4, "f4", _pad(np.concatenate([splats.flows, opacity], axis=1), texels).tobytes())
-        if "cov_b" in self._textures:
-            self._write_cov_b(splats)
+        mag = np.linalg.norm(splats.flows, axis=1).astype(np.float32)[:, None]
+        cov_b = np.concatenate([self._cov_b_base, mag, np.zeros_like(mag)], axis=1)
+        self._texture("cov_b", texels, 4, "f4", _pad(cov_b, texels).tobytes())
 
     def set_flags(self, flags: np.ndarray) -> None:
         """Per-Gaussian bits ``[N]`` uint8: 1 hidden, 2 selected."""
@@ -166,8 +151,8 @@ class SplatRenderer:
         """Upload a front-to-back order ``[count]`` (uint32); returns the seconds it took."""
         start = time.perf_counter()
         self.count = len(order)
-        tex = self._textures.get("order")
         rows = _rows(max(self.num, 1))
+        tex = self._textures.get("order")
         if tex is None or tex.size != (TEX_W, rows):
             if tex is not None:
                 tex.release()
@@ -177,8 +162,45 @@ class SplatRenderer:
         if self.count:
             used = _rows(self.count)
             tex.write(_pad(order.astype(np.uint32), used * TEX_W).tobytes(), viewport=(0, 0, TEX_W, used))
-        self.upload_seconds = time.perf_counter() - start
-        return self.upload_seconds
+        return time.perf_counter() - start
+
+    def release(self) -> None:
+        for tex in self._textures.values():
+            tex.release()
+        self._textures.clear()
+
+
+class SplatRenderer:
+    """Owns the GL programs; draws a ``GpuSplats`` set over the sky into offscreen targets."""
+
+    def __init__(self, ctx, color_dtype: str = "f2"):
+        self.ctx = ctx
+        self.color_dtype = color_dtype
+        self.splat_prog = load_program(ctx, "splat", {"TEX_W": TEX_W, "INDEXED": 1})
+        self.sky_prog = load_program(ctx, "sky")
+        self.present_prog = load_program(ctx, "present")
+        self.sky_vao = ctx.vertex_array(self.sky_prog, [])
+        self.present_vao = ctx.vertex_array(self.present_prog, [])
+        self.depth_lut = _lut_texture(ctx, depth_lut())
+        self.flow_lut = _lut_texture(ctx, flow_lut())
+        self._targets: dict[str, Target] = {}
+        self._quads = 0
+        self._ibo = self._splat_vao = None
+        self.sky = np.zeros((1, 3), np.float32)
+
+    def _quad_vao(self, count: int):
+        """Index buffer ``4 i + (0, 1, 2, 2, 1, 3)``: two triangles per splat sharing 2 vertices, so the
+        vertex cache runs the (heavy) vertex shader 4 times per splat instead of 6."""
+        if count > self._quads:
+            capacity = max(count, int(self._quads * 1.25), 1024)
+            if self._ibo is not None:
+                self._splat_vao.release()
+                self._ibo.release()
+            idx = (np.arange(capacity, dtype=np.uint32)[:, None] * 4 + np.array([0, 1, 2, 2, 1, 3], np.uint32)).ravel()
+            self._ibo = self.ctx.buffer(idx.tobytes())
+            self._splat_vao = self.ctx.vertex_array(self.splat_prog, [], index_buffer=self._ibo, index_element_size=4)
+            self._quads = capacity
+        return self._splat_vao
 
     def set_sky(self, sky_sh: np.ndarray | None) -> None:
         """Sky SH coefficients ``[S, 3]``; None gives a neutral grey background."""
@@ -188,29 +210,36 @@ class SplatRenderer:
 
     # --- drawing ----------------------------------------------------------------------------
     def target(self, width: int, height: int, dtype: str | None = None, name: str = "view") -> Target:
-        key = (width, height, dtype or self.color_dtype, name)
-        if key not in self._targets:
-            if len(self._targets) > 6:
-                for t in self._targets.values():
-                    t.release()
-                self._targets.clear()
-            self._targets[key] = Target(self.ctx, width, height, key[2])
-        return self._targets[key]
+        """The offscreen target called ``name``, (re)allocated at this size and format (one per name)."""
+        dtype = dtype or self.color_dtype
+        t = self._targets.get(name)
+        if t is None or (t.width, t.height, t.dtype) != (width, height, dtype):
+            if t is not None:
+                t.release()
+            t = self._targets[name] = Target(self.ctx, width, height, dtype)
+        return t
 
-    def render(self, camera: ViewCamera, t: float, opts: RenderOptions = RenderOptions()) -> Target:
-        """Sky + splats of the current order into a target of the camera's size."""
-        depth_mode = opts.mode == "depth"
-        target = self.target(camera.width, camera.height, "f4" if depth_mode else None)
+    def render(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions = RenderOptions(), name: str = "view") -> Target:
+        """Sky + ``splats`` in their current order into the target ``name`` of the camera's size."""
+        target = self.target(camera.width, camera.height, "f4" if opts.mode == "depth" else None, name)
+        return self.render_range(splats, camera, t, opts, target, 0, splats.count)
+
+    def render_range(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, target: Target,
+                     start: int, count: int) -> Target:
+        """Draw splats ``[start, start + count)`` of the back-to-front order into ``target`` (the sky
+        first when ``start`` is 0): drawing a picture in several calls gives the same result."""
         target.fbo.use()
         self.ctx.viewport = (0, 0, camera.width, camera.height)
         self.ctx.disable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
-        cam = camera.shifted(self.origin)
-        if depth_mode:
-            target.fbo.clear(0.0, 0.0, 0.0, 0.0)
-        else:
-            self._draw_sky(cam)
-        if self.count:
-            self._draw_splats(cam, t, opts)
+        cam = camera.shifted(splats.origin)
+        if start == 0:
+            if opts.mode == "depth":
+                target.fbo.clear(0.0, 0.0, 0.0, 0.0)
+            else:
+                self._draw_sky(cam)
+        count = min(count, splats.count - start)
+        if count > 0:
+            self._draw_splats(splats, cam, t, opts, start, count)
         return target
 
     def _camera_uniforms(self, prog, cam: ViewCamera) -> None:
@@ -230,19 +259,19 @@ class SplatRenderer:
         prog["u_sky_k"].value = len(self.sky)
         self.sky_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
 
-    def _draw_splats(self, cam: ViewCamera, t: float, opts: RenderOptions) -> None:
+    def _draw_splats(self, splats: GpuSplats, cam: ViewCamera, t: float, opts: RenderOptions, start: int, count: int) -> None:
         prog = self.splat_prog
         units = ("pos", "motion", "cov_a", "cov_b", "sh", "flags", "order")
         for unit, name in enumerate(units):
-            self._textures[name].use(unit)
+            splats.texture(name).use(unit)
             prog[f"u_{name}"].value = unit
         self.flow_lut.use(len(units))
         prog["u_lut"].value = len(units)
         self._camera_uniforms(prog, cam)
         prog["u_view"].write(cam.world_to_cam.T.astype("f4").tobytes())
         prog["u_cam_centre"].value = tuple(cam.centre)
-        prog["u_count"].value = self.count
-        prog["u_sh_k"].value = self.sh_k
+        prog["u_count"].value = splats.count
+        prog["u_sh_k"].value = splats.sh_k
         prog["u_t"].value = float(t)
         prog["u_blend"].value = BLEND_MODES.index(opts.blend)
         prog["u_mode"].value = MODES.index(opts.mode)
@@ -251,7 +280,7 @@ class SplatRenderer:
         prog["u_near"].value, prog["u_far"].value, prog["u_eps2d"].value = opts.near, min(opts.far, 3e38), opts.eps2d
         self.ctx.enable(self.ctx.BLEND)
         self.ctx.blend_func = (self.ctx.SRC_ALPHA, self.ctx.ONE_MINUS_SRC_ALPHA, self.ctx.ONE, self.ctx.ONE_MINUS_SRC_ALPHA)
-        self.empty_vao.render(mode=self.ctx.TRIANGLES, vertices=6 * self.count)
+        self._quad_vao(splats.count).render(mode=self.ctx.TRIANGLES, vertices=6 * count, first=6 * start)
         self.ctx.disable(self.ctx.BLEND)
 
     def present(self, target: Target, viewport: tuple[int, int, int, int], opts: RenderOptions, depth_range=(1.0, 100.0), fbo=None) -> None:
@@ -268,17 +297,17 @@ class SplatRenderer:
         prog["u_depth_range"].value = tuple(float(x) for x in depth_range)
         self.present_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
 
-    def render_image(self, camera: ViewCamera, t: float, opts: RenderOptions, depth_range=(1.0, 100.0)) -> np.ndarray:
-        """Finished RGB ``[H, W, 3]`` uint8 of the current order (depth colour-mapped)."""
-        target = self.render(camera, t, opts)
+    def render_image(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, depth_range=(1.0, 100.0)) -> np.ndarray:
+        """Finished RGB ``[H, W, 3]`` uint8 of ``splats`` in their current order (depth colour-mapped)."""
+        target = self.render(splats, camera, t, opts, name="export")
         out = self.target(camera.width, camera.height, "f1", name="image")
         self.present(target, (0, 0, camera.width, camera.height), opts, depth_range, fbo=out.fbo)
         return out.read()[..., :3].copy()
 
     def release(self) -> None:
-        for tex in self._textures.values():
-            tex.release()
         for t in self._targets.values():
             t.release()
-        self._textures.clear()
         self._targets.clear()
+        if self._ibo is not None:
+            self._splat_vao.release()
+            self._ibo.release()

@@ -29,6 +29,7 @@ class SplatArrays:
     flows: np.ndarray  # [N, 3] world displacement towards the other keyframe
     keyframes: np.ndarray  # [N] uint8
     cameras: np.ndarray  # [N] int16
+    uid: np.ndarray  # [N] int64 stable identity of each Gaussian (kept through deletes and undo)
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -46,6 +47,7 @@ class SplatArrays:
             flows=f32(g.flows),
             keyframes=g.keyframes.numpy().astype(np.uint8),
             cameras=g.cameras.numpy().astype(np.int16),
+            uid=np.arange(len(g), dtype=np.int64),
         )
 
     def to_gaussians(self, mask: np.ndarray | None = None) -> Gaussians:

@@ -1,51 +1,87 @@
-"""The 3D view of a ``SceneDoc``: keeps the GPU copy in step with the document, sorts off the UI thread,
-and renders either interactively (adaptive resolution while moving) or synchronously (exports).
+"""The 3D view of a ``SceneDoc``: keeps the GPU copies in step with the document, sorts off the UI
+thread, and renders interactively (levels of detail and adaptive resolution while moving, progressive
+full-quality refinement at rest) or synchronously (exports, headless, benchmarks).
 
-Ordering rule: the order used for a frame is always computed for that frame's camera and time. While
-the camera or time moves, a fresh sort is requested from the worker and waited for briefly (it takes a
-few milliseconds); if it is late the previous order is used for that one low-resolution frame and the
-view is re-rendered as soon as the right one arrives. At rest the picture is always re-rendered at full
-resolution with the exact order.
+Ordering rule: every picture is drawn in an order computed for that picture's camera and time. While
+the camera or time moves a fresh sort is requested from the worker and waited for briefly (a level of
+detail sorts in a few milliseconds); if it is late, that one preview frame uses the previous order
+and the view is redrawn when the right one arrives. At rest the full scene is sorted for the exact
+view and drawn back to front in chunks of about ``chunk_budget_s`` across frames into a second target,
+so the window stays responsive; the finished picture then replaces the preview.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from app.camera import ViewCamera
-from app.renderer import RenderOptions, SplatRenderer, Target
-from app.sorter import SortRequest, SortWorker, depth_order, make_sort_input
+from app.lod import LodLevel, build_levels, level_state
+from app.renderer import GpuSplats, RenderOptions, SplatRenderer, Target
+from app.sorter import SortInput, SortRequest, SortWorker, depth_order, make_sort_input
+from app.splats import SplatArrays
 from app.state import SceneDoc
 
-SCALES = (1.0, 0.85, 0.7, 0.6, 0.5, 0.42, 0.35, 0.3, 0.25)
+SCALES = (1.0, 0.85, 0.7, 0.6, 0.5, 0.42, 0.35, 0.3)
 
 
 @dataclass
 class FrameStats:
-    render_ms: float = 0.0
+    render_ms: float = 0.0  # last 3D draw (preview frame, or one refinement chunk)
+    full_ms: float = 0.0  # last complete full-quality picture (sum of its chunks)
     sort_ms: float = 0.0
     upload_ms: float = 0.0
     scale: float = 1.0
+    level: str = "full"
     visible: int = 0
-    stale_order: bool = False
+    refining: float = 1.0  # fraction of the full-quality picture drawn so far
 
 
-class AdaptiveScale:
-    """Resolution scale for moving frames: aims at ``budget_s`` per 3D render (fragments ~ scale²)."""
+class SplatSet:
+    """One drawable set (the full scene or a level of detail): its arrays, GPU copy and order stamp."""
 
-    def __init__(self, budget_s: float = 0.07):
+    def __init__(self, ctx, name: str, level: LodLevel | None = None):
+        self.name, self.level = name, level
+        self.gpu = GpuSplats(ctx)
+        self.splats: SplatArrays | None = None
+        self.sort_input: SortInput | None = None
+        self.order_stamp = None
+
+    def upload(self, splats: SplatArrays, origin: np.ndarray, flags: np.ndarray) -> None:
+        self.splats = splats
+        self.gpu.set_splats(splats, origin)
+        self.set_flags(flags)
+
+    def set_flags(self, flags: np.ndarray) -> None:
+        self.gpu.set_flags(flags)
+        self.sort_input = make_sort_input(self.splats, self.gpu.origin, (flags & 1).astype(bool))
+        self.order_stamp = None
+
+
+class Ladder:
+    """Preview quality steps (level, resolution scale), finest first; moves to stay within ``budget_s``."""
+
+    def __init__(self, budget_s: float = 0.08):
         self.budget_s = budget_s
-        self.scale = 0.6
+        self.position = 2
+        self.steps: list[tuple[int, float]] = [(-1, s) for s in SCALES]
 
-    def update(self, scale_used: float, seconds: float) -> None:
-        if seconds <= 0:
-            return
-        ideal = scale_used * (self.budget_s / seconds) ** 0.5
-        ideal = 0.7 * self.scale + 0.3 * ideal  # smooth: one slow frame must not collapse the resolution
-        self.scale = min((s for s in SCALES if s <= ideal), default=SCALES[-1])
+    def set_levels(self, num_levels: int) -> None:
+        self.steps = [(i, s) for i in range(num_levels) for s in SCALES] if num_levels else [(-1, s) for s in SCALES]
+        self.position = min(2, len(self.steps) - 1)
+
+    @property
+    def step(self) -> tuple[int, float]:
+        return self.steps[self.position]
+
+    def update(self, seconds: float) -> None:
+        if seconds > self.budget_s:
+            self.position = min(self.position + (2 if seconds > 2 * self.budget_s else 1), len(self.steps) - 1)
+        elif seconds < 0.5 * self.budget_s:
+            self.position = max(self.position - 1, 0)
 
 
 def _camera_key(cam: ViewCamera) -> bytes:
@@ -53,110 +89,222 @@ def _camera_key(cam: ViewCamera) -> bytes:
 
 
 class Viewport:
-    """Renderer + sort worker bound to one document at a time."""
+    """Renderer, sort worker and splat sets bound to one document at a time."""
 
-    def __init__(self, ctx, color_dtype: str = "f2", keys: str = "u16"):
+    def __init__(self, ctx, color_dtype: str = "f2", keys: str = "u16", lod: bool = True, chunk_budget_s: float = 0.08):
         self.ctx = ctx
         self.renderer = SplatRenderer(ctx, color_dtype)
         self.worker = SortWorker()
         self.keys = keys
+        self.use_lod = lod
+        self.chunk_budget_s = chunk_budget_s
         self.doc: SceneDoc | None = None
-        self._versions: dict | None = None
-        self._sort_input = None
-        self._submitted = None  # stamp of the latest sort request
-        self._order_stamp = None  # stamp of the order on the GPU
-        self._rendered = None  # (stamp, scale, options) of the picture in ``target``
-        self.target: Target | None = None
-        self.adaptive = AdaptiveScale()
+        self.full = SplatSet(ctx, "full")
+        self.levels: list[SplatSet] = []
+        self.ladder = Ladder()
         self.stats = FrameStats()
+        self.target: Target | None = None  # the picture to show
+        self._versions: dict | None = None
+        self._lod_thread: threading.Thread | None = None
+        self._lod_result: list[LodLevel] | None = None
+        self._submitted = None
+        self._shown = None  # what ``target`` shows: (request stamp, set name, scale, options)
+        self._refine = None  # progressive full render: dict(key, target, next, seconds)
+        self._chunk = 50_000  # splats per refinement chunk, adapted to chunk_budget_s
+        self._target_name = self._target_name_next = ""
 
     # --- document -> GPU -----------------------------------------------------------------------
+    def _flags(self, doc: SceneDoc) -> np.ndarray:
+        return doc.hidden.astype(np.uint8) | (doc.selected.astype(np.uint8) << 1)
+
     def sync(self, doc: SceneDoc) -> bool:
         """Upload what changed in ``doc``; True if anything did."""
         v = dict(doc.versions)
-        if doc is not self.doc or self._versions is None or v["geometry"] != self._versions["geometry"]:
-            self.doc = doc
-            self.renderer.set_splats(doc.splats, doc.origin)
-            self.renderer.set_sky(None if doc.recon.sky_sh is None else doc.recon.sky_sh.cpu().numpy())
-            self.renderer.set_flags(doc.hidden.astype(np.uint8) | (doc.selected.astype(np.uint8) << 1))
-        elif v == self._versions:
+        new_doc = doc is not self.doc
+        if not new_doc and v == self._versions:
+            self._poll_lod()
             return False
+        if new_doc:
+            self.doc, self.levels, self._lod_result = doc, [], None
+            self.ladder.set_levels(0)
+            self.renderer.set_sky(None if doc.recon.sky_sh is None else doc.recon.sky_sh.cpu().numpy())
+            self._start_lod(doc)
+        if new_doc or v["geometry"] != self._versions["geometry"]:
+            self.full.upload(doc.splats, doc.origin, self._flags(doc))
         else:
             if v["flows"] != self._versions["flows"]:
-                self.renderer.set_flows(doc.splats)
-            if v["flags"] != self._versions["flags"]:
-                self.renderer.set_flags(doc.hidden.astype(np.uint8) | (doc.selected.astype(np.uint8) << 1))
+                self.full.splats = doc.splats
+                self.full.gpu.set_flows(doc.splats)
+            self.full.set_flags(self._flags(doc))
+        flows_changed = not new_doc and v["flows"] != self._versions["flows"]
         self._versions = v
-        self._sort_input = make_sort_input(doc.splats, doc.origin, doc.hidden)
-        self._order_stamp = self._submitted = self._rendered = None
+        for s in self.levels:
+            self._update_level(s, flows_changed)
+        self._submitted = self._shown = self._refine = None
+        self._poll_lod()
         return True
 
-    def _request(self, camera: ViewCamera, t: float, opts: RenderOptions) -> SortRequest:
-        stamp = (_camera_key(camera), float(t), opts.blend, id(self._sort_input))
+    def _start_lod(self, doc: SceneDoc) -> None:
+        if not self.use_lod or len(doc.splats) < 100_000:
+            return
+        splats = doc.splats
+
+        def work():
+            self._lod_result = build_levels(splats)
+
+        self._lod_thread = threading.Thread(target=work, name="viewer-lod", daemon=True)
+        self._lod_thread.start()
+
+    def _poll_lod(self) -> None:
+        if self._lod_result is None or self.levels:
+            return
+        for i, level in enumerate(self._lod_result):
+            s = SplatSet(self.ctx, f"lod{i + 1}", level)
+            s.upload(level.splats, self.doc.origin, np.zeros(len(level), np.uint8))
+            self._update_level(s, True)
+            self.levels.append(s)
+        self.ladder.set_levels(len(self.levels))
+
+    def _update_level(self, s: SplatSet, flows_changed: bool) -> None:
+        doc = self.doc
+        flags, flows = level_state(s.level, doc.splats, doc.hidden, doc.selected, flows_changed)
+        if flows is not None:
+            s.splats = s.splats.with_flows(flows)
+            s.gpu.set_flows(s.splats)
+        s.set_flags(flags)
+
+    @property
+    def lod_ready(self) -> bool:
+        return bool(self.levels)
+
+    def wait_lod(self, timeout: float | None = None) -> None:
+        if self._lod_thread is not None:
+            self._lod_thread.join(timeout)
+        self._poll_lod()
+
+    # --- sorting -------------------------------------------------------------------------------
+    def _request(self, s: SplatSet, camera: ViewCamera, t: float, opts: RenderOptions) -> SortRequest:
+        stamp = (s.name, _camera_key(camera), float(t), opts.blend, id(s.sort_input))
         cam = camera.shifted(self.doc.origin)
         return SortRequest(cam.world_to_cam, cam.intrinsics, camera.width, camera.height, float(t), opts.blend,
                            opts.near, opts.far, self.keys, stamp)
 
-    def _upload(self, order: np.ndarray, stamp, sort_seconds: float) -> None:
-        self.stats.upload_ms = 1e3 * self.renderer.set_order(order)
+    def _upload(self, s: SplatSet, order: np.ndarray, stamp, sort_seconds: float) -> None:
+        self.stats.upload_ms = 1e3 * s.gpu.set_order(order)
         self.stats.sort_ms = 1e3 * sort_seconds
-        self.stats.visible = len(order)
-        self._order_stamp = stamp
+        if s is self.full:
+            self.stats.visible = len(order)
+        s.order_stamp = stamp
 
-    # --- synchronous (exports, headless, tests) ------------------------------------------------
-    def render_sync(self, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions) -> Target:
-        """Sort on this thread for exactly this camera and time, then render at full resolution."""
-        self.sync(doc)
-        req = self._request(camera, t, opts)
-        if self._order_stamp != req.stamp:
+    def _collect(self, wanted: SortRequest, wait_s: float) -> None:
+        result = self.worker.poll()
+        if result is None and wait_s > 0:
+            result = self.worker.wait(wait_s)
+        if result is None:
+            return
+        for s in [self.full, *self.levels]:
+            if result.data is s.sort_input:
+                self._upload(s, result.order, result.request.stamp, result.seconds)
+
+    # --- synchronous (exports, headless, benchmarks) -------------------------------------------
+    def sort_sync(self, s: SplatSet, camera: ViewCamera, t: float, opts: RenderOptions) -> None:
+        req = self._request(s, camera, t, opts)
+        if s.order_stamp != req.stamp:
             start = time.perf_counter()
-            order = depth_order(self._sort_input, req)
-            self._upload(order, req.stamp, time.perf_counter() - start)
-        self._rendered = self._submitted = None  # the interactive view must sort again
+            order = depth_order(s.sort_input, req)
+            self._upload(s, order, req.stamp, time.perf_counter() - start)
+        self._submitted = self._shown = self._refine = None  # the interactive view must sort again
 
-        return self.renderer.render(camera, t, opts)
+    def render_sync(self, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions) -> Target:
+        """Sort on this thread for exactly this camera and time, then draw the full scene in one pass."""
+        self.sync(doc)
+        self.sort_sync(self.full, camera, t, opts)
+        return self.renderer.render(self.full.gpu, camera, t, opts, name="export")
 
     def image(self, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions, depth_range=(2.0, 80.0)) -> np.ndarray:
-        """Finished RGB uint8 ``[H, W, 3]``."""
-        self.render_sync(doc, camera, t, opts)
-        return self.renderer.render_image(camera, t, opts, depth_range)
+        """Finished RGB uint8 ``[H, W, 3]`` of the full scene."""
+        self.sync(doc)
+        self.sort_sync(self.full, camera, t, opts)
+        return self.renderer.render_image(self.full.gpu, camera, t, opts, depth_range)
 
     # --- interactive ---------------------------------------------------------------------------
-    def update(self, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions, moving: bool, wait_s: float = 0.03) -> bool:
-        """Sort/upload/render as needed for this frame; True if ``target`` holds a new picture."""
+    def update(self, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions, moving: bool) -> bool:
+        """Sort, upload and draw what this frame needs; True if ``target`` changed."""
         self.sync(doc)
-        req = self._request(camera, t, opts)
+        if moving:
+            self._refine = None
+            return self._preview(camera, t, opts)
+        return self._refine_step(camera, t, opts)
+
+    def _preview(self, camera: ViewCamera, t: float, opts: RenderOptions) -> bool:
+        level, scale = self.ladder.step
+        s = self.levels[level] if level >= 0 and self.levels else self.full
+        req = self._request(s, camera, t, opts)
         if req.stamp != self._submitted:
-            self.worker.submit(self._sort_input, req)
+            self.worker.submit(s.sort_input, req)
             self._submitted = req.stamp
-        result = self.worker.poll()
-        if result is None and self._order_stamp != req.stamp:
-            result = self.worker.wait(wait_s)
-        if result is not None and result.data is self._sort_input:
-            self._upload(result.order, result.request.stamp, result.seconds)
-        fresh = self._order_stamp == req.stamp
-        if self._order_stamp is None:
+        self._collect(req, 0.03 if s.order_stamp != req.stamp else 0.0)
+        if s.order_stamp is None or (s.order_stamp[0] != s.name):
             return False
-        scale = self.adaptive.scale if (moving or not fresh) else 1.0
-        state = (req.stamp, self._order_stamp, scale, opts)
-        if state == self._rendered:
+        shown = (req.stamp, s.order_stamp, scale, opts)
+        if shown == self._shown:
             return False
         cam = camera if scale == 1.0 else camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
         start = time.perf_counter()
-        self.target = self.renderer.render(cam, t, opts)
+        self.target = self.renderer.render(s.gpu, cam, t, opts)
         self.ctx.finish()
         seconds = time.perf_counter() - start
-        if scale < 1.0 or moving:
-            self.adaptive.update(scale, seconds + self.stats.upload_ms / 1e3)
-        self.stats.render_ms, self.stats.scale, self.stats.stale_order = 1e3 * seconds, scale, not fresh
-        self._rendered = state
+        self.ladder.update(seconds + self.stats.upload_ms / 1e3)
+        self.stats.render_ms, self.stats.scale, self.stats.level, self.stats.refining = 1e3 * seconds, scale, s.name, 0.0
+        self._shown = shown
+        return True
+
+    def _refine_step(self, camera: ViewCamera, t: float, opts: RenderOptions) -> bool:
+        """One chunk of the full-quality picture for this exact view (sorting it first if needed)."""
+        s = self.full
+        req = self._request(s, camera, t, opts)
+        key = (req.stamp, opts)
+        if self._shown is not None and self._shown[0] == key:
+            return False
+        if s.order_stamp != req.stamp:
+            if req.stamp != self._submitted:
+                self.worker.submit(s.sort_input, req)
+                self._submitted = req.stamp
+            self._collect(req, 0.03)
+            if s.order_stamp != req.stamp:
+                return False
+        r = self._refine
+        if r is None or r["key"] != key:
+            # Two targets in turn: never draw into the picture on screen.
+            name = "refine_b" if self.target is not None and self._target_name == "refine_a" else "refine_a"
+            self._target_name_next = name
+            target = self.renderer.target(camera.width, camera.height, "f4" if opts.mode == "depth" else None, name=name)
+            r = self._refine = {"key": key, "target": target, "next": 0, "seconds": 0.0}
+        start = time.perf_counter()
+        count = min(self._chunk, s.gpu.count - r["next"])
+        self.renderer.render_range(s.gpu, camera, t, opts, r["target"], r["next"], count)
+        self.ctx.finish()
+        seconds = time.perf_counter() - start
+        if count > 0:
+            self._chunk = int(np.clip(count * self.chunk_budget_s / max(seconds, 1e-4), 2_000, 2_000_000))
+        r["next"] += count
+        r["seconds"] += seconds
+        self.stats.render_ms, self.stats.refining = 1e3 * seconds, r["next"] / max(s.gpu.count, 1)
+        if r["next"] < s.gpu.count:
+            return False
+        self.target, self._refine = r["target"], None
+        self._target_name = self._target_name_next
+        self._shown = (key, None, 1.0, opts)
+        self.stats.full_ms, self.stats.scale, self.stats.level = 1e3 * r["seconds"], 1.0, "full"
         return True
 
     @property
     def settled(self) -> bool:
-        """The picture is full resolution with the exact order for the last requested view."""
-        return self._rendered is not None and self._rendered[0] == self._rendered[1] and self._rendered[2] == 1.0
+        """The shown picture is the full-quality one for the last requested view."""
+        return self._shown is not None and self._shown[1] is None
 
     def close(self) -> None:
         self.worker.close()
+        for s in [self.full, *self.levels]:
+            s.gpu.release()
         self.renderer.release()

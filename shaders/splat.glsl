@@ -97,8 +97,13 @@ vec3 splat_color(int gid, vec3 mean, float z, float flow_mag, bool selected) {
 void cull() { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); v_color = vec4(0.0); v_sigma_max = -1.0; }
 
 void main() {
+#if defined INDEXED
+    int splat = gl_VertexID >> 2;  // indexed draw: the index is 4 * splat + corner (vertex cache reuse)
+    int corner = gl_VertexID & 3;
+#else
     int splat = gl_VertexID / 6;
     int corner = gl_VertexID - 6 * splat;
+#endif
     if (splat >= u_count) { cull(); return; }
     int gid = int(texelFetch(u_order, texel(u_count - 1 - splat), 0).r);  // back to front
     uint flags = texelFetch(u_flags, texel(gid), 0).r;
@@ -140,7 +145,11 @@ void main() {
     vec2 e2 = vec2(-e1.y, e1.x);
     float grow = 1.0 + 1e-3;
     vec2 r = sqrt(2.0 * sigma_max * vec2(l1, l2)) * grow + 1e-3;
+#if defined INDEXED
+    const vec2 corners[4] = vec2[4](vec2(-1, -1), vec2(1, -1), vec2(-1, 1), vec2(1, 1));
+#else
     const vec2 corners[6] = vec2[6](vec2(-1, -1), vec2(1, -1), vec2(-1, 1), vec2(-1, 1), vec2(1, -1), vec2(1, 1));
+#endif
     vec2 offset = corners[corner].x * r.x * e1 + corners[corner].y * r.y * e2;
     vec2 pixel = mean2d + offset;
     gl_Position = vec4(2.0 * (pixel.x + 0.5) / u_size.x - 1.0, 1.0 - 2.0 * (pixel.y + 0.5) / u_size.y, 0.0, 1.0);

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from app.camera import rig_camera
-from app.renderer import RenderOptions, SplatRenderer
+from app.renderer import GpuSplats, RenderOptions, SplatRenderer
 from app.sorter import SortRequest, depth_order, make_sort_input
 from app.splats import SplatArrays
 from drivingscene.render.scene import render_gaussians
@@ -26,18 +26,24 @@ def _camera():
 
 
 def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb"):
-    renderer = SplatRenderer(ctx)
+    renderer, gpu = SplatRenderer(ctx), GpuSplats(ctx)
     splats = SplatArrays.from_gaussians(gaussians)
-    renderer.set_splats(splats, origin=np.array([0.1, 0.2, 3.0]))
+    gpu.set_splats(splats, origin=np.array([0.1, 0.2, 3.0]))
     renderer.set_sky(sky.numpy())
     cam = _camera()
-    req = SortRequest(cam.shifted(renderer.origin).world_to_cam, cam.intrinsics, W, H, t, blend, keys=keys)
-    renderer.set_order(depth_order(make_sort_input(splats, renderer.origin), req))
+    req = SortRequest(cam.shifted(gpu.origin).world_to_cam, cam.intrinsics, W, H, t, blend, keys=keys)
+    gpu.set_order(depth_order(make_sort_input(splats, gpu.origin), req))
     if mode == "depth":
-        out = renderer.render(cam, t, RenderOptions(mode="depth", blend=blend)).read()
+        out = renderer.render(gpu, cam, t, RenderOptions(mode="depth", blend=blend)).read()
     else:
-        out = renderer.render_image(cam, t, RenderOptions(blend=blend)) / 255.0
+        out = renderer.render_image(gpu, cam, t, RenderOptions(blend=blend)) / 255.0
+        # Drawing the same order in chunks (progressive refinement) gives the same picture.
+        target = renderer.target(W, H, name="chunks")
+        for start in range(0, gpu.count, 37):
+            renderer.render_range(gpu, cam, t, RenderOptions(blend=blend), target, start, 37)
+        np.testing.assert_allclose(target.read()[..., :3], renderer.render(gpu, cam, t, RenderOptions(blend=blend)).read()[..., :3], atol=1e-3)
     renderer.release()
+    gpu.release()
     return out
 
 

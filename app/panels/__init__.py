@@ -1,0 +1,1 @@
+"""UI panels, one per file; each ``draw(viewer)`` builds its imgui widgets and calls viewer actions."""

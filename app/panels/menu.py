@@ -1,0 +1,89 @@
+"""The main menu bar: File, Edit, View, Help."""
+
+from __future__ import annotations
+
+from imgui_bundle import imgui
+
+from app import interaction
+from app.panels import filedialog
+from app.renderer import MODES
+from app.viewer import Viewer
+
+MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "dynamic": "Dynamic highlighted", "flow": "Flow magnitude"}
+CONTROLS = """Mouse (3D view)     left drag: orbit (fly mode: look)   right/middle or shift+left drag: pan   wheel: zoom
+Keys                WASD/QE fly (shift: faster)   F frame all   R reset   1-9 rig cameras   0 free camera   G follow ego
+Time                Space play/pause   Left/Right or ,/. step   Home/End keyframes
+Editing             Esc clear selection   I invert   H hide   Delete delete   Ctrl+Z undo   Ctrl+Shift+Z / Ctrl+Y redo
+Selection tools     shift adds, ctrl subtracts"""
+
+
+def draw(viewer: Viewer) -> int:
+    """Draw the menu bar; returns its height in pixels."""
+    if not imgui.begin_main_menu_bar():
+        return 0
+    height = int(imgui.get_window_size().y)
+    if imgui.begin_menu("File"):
+        _file_menu(viewer)
+        imgui.end_menu()
+    if imgui.begin_menu("Edit"):
+        _edit_menu(viewer)
+        imgui.end_menu()
+    if imgui.begin_menu("View"):
+        _view_menu(viewer)
+        imgui.end_menu()
+    if imgui.begin_menu("Help"):
+        imgui.text(CONTROLS)
+        imgui.end_menu()
+    imgui.end_main_menu_bar()
+    return height
+
+
+def _file_menu(viewer: Viewer) -> None:
+    from app.loader import DEMO_SCENE
+    from drivingscene.resources import asset_path
+
+    if imgui.menu_item_simple("Open...", "Ctrl+O"):
+        filedialog.open_dialog(viewer, "open")
+    if imgui.menu_item_simple("Open demo scene"):
+        viewer.open(asset_path(DEMO_SCENE))
+    has = viewer.doc is not None
+    if imgui.menu_item_simple("Save edited reconstruction...", "Ctrl+S", False, has and viewer.doc.num_views > 0):
+        filedialog.open_dialog(viewer, "save")
+    imgui.separator()
+    if imgui.menu_item_simple("Quit", "Ctrl+Q"):
+        viewer.quit_requested = True
+
+
+def _edit_menu(viewer: Viewer) -> None:
+    doc = viewer.doc
+    has = doc is not None
+    undo = doc.history.undo_stack[-1].label if has and doc.history.undo_stack else ""
+    redo = doc.history.redo_stack[-1].label if has and doc.history.redo_stack else ""
+    if imgui.menu_item_simple(f"Undo {undo}", "Ctrl+Z", False, bool(undo)):
+        interaction.viewer_undo(viewer)
+    if imgui.menu_item_simple(f"Redo {redo}", "Ctrl+Shift+Z", False, bool(redo)):
+        interaction.viewer_redo(viewer)
+    imgui.separator()
+    for label, key, fn in (("Select dynamic", "", lambda: doc.select_dynamic()), ("Invert selection", "I", lambda: doc.invert_selection()),
+                           ("Clear selection", "Esc", lambda: doc.clear_selection()), ("Hide selected", "H", lambda: doc.hide_selected()),
+                           ("Unhide all", "", lambda: doc.unhide_all()), ("Delete selected", "Del", lambda: doc.delete_selected())):
+        if imgui.menu_item_simple(label, key, False, has):
+            fn()
+
+
+def _view_menu(viewer: Viewer) -> None:
+    v = viewer.view
+    for mode in MODES:
+        if imgui.menu_item_simple(MODE_LABELS[mode], "", v.mode == mode):
+            v.mode = mode
+    imgui.separator()
+    for attr, label in (("show_frusta", "Rig frusta"), ("show_path", "Ego path"), ("show_grid", "Ground grid")):
+        if imgui.menu_item_simple(label, "", getattr(v, attr)):
+            setattr(v, attr, not getattr(v, attr))
+    imgui.separator()
+    if imgui.menu_item_simple("Frame all", "F", False, viewer.doc is not None):
+        viewer.frame_all()
+    if imgui.menu_item_simple("Reset camera", "R", False, viewer.doc is not None):
+        viewer.reset_camera()
+    if imgui.menu_item_simple("Follow ego", "G", viewer.camera.follow_ego, viewer.doc is not None):
+        viewer.set_follow(not viewer.camera.follow_ego)
