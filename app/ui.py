@@ -92,8 +92,8 @@ def _inspector(viewer: Viewer) -> None:
         (f"{fa.ICON_FA_FOLDER_OPEN}  Scene", scene.draw, True),
         (f"{fa.ICON_FA_EYE}  View", view.draw, True),
         (f"{fa.ICON_FA_PEN_TO_SQUARE}  Edit", edit.draw, True),
-        (f"{fa.ICON_FA_FILE_EXPORT}  Export", export.draw, False),
-        (f"{fa.ICON_FA_GAUGE_HIGH}  Stats", stats.draw, True),
+        (f"{fa.ICON_FA_FILE_EXPORT}  Export", export.draw, True),
+        (f"{fa.ICON_FA_GAUGE_HIGH}  Stats", stats.draw, False),
     ):
         if imgui.collapsing_header(title, flags if open_default else 0):
             imgui.push_id(title)
@@ -134,6 +134,7 @@ def _view_overlay(viewer: Viewer) -> None:
         size = imgui.calc_text_size(text)
         draw.add_text(imgui.ImVec2(x + (w - size.x) / 2, y + h / 2), imgui.get_color_u32(imgui.ImVec4(0.7, 0.7, 0.75, 1.0)), text)
     view.draw_legend(viewer, draw)
+    stats.draw_overlay(viewer, draw)
 
 
 def _progress(viewer: Viewer, draw) -> None:

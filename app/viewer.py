@@ -280,5 +280,7 @@ class Viewer:
         self.lines.draw(groups, self.display_camera, self.doc.origin)
 
     def close(self) -> None:
+        if self.job is not None:
+            self.job.wait()  # a torch op still running in a thread at exit aborts the process
         self.viewport.close()
         self.textures.clear()

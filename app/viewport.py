@@ -304,6 +304,8 @@ class Viewport:
         return self._shown is not None and self._shown[1] is None
 
     def close(self) -> None:
+        if self._lod_thread is not None:
+            self._lod_thread.join()  # a torch op still running in a thread at exit aborts the process
         self.worker.close()
         for s in [self.full, *self.levels]:
             s.gpu.release()

@@ -10,8 +10,10 @@ from app.panels import filedialog
 from app.state import SELECT_MODES
 from app.viewer import TOOLS, Viewer
 
-TOOL_LABELS = {"navigate": f"{fa.ICON_FA_HAND} navigate", "rect": f"{fa.ICON_FA_VECTOR_SQUARE} rect",
+TOOL_LABELS = {"navigate": f"{fa.ICON_FA_HAND} nav", "rect": f"{fa.ICON_FA_VECTOR_SQUARE} rect",
                "brush": f"{fa.ICON_FA_PAINTBRUSH} brush", "sphere": f"{fa.ICON_FA_CIRCLE} sphere"}
+TOOL_TIPS = {"navigate": "orbit / pan / zoom", "rect": "drag a rectangle (shift: add, ctrl: subtract)",
+             "brush": "paint over Gaussians (shift: add, ctrl: subtract)", "sphere": "click a point: select within the radius"}
 
 
 def draw(viewer: Viewer) -> None:
@@ -22,6 +24,8 @@ def draw(viewer: Viewer) -> None:
             imgui.same_line()
         if imgui.radio_button(TOOL_LABELS[tool], tools.tool == tool):
             tools.tool = tool
+        if imgui.is_item_hovered():
+            imgui.set_tooltip(TOOL_TIPS[tool])
     if tools.tool == "brush":
         _, tools.brush_radius = imgui.slider_float("brush (px)", tools.brush_radius, 3.0, 200.0, "%.0f")
     elif tools.tool == "sphere":

@@ -28,7 +28,8 @@ def draw(viewer: Viewer) -> None:
             v.depth_range = (max(0.1, values[0]), max(values[0] + 0.1, values[1]))
     elif v.mode == "flow":
         _, v.flow_max = imgui.drag_float("max flow (m)", v.flow_max, 0.01, 0.01, 100.0, "%.2f")
-    _, blend = imgui.combo("keyframes at t", BLEND_MODES.index(v.blend), ["both opaque (all)", "cross-fade (fade)", "nearest keyframe"])
+    imgui.set_next_item_width(200)
+    _, blend = imgui.combo("blend", BLEND_MODES.index(v.blend), ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe"])
     v.blend = BLEND_MODES[blend]
     if imgui.is_item_hovered():
         imgui.set_tooltip("all: both keyframes' Gaussians fully opaque (the library's default, as training renders)\n"
@@ -36,8 +37,9 @@ def draw(viewer: Viewer) -> None:
     imgui.separator_text("Camera")
     _camera(viewer)
     imgui.separator_text("Overlays")
-    for attr, label in (("show_frusta", "frusta"), ("show_path", "ego path"), ("show_grid", "grid"), ("show_selection", "selection")):
-        imgui.same_line() if attr != "show_frusta" else None
+    for i, (attr, label) in enumerate((("show_frusta", "frusta"), ("show_path", "ego path"), ("show_grid", "grid"), ("show_selection", "selection"))):
+        if i:
+            imgui.same_line()
         _, value = imgui.checkbox(label, getattr(v, attr))
         setattr(v, attr, value)
 
@@ -45,14 +47,17 @@ def draw(viewer: Viewer) -> None:
 def _camera(viewer: Viewer) -> None:
     cam = viewer.camera
     doc = viewer.doc
-    if imgui.radio_button("free", cam.rig_index is None):
-        viewer.snap(None)
     names = doc.recon.camera_names if doc is not None else ()
-    for i, name in enumerate(names):
-        imgui.same_line() if i % 3 != 2 or i == 0 else None
-        short = name.replace("CAM_", "").replace("_", " ").lower()
-        if imgui.radio_button(f"{i + 1} {short}", cam.rig_index == i):
-            viewer.snap(i)
+    if imgui.begin_table("cams", 3):
+        imgui.table_next_column()
+        if imgui.radio_button("free", cam.rig_index is None):
+            viewer.snap(None)
+        for i, name in enumerate(names):
+            imgui.table_next_column()
+            short = name.replace("CAM_", "").replace("_", " ").lower()
+            if imgui.radio_button(f"{i + 1} {short}", cam.rig_index == i):
+                viewer.snap(i)
+        imgui.end_table()
     changed, follow = imgui.checkbox("follow ego (G)", cam.follow_ego)
     if changed:
         viewer.set_follow(follow)
@@ -65,7 +70,7 @@ def _camera(viewer: Viewer) -> None:
         viewer.reset_camera()
     imgui.same_line()
     imgui.set_next_item_width(-1)
-    changed, fov = imgui.slider_float("##fov", cam.nav.fov_y_deg, 20.0, 110.0, "fov %.0f deg")
+    changed, fov = imgui.slider_float("##fov", cam.nav.fov_y_deg, 20.0, 110.0, "fov %.0f")
     if changed:
         cam.nav.fov_y_deg = fov
         viewer.touch()
