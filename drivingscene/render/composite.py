@@ -129,33 +129,50 @@ def find_pairs_torch(inp: PairInputs, width: int, height: int, max_layers: int) 
         # Sort by (pixel, splat); splat order is front-to-back within a camera.
         order = torch.sort(pix * len(inp.means2d) + j).indices
         j, pix, sigma = j[order], pix[order], sigma[order]
-        alpha = _alpha_for_decision(inp.opacities[j], sigma)
+        keep = _front_to_back(_alpha_for_decision(inp.opacities[j], sigma), pix, max_layers)
+        j, pix = j[keep], pix[keep]
         pos = torch.arange(len(j))
-        first = torch.ones_like(pix, dtype=torch.bool)
+        first = torch.ones_like(keep[: len(j)])
         first[1:] = pix[1:] != pix[:-1]
-        rank = pos - torch.where(first, pos, torch.zeros_like(pos)).cummax(0).values  # depth rank within the pixel
-        by_layer = torch.sort(rank, stable=True).indices
-        layer_ends = torch.bincount(rank).cumsum(0).tolist()
-        trans = torch.ones(num_pixels, dtype=alpha.dtype)
-        layers = torch.zeros(num_pixels, dtype=torch.int64)
-        done = torch.zeros(num_pixels, dtype=torch.bool)
-        lo = 0
-        for hi in layer_ends:
-            # Layer r holds each pixel's r-th candidate: at most one per pixel, so writes never collide.
-            sel = by_layer[lo:hi]
-            lo = hi
-            p = pix[sel]
-            live = ~done[p]
-            sel, p = sel[live], p[live]
-            nxt = trans[p] * (1.0 - alpha[sel])
-            stop = nxt < MIN_TRANSMITTANCE
-            done[p[stop]] = True
-            sel, p, nxt = sel[~stop], p[~stop], nxt[~stop]
-            out[p, layers[p]] = j[sel].to(torch.int32)
-            trans[p] = nxt
-            layers[p] += 1
-            done[p[layers[p] == max_layers]] = True
+        slot = pos - torch.where(first, pos, 0).cummax(0).values  # index among the pixel's kept splats
+        out[pix, slot] = j.to(torch.int32)
     return out
+
+
+def _front_to_back(alpha: Tensor, pix: Tensor, max_layers: int) -> Tensor:
+    """Which candidates ``[Q]`` (sorted by pixel, then depth) are composited: transmittance, early stop, cap.
+
+    Runs one step per depth rank ("layer") over all pixels at once. Pixels are ordered by candidate
+    count, descending, so layer r is a prefix of that order and per-pixel state is sliced, not gathered.
+    Transmittance is a float32 running product, as in find_pairs.cpp.
+    """
+    pos = torch.arange(len(pix))
+    first = torch.ones_like(pix, dtype=torch.bool)
+    first[1:] = pix[1:] != pix[:-1]
+    seg = first.cumsum(0) - 1  # pixel segment of each candidate
+    rank = pos - torch.where(first, pos, 0).cummax(0).values  # depth rank within the pixel
+    counts = torch.bincount(seg)
+    by_count = torch.sort(counts, descending=True, stable=True).indices
+    place = torch.empty_like(by_count)
+    place[by_count] = torch.arange(len(by_count))  # segment -> position in by_count order
+    layer_sizes = torch.bincount(rank)  # pixels with more than r candidates
+    layer_start = torch.cat([layer_sizes.new_zeros(1), layer_sizes.cumsum(0)])
+    slot = layer_start[rank] + place[seg]  # layer-major storage
+    alpha_by_layer = torch.empty_like(alpha)
+    alpha_by_layer[slot] = alpha
+    taken = torch.zeros(len(alpha), dtype=torch.bool)
+    trans = torch.ones(len(counts), dtype=alpha.dtype)
+    layers = torch.zeros(len(counts), dtype=torch.int64)
+    live = torch.ones(len(counts), dtype=torch.bool)
+    for lo, n in zip(layer_start.tolist(), layer_sizes.tolist()):
+        nxt = trans[:n] * (1.0 - alpha_by_layer[lo : lo + n])
+        stop = nxt < MIN_TRANSMITTANCE
+        take = live[:n] & ~stop
+        taken[lo : lo + n] = take
+        trans[:n] = torch.where(take, nxt, trans[:n])
+        layers[:n] += take
+        live[:n] &= ~stop & (layers[:n] < max_layers)
+    return taken[slot]
 
 
 def find_pairs_cpp(op, inp: PairInputs, width: int, height: int, max_layers: int) -> Tensor:

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from drivingscene.errors import InputError
 
-DEFAULT_MAX_LAYERS = 16
+DEFAULT_MAX_LAYERS = 32
 BACKENDS = ("auto", "torch", "cpp", "gsplat")
 
 
