@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from drivingscene.cli.common import check_output, positive_int
+from drivingscene.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,6 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path, metavar="SCENE")
     p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON")
     p.add_argument("--no-flow", action="store_true", help="ignore gt_scene_flow (every Gaussian static)")
+    p.add_argument("--refine", type=int, default=1, metavar="N", help="colour deconvolution steps (default 1; 0 = raw pixel colours)")
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_oracle)
 
@@ -54,6 +56,8 @@ def run_oracle(args: argparse.Namespace) -> int:
     from drivingscene.methods.oracle import oracle_reconstruction
 
     check_output(args.out, args.force, "-o")
-    recon = oracle_reconstruction(load_frame_pair(args.scene), use_scene_flow=not args.no_flow)
+    if args.refine < 0:
+        raise InputError(f"--refine: expected a number of steps >= 0, found {args.refine}")
+    recon = oracle_reconstruction(load_frame_pair(args.scene), use_scene_flow=not args.no_flow, refine=args.refine)
     _report(recon, save_reconstruction(recon, args.out))
     return 0

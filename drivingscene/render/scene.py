@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from drivingscene.errors import InputError
-from drivingscene.gaussians.core import Gaussians
+from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.render.rasterize import RenderOutput, rasterize
 from drivingscene.render.sky import ray_directions, sky_colors
@@ -29,7 +29,8 @@ def render_gaussians(
     g = gaussians
     opacities = g.opacities * g.time_weights(t, blend)
     degree = g.sh_degree
-    colors = g.colors() if degree == 0 else g.sh
+    # 3DGS colour: max(SH + 0.5, 0), no upper clamp (degree 0 is passed as plain RGB).
+    colors = torch.clamp_min(sh0_to_rgb(g.sh[:, 0]), 0.0) if degree == 0 else g.sh
     out = rasterize(
         g.means_at(t),
         g.quats,

@@ -9,6 +9,7 @@ import torch
 from drivingscene.data.npz import load_npz, save_npz
 from drivingscene.errors import InputError, SceneFormatError
 from drivingscene.gaussians import Gaussians, Reconstruction, gaussians_from_pixels, load_reconstruction, save_reconstruction
+from drivingscene.gaussians.assembly import FOOTPRINT
 from drivingscene.gaussians.recon import recon_to_arrays, validate_recon_arrays
 from drivingscene.geometry import quat_to_matrix, unproject
 from drivingscene.geometry.flow import cams_to_world
@@ -161,7 +162,7 @@ def test_unprojected_default_scales_match_pixel_footprint():
     depth = torch.full((1, 3, 4), 10.0)
     k = torch.tensor([[[100.0, 0, 1.5], [0, 50.0, 1.0], [0, 0, 1]]])
     g = gaussians_from_pixels(depth, k, torch.eye(4)[None], torch.rand(1, 3, 4, 3), keyframe=0)
-    torch.testing.assert_close(g.scales[0, :2], torch.tensor([0.7 * 10 / 100, 0.7 * 10 / 50]))
+    torch.testing.assert_close(g.scales[0, :2], torch.tensor([FOOTPRINT * 10 / 100, FOOTPRINT * 10 / 50]))
     torch.testing.assert_close(g.means[:, 2], torch.full((12,), 10.0))
     assert unproject(depth, k).shape == (1, 3, 4, 3)
     _ = load_npz  # imported for the error-path test above
