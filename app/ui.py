@@ -122,7 +122,7 @@ def _view_overlay(viewer: Viewer) -> None:
     if tools.tool == "rect" and tools.drag_start and tools.drag_now:
         a, b = imgui.ImVec2(*tools.drag_start), imgui.ImVec2(*tools.drag_now)
         draw.add_rect_filled(a, b, imgui.get_color_u32(imgui.ImVec4(0.3, 0.6, 1.0, 0.15)))
-        draw.add_rect(a, b, imgui.get_color_u32(imgui.ImVec4(0.4, 0.7, 1.0, 0.9)), 0.0, 0, 1.5)
+        draw.add_rect(a, b, imgui.get_color_u32(imgui.ImVec4(0.4, 0.7, 1.0, 0.9)), 0.0, 1.5)
     if tools.tool == "brush":
         mouse = imgui.get_mouse_pos()
         if x <= mouse.x < x + w and y <= mouse.y < y + h:

@@ -52,9 +52,9 @@ def video(viewer: Viewer) -> None:
     viewer.start_task("video", gen)
 
 
-def ply(viewer: Viewer) -> None:
+def ply(viewer: Viewer, kind: str | None = None) -> None:
     e, t = viewer.export, viewer.view.t
-    kind = PLY_KINDS[e.ply_kind]
+    kind = kind or PLY_KINDS[e.ply_kind]
     suffix = "" if kind == "dynamic" else f"_t{t:.3f}"
     path = Path(e.folder) / f"gaussians_{kind}{suffix}.ply"
     viewer.start_task("PLY", _one(lambda: export.export_ply(viewer.doc, path, kind, t)))

@@ -22,7 +22,9 @@ def draw(viewer: Viewer) -> int:
     if not imgui.begin_main_menu_bar():
         return 0
     height = int(imgui.get_window_size().y)
-    if imgui.begin_menu("File"):
+    opened = imgui.begin_menu("File")
+    viewer.ui_rects["menu_file"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())
+    if opened:
         _file_menu(viewer)
         imgui.end_menu()
     if imgui.begin_menu("Edit"):
@@ -50,8 +52,29 @@ def _file_menu(viewer: Viewer) -> None:
     if imgui.menu_item_simple("Save edited reconstruction...", "Ctrl+S", False, has and viewer.doc.num_views > 0):
         filedialog.open_dialog(viewer, "save")
     imgui.separator()
+    _export_items(viewer)
+    imgui.separator()
     if imgui.menu_item_simple("Quit", "Ctrl+Q"):
         viewer.quit_requested = True
+
+
+def _export_items(viewer: Viewer) -> None:
+    from app.panels import export
+
+    doc = viewer.doc
+    busy = viewer.task is not None
+    e = viewer.export
+    if imgui.menu_item_simple(f"Export view as PNG ({e.width}x{e.height})", "", False, doc is not None and not busy):
+        export.png_view(viewer)
+    viewer.ui_rects["menu_export_png"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())
+    rig = doc is not None and doc.num_views > 0 and not busy
+    if imgui.menu_item_simple("Export all rig views at t", "", False, rig):
+        export.rig_pngs(viewer)
+    if imgui.menu_item_simple("Export time-sweep MP4", "", False, doc is not None and not busy):
+        export.video(viewer)
+    for kind, label in (("3dgs", "PLY: 3DGS at t"), ("dynamic", "PLY: dynamic"), ("points", "PLY: point cloud at t")):
+        if imgui.menu_item_simple(f"Export {label}", "", False, doc is not None and not busy):
+            export.ply(viewer, kind)
 
 
 def _edit_menu(viewer: Viewer) -> None:

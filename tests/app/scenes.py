@@ -26,7 +26,7 @@ def random_gaussians(num: int = 300, sh_degree: int = 1, seed: int = 0, dynamic_
     )
 
 
-def street_recon(num_views: int = 3, height: int = 24, width: int = 32, seed: int = 0) -> Reconstruction:
+def street_recon(num_views: int = 3, height: int = 24, width: int = 32, seed: int = 0, flow: float = 2.0) -> Reconstruction:
     """A reconstruction of ``tests.factories.make_pair``'s rig with Gaussians spread around the ego.
 
     Ground-plane splats plus a few moving blobs; per-camera maps from the pair's ground truth.
@@ -44,7 +44,7 @@ def street_recon(num_views: int = 3, height: int = 24, width: int = 32, seed: in
         torch.from_numpy(rng.uniform(0.1, 0.6, (n, 3)).astype(np.float32)),
         torch.from_numpy(rng.uniform(0.3, 0.95, n).astype(np.float32)),
         torch.from_numpy(rng.normal(scale=0.6, size=(n, 3)).astype(np.float32)),
-        flows=torch.tensor([2.0, 0.5, 0.0]) * moving,
+        flows=torch.tensor([flow, 0.25 * flow, 0.0]) * moving,
         keyframes=torch.from_numpy(rng.integers(0, 2, n)),
         cameras=torch.from_numpy(rng.integers(0, num_views, n)),
     )

@@ -1,0 +1,59 @@
+"""The real window under Xvfb, driven by real X input (xdotool): drag the time slider and see the
+scene at the new time, rectangle-select + Delete + Ctrl+Z, and export a PNG from the File menu."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import pytest
+
+
+def _free_display() -> int:
+    for n in range(91, 160):
+        if not Path(f"/tmp/.X{n}-lock").exists() and not Path(f"/tmp/.X11-unix/X{n}").exists():
+            return n
+    pytest.skip("no free X display number")
+
+
+@pytest.fixture
+def xvfb():
+    if shutil.which("Xvfb") is None or shutil.which("xdotool") is None:
+        pytest.skip("Xvfb and xdotool are needed (apt-get install xvfb xdotool)")
+    n = _free_display()
+    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x800x24", "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for _ in range(100):
+        if Path(f"/tmp/.X11-unix/X{n}").exists():
+            break
+        time.sleep(0.05)
+    else:
+        proc.kill()
+        pytest.skip("Xvfb did not start")
+    yield f":{n}"
+    proc.terminate()
+    proc.wait(10)
+
+
+@pytest.mark.gl
+def test_scripted_session(xvfb, tmp_path):
+    env = {**os.environ, "DISPLAY": xvfb}
+    run = subprocess.run([sys.executable, "-m", "tests.app.xvfb_session", str(tmp_path)], env=env, capture_output=True,
+                         text=True, timeout=240, cwd=Path(__file__).resolve().parents[2])
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads((tmp_path / "result.json").read_text())
+    # The slider went to ~80 % of its width and the picture is the scene at that time (not the old one).
+    assert r["t_before"] == 0.0 and 0.7 < r["t_after"] < 0.9
+    assert r["changed"] > 0.5
+    assert r["err_to_new_time"] < 0.1 * r["err_to_old_time"]
+    # Rectangle select, Delete key, Ctrl+Z.
+    assert 0 < r["selected"] < r["count"]
+    assert r["after_delete"] == r["count"] - r["selected"] and r["after_undo"] == r["count"]
+    # File > Export view as PNG wrote a file that loads back at the chosen size.
+    assert len(r["exported"]) == 1 and cv2.imread(r["exported"][0]).shape == (180, 320, 3)

@@ -1,0 +1,147 @@
+"""A scripted session of the real viewer window driven by real X input (xdotool), run under Xvfb by
+``test_window_xvfb.py``:  python -m tests.app.xvfb_session OUT_DIR
+
+Opens a small reconstruction through File-open's code path, drags the time slider, checks that the
+3D view now shows the scene at the new time, selects with the rectangle tool and deletes with the
+Delete key, undoes with Ctrl+Z, and clicks the export button; writes ``OUT_DIR/result.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _xdo(*args: str) -> None:
+    subprocess.run(["xdotool", *args], check=True, timeout=20)
+
+
+class Session:
+    def __init__(self, out: Path):
+        from app.window import ViewerWindow
+
+        self.out = out
+        self.win = ViewerWindow(1280, 720, lod=False)
+        self.wid = str(self.win.window._window)  # the X window id
+        for _ in range(5):
+            self.win.step()
+        _xdo("windowfocus", "--sync", self.wid)
+
+    def pump(self, frames: int = 3, until=None, timeout: float = 60.0, settle: bool = True) -> None:
+        """Run at least ``frames`` frames, then until ``until()`` is true and (``settle``) the view is idle."""
+        start = time.time()
+        n = 0
+        while time.time() - start < timeout:
+            self.win.step()
+            n += 1
+            if n >= frames and (until is None or until()) and (self.win.idle or not settle):
+                return
+            time.sleep(0.01)
+        raise TimeoutError(f"the viewer did not settle within {timeout} s")
+
+    def move(self, x: float, y: float, settle: bool = True) -> None:
+        _xdo("mousemove", "--window", self.wid, str(int(x)), str(int(y)))
+        self.pump(2, settle=settle)
+
+    def drag(self, start, end, steps: int = 6, key: str | None = None) -> None:
+        self.move(*start)
+        if key:
+            _xdo("keydown", key)
+        _xdo("mousedown", "1")
+        self.pump(2, settle=False)
+        for i in range(1, steps + 1):
+            f = i / steps
+            self.move(start[0] + f * (end[0] - start[0]), start[1] + f * (end[1] - start[1]), settle=False)
+        _xdo("mouseup", "1")
+        if key:
+            _xdo("keyup", key)
+        self.pump(2)
+
+    def view_pixels(self) -> np.ndarray:
+        """The 3D view's pixels on screen, below the stats line drawn over its top."""
+        x, y, w, h = self.win.viewer.image_rect()
+        return self.win.screenshot()[y + 40 : y + h, x : x + w].astype(np.float32)
+
+    def reference(self, t: float) -> np.ndarray:
+        """The full-quality render of the current camera at time t (offscreen, same GL context)."""
+        v = self.win.viewer
+        opts = v.render_options()
+        image = v.viewport.image(v.doc, v.display_camera, t, opts)[40:].astype(np.float32)
+        v.viewport._shown = None  # the interactive picture must be drawn again
+        return image
+
+
+def run(out: Path) -> dict:
+    from drivingscene.gaussians.recon import save_reconstruction
+    from tests.app.scenes import street_recon
+
+    result: dict = {}
+    s = Session(out)
+    viewer = s.win.viewer
+    viewer.view.show_frusta = viewer.view.show_path = viewer.view.show_grid = False
+    viewer.open(save_reconstruction(street_recon(height=24, width=32, flow=8.0), out / "recon.npz"))
+    s.pump(5, until=lambda: viewer.doc is not None)
+    before = s.view_pixels()
+    result["t_before"] = viewer.view.t
+    # Drag the time slider's grab from the left end to 80 % of its width with the real mouse.
+    x0, y0, x1, y1 = viewer.ui_rects["time_slider"]
+    cy = (y0 + y1) / 2
+    s.drag((x0 + 4, cy), (x0 + 0.8 * (x1 - x0), cy))
+    s.pump(3)
+    result["t_after"] = viewer.view.t
+    after = s.view_pixels()
+    ref_before, ref_after = s.reference(result["t_before"]), s.reference(result["t_after"])
+    s.pump(3)
+    result["changed"] = float(np.abs(after - before).mean())
+    result["err_to_new_time"] = float(np.abs(after - ref_after).mean())
+    result["err_to_old_time"] = float(np.abs(after - ref_before).mean())
+    _edit(s, result)
+    _export(s, result)
+    s.win.close()
+    return result
+
+
+def _edit(s: Session, result: dict) -> None:
+    viewer = s.win.viewer
+    viewer.tools.tool = "rect"
+    n = len(viewer.doc.splats)
+    x, y, w, h = viewer.view_rect
+    s.drag((x + 0.25 * w, y + 0.25 * h), (x + 0.75 * w, y + 0.75 * h))
+    result["selected"] = int(viewer.doc.selected.sum())
+    s.move(x + w / 2, y + h / 2)
+    _xdo("key", "--window", s.wid, "Delete")
+    s.pump(3)
+    result["after_delete"] = len(viewer.doc.splats)
+    _xdo("key", "--window", s.wid, "ctrl+z")
+    s.pump(3)
+    result["after_undo"] = len(viewer.doc.splats)
+    result["count"] = n
+    viewer.tools.tool = "navigate"
+
+
+def _export(s: Session, result: dict) -> None:
+    import cv2
+
+    viewer = s.win.viewer
+    viewer.export.folder = str(s.out / "exports")
+    viewer.export.width, viewer.export.height = 320, 180
+    s.pump(2)
+    for item in ("menu_file", "menu_export_png"):  # File > Export view as PNG, clicked with the mouse
+        x0, y0, x1, y1 = viewer.ui_rects[item]
+        s.move((x0 + x1) / 2, (y0 + y1) / 2)
+        _xdo("click", "1")
+        s.pump(3, settle=False)
+    s.pump(3, until=lambda: viewer.task is None and bool(viewer.export.last))
+    result["exported"] = viewer.export.last
+    result["exported_shapes"] = [list(cv2.imread(p).shape) for p in viewer.export.last]
+
+
+if __name__ == "__main__":
+    out_dir = Path(sys.argv[1])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "result.json").write_text(json.dumps(run(out_dir), indent=1))
