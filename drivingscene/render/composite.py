@@ -131,12 +131,16 @@ def find_pairs_torch(inp: PairInputs, width: int, height: int, max_layers: int) 
         j, pix, sigma = j[order], pix[order], sigma[order]
         keep = _front_to_back(_alpha_for_decision(inp.opacities[j], sigma), pix, max_layers)
         j, pix = j[keep], pix[keep]
-        pos = torch.arange(len(j))
-        first = torch.ones_like(keep[: len(j)])
-        first[1:] = pix[1:] != pix[:-1]
-        slot = pos - torch.where(first, pos, 0).cummax(0).values  # index among the pixel's kept splats
-        out[pix, slot] = j.to(torch.int32)
+        out[pix, _rank_in_runs(pix)[0]] = j.to(torch.int32)
     return out
+
+
+def _rank_in_runs(keys: Tensor) -> tuple[Tensor, Tensor]:
+    """For sorted ``keys`` ``[Q]``: position of each element within its run of equal keys, and run index."""
+    pos = torch.arange(len(keys))
+    first = torch.ones_like(keys, dtype=torch.bool)
+    first[1:] = keys[1:] != keys[:-1]
+    return pos - torch.where(first, pos, 0).cummax(0).values, first.cumsum(0) - 1
 
 
 def _front_to_back(alpha: Tensor, pix: Tensor, max_layers: int) -> Tensor:
@@ -146,11 +150,7 @@ def _front_to_back(alpha: Tensor, pix: Tensor, max_layers: int) -> Tensor:
     count, descending, so layer r is a prefix of that order and per-pixel state is sliced, not gathered.
     Transmittance is a float32 running product, as in find_pairs.cpp.
     """
-    pos = torch.arange(len(pix))
-    first = torch.ones_like(pix, dtype=torch.bool)
-    first[1:] = pix[1:] != pix[:-1]
-    seg = first.cumsum(0) - 1  # pixel segment of each candidate
-    rank = pos - torch.where(first, pos, 0).cummax(0).values  # depth rank within the pixel
+    rank, seg = _rank_in_runs(pix)  # depth rank within the pixel, pixel segment
     counts = torch.bincount(seg)
     by_count = torch.sort(counts, descending=True, stable=True).indices
     place = torch.empty_like(by_count)

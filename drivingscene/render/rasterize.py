@@ -1,16 +1,38 @@
 """``rasterize``: differentiable 3D Gaussian splatting for a batch of cameras, on CPU.
 
-Pipeline: ``splats.make_splats`` culls, sorts and projects (EWA, ``project.py``) the visible
-(camera, Gaussian) pairs; a no-grad pair finder (compiled ``csrc/find_pairs.cpp`` or pure torch,
-same result) picks, per pixel, at most ``max_layers`` contributing Gaussians front to back; then
-``composite.composite`` recomputes alpha and the compositing weights with autograd over the dense
-``[pixels, max_layers]`` buffer, so gradients reach means, quats, scales, opacities and colours
-(or SH coefficients). Semantics are documented in ``project.py`` and ``composite.py``; the float64
-``reference.rasterize_reference`` renders the same image without the layer cap.
+Semantics (every backend but gsplat, and the float64 reference ``rasterize_reference``):
 
-Backends: ``"cpp"`` (compiled pair finding, CPU), ``"torch"`` (any device, slower pair finding),
-``"gsplat"`` (CUDA only, optional, see ``gsplat_backend.py``), ``"auto"``: gsplat for CUDA tensors
-when it is installed, else cpp when it builds, else torch.
+1. World covariance ``Σ = R S Sᵀ Rᵀ``, ``R`` from the normalised quaternion (w, x, y, z), ``S = diag(scales)``.
+2. EWA projection (``project.py``): ``Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I`` (0.3 px² low-pass, gsplat's
+   non-antialiased mode), ``J`` the pinhole Jacobian at the centre with the 3DGS off-image clamp.
+   Pixel centres are at integer coordinates.
+3. Culling: camera ``z < near`` or ``z > far``; a 3σ bounding circle (radius ``3·sqrt(λmax(Σ2D))``)
+   that contains no pixel centre; opacity < 1/255.
+4. Footprint and alpha: ``alpha = min(0.99, opacity·exp(-½ dᵀ Σ2D⁻¹ d))`` for pixel offset ``d``; a
+   Gaussian contributes to a pixel only inside its 3σ ellipse (``dᵀ Σ2D⁻¹ d <= 9``) and with
+   ``alpha >= 1/255``.
+5. Order: per camera, by camera-space ``z`` of the centre (computed in float64), ties by index.
+6. Front-to-back compositing ``w_i = alpha_i Π_{j<i} (1 - alpha_j)``; a Gaussian that would bring the
+   transmittance below 1e-4 is dropped and the pixel stops (as 3DGS); at most ``max_layers``
+   contributing Gaussians per pixel, the front-most ones (the reference has no cap).
+7. Outputs: ``colors = Σ w_i c_i + T·background``; ``depths = Σ w_i z_i / Σ w_i`` (camera z of the
+   centres, metres), 0 where ``Σ w_i < 1e-6``; ``alphas = Σ w_i = 1 - T``.
+
+Gradients reach means, quats, scales, opacities, colours or SH coefficients, and the background;
+culling, ordering and the choice of contributing Gaussians are piecewise constant (no gradient).
+
+Pipeline: ``splats.make_splats`` culls, sorts and projects (with grad) the visible (camera, Gaussian)
+pairs; a no-grad pair finder (compiled ``csrc/find_pairs.cpp`` or pure torch, identical result)
+picks each pixel's contributing Gaussians into a dense ``[pixels, max_layers]`` buffer; then
+``composite.composite`` recomputes alphas and weights over that buffer, with a hand-written backward.
+
+Backends: ``"cpp"`` (compiled pair finding, CPU), ``"torch"`` (any device), ``"gsplat"`` (CUDA only,
+optional, see ``gsplat_backend.py``), ``"auto"``: gsplat for CUDA tensors when it is installed, else
+cpp when it builds, else torch. Inputs are float32 (float64 works on the torch path).
+
+``max_layers`` (default 32) trades accuracy for speed in dense scenes: with one pixel-sized
+Gaussian per pixel (docs/performance.md), 16 layers miss ~17 % of the opacity on average, 32
+layers ~0.4 %, 48 layers ~0.003 %.
 """
 
 from __future__ import annotations
