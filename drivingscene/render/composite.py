@@ -60,7 +60,7 @@ def pair_inputs(splats: Splats, width: int, height: int) -> PairInputs:
         half = half * (1 + 1e-3) + 1e-3
         centre = means2d.double()
         ok &= torch.isfinite(centre).all(-1) & torch.isfinite(half).all(-1)  # never cast NaN/inf to int
-        size = torch.tensor([width - 1, height - 1], dtype=torch.float64)
+        size = torch.tensor([width - 1, height - 1], dtype=torch.float64, device=centre.device)
         lo = torch.where(ok[:, None], torch.ceil(centre - half), 0.0).clamp(min=0.0)
         hi = torch.where(ok[:, None], torch.floor(centre + half), -1.0)
         hi = torch.minimum(hi, size)
@@ -91,7 +91,8 @@ def _candidates(inp: PairInputs, width: int, height: int) -> tuple[Tensor, Tenso
     boxes = inp.boxes.long()
     bw = (boxes[:, 1] - boxes[:, 0] + 1).clamp(min=0)
     area = bw * (boxes[:, 3] - boxes[:, 2] + 1).clamp(min=0)  # [M]
-    cam = torch.repeat_interleave(torch.arange(len(inp.camera_offsets) - 1), inp.camera_offsets.diff())  # [M]
+    dev = boxes.device
+    cam = torch.repeat_interleave(torch.arange(len(inp.camera_offsets) - 1, device=dev), inp.camera_offsets.diff())  # [M]
     ends = area.cumsum(0)
     out_j, out_p, out_s = [], [], []
     start = 0
@@ -99,9 +100,9 @@ def _candidates(inp: PairInputs, width: int, height: int) -> tuple[Tensor, Tenso
         # Splats [start, stop) hold at most _CHUNK candidates (or a single large splat).
         base = ends[start - 1] if start > 0 else ends.new_zeros(())
         stop = max(start + 1, int(torch.searchsorted(ends, base + _CHUNK, right=True)))
-        ids = torch.arange(start, stop)
+        ids = torch.arange(start, stop, device=dev)
         j = torch.repeat_interleave(ids, area[start:stop])
-        local = torch.arange(len(j)) - torch.repeat_interleave(ends[start:stop] - area[start:stop] - base, area[start:stop])
+        local = torch.arange(len(j), device=dev) - torch.repeat_interleave(ends[start:stop] - area[start:stop] - base, area[start:stop])
         x = boxes[j, 0] + local % bw[j]
         y = boxes[j, 2] + local // bw[j]
         dx = x.to(inp.means2d.dtype) - inp.means2d[j, 0]
@@ -113,7 +114,7 @@ def _candidates(inp: PairInputs, width: int, height: int) -> tuple[Tensor, Tenso
         out_s.append(sigma[keep])
         start = stop
     if not out_j:
-        empty = torch.zeros(0, dtype=torch.int64)
+        empty = torch.zeros(0, dtype=torch.int64, device=dev)
         return empty, empty, inp.means2d.new_zeros(0)
     return torch.cat(out_j), torch.cat(out_p), torch.cat(out_s)
 
@@ -121,7 +122,7 @@ def _candidates(inp: PairInputs, width: int, height: int) -> tuple[Tensor, Tenso
 def find_pairs_torch(inp: PairInputs, width: int, height: int, max_layers: int) -> Tensor:
     """Pure-torch pair finding: splat ids ``[B*H*W, max_layers]`` int32, -1 where empty."""
     num_pixels = (len(inp.camera_offsets) - 1) * height * width
-    out = torch.full((num_pixels, max_layers), -1, dtype=torch.int32)
+    out = torch.full((num_pixels, max_layers), -1, dtype=torch.int32, device=inp.means2d.device)
     with torch.no_grad():
         j, pix, sigma = _candidates(inp, width, height)
         if len(j) == 0:
@@ -137,7 +138,7 @@ def find_pairs_torch(inp: PairInputs, width: int, height: int, max_layers: int) 
 
 def _rank_in_runs(keys: Tensor) -> tuple[Tensor, Tensor]:
     """For sorted ``keys`` ``[Q]``: position of each element within its run of equal keys, and run index."""
-    pos = torch.arange(len(keys))
+    pos = torch.arange(len(keys), device=keys.device)
     first = torch.ones_like(keys, dtype=torch.bool)
     first[1:] = keys[1:] != keys[:-1]
     return pos - torch.where(first, pos, 0).cummax(0).values, first.cumsum(0) - 1
@@ -154,16 +155,16 @@ def _front_to_back(alpha: Tensor, pix: Tensor, max_layers: int) -> Tensor:
     counts = torch.bincount(seg)
     by_count = torch.sort(counts, descending=True, stable=True).indices
     place = torch.empty_like(by_count)
-    place[by_count] = torch.arange(len(by_count))  # segment -> position in by_count order
+    place[by_count] = torch.arange(len(by_count), device=by_count.device)  # segment -> position in by_count order
     layer_sizes = torch.bincount(rank)  # pixels with more than r candidates
     layer_start = torch.cat([layer_sizes.new_zeros(1), layer_sizes.cumsum(0)])
     slot = layer_start[rank] + place[seg]  # layer-major storage
     alpha_by_layer = torch.empty_like(alpha)
     alpha_by_layer[slot] = alpha
-    taken = torch.zeros(len(alpha), dtype=torch.bool)
-    trans = torch.ones(len(counts), dtype=alpha.dtype)
-    layers = torch.zeros(len(counts), dtype=torch.int64)
-    live = torch.ones(len(counts), dtype=torch.bool)
+    taken = torch.zeros_like(alpha, dtype=torch.bool)
+    trans = torch.ones_like(counts, dtype=alpha.dtype)
+    layers = torch.zeros_like(counts)
+    live = torch.ones_like(counts, dtype=torch.bool)
     for lo, n in zip(layer_start.tolist(), layer_sizes.tolist()):
         nxt = trans[:n] * (1.0 - alpha_by_layer[lo : lo + n])
         stop = nxt < MIN_TRANSMITTANCE
@@ -322,7 +323,7 @@ def _gather(packed: Tensor, backgrounds: Tensor, ids: Tensor, start: int, width:
     valid = ids >= 0
     rows = packed.index_select(0, ids.clamp(min=0).reshape(-1)).view(*ids.shape, -1)  # [p, L, 7 + C]
     mx, my, ca, cb, cc, opac, z, *colors = rows.unbind(-1)
-    pix = torch.arange(start, start + ids.shape[0])
+    pix = torch.arange(start, start + ids.shape[0], device=ids.device)
     u = (pix % width).to(packed.dtype)[:, None]  # [p, 1]
     v = ((pix // width) % height).to(packed.dtype)[:, None]
     dx, dy = u - mx, v - my

@@ -57,14 +57,14 @@ def _screen_gaussians(p, covars, viewmat, K, width, height, eps2d):
     # Jacobian at the centre, x/z and y/z clamped to the image plus 30 % of the half field of view.
     xz = torch.clamp(x / z, -(cx + 0.5) / fx - 0.15 * width / fx, (width - 0.5 - cx) / fx + 0.15 * width / fx)
     yz = torch.clamp(y / z, -(cy + 0.5) / fy - 0.15 * height / fy, (height - 0.5 - cy) / fy + 0.15 * height / fy)
-    jac = torch.zeros(len(z), 2, 3, dtype=p.dtype)
+    jac = p.new_zeros(len(z), 2, 3)
     jac[:, 0, 0] = fx / z
     jac[:, 0, 1] = skew / z
     jac[:, 0, 2] = -(fx * xz + skew * yz) / z
     jac[:, 1, 1] = fy / z
     jac[:, 1, 2] = -fy * yz / z
     jw = jac @ viewmat[:3, :3]
-    cov2d = jw @ covars @ jw.transpose(-1, -2) + eps2d * torch.eye(2, dtype=p.dtype)
+    cov2d = jw @ covars @ jw.transpose(-1, -2) + eps2d * torch.eye(2, dtype=p.dtype, device=p.device)
     return uv, cov2d
 
 
@@ -76,17 +76,17 @@ def _render_camera(means, covars, opacities, colors, viewmat, K, background, wid
     if sh_degree is not None:
         centre = -viewmat[:3, :3].T @ viewmat[:3, 3]
         colors = sh_to_color(sh_degree, colors, means - centre)
-    vv, uu = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype), indexing="ij")
+    vv, uu = torch.meshgrid(means.new_tensor(range(height)), means.new_tensor(range(width)), indexing="ij")
     pix = torch.stack([uu, vv], dim=-1).reshape(-1, 2)  # [P, 2]
     d = pix[:, None, :] - uv[None]  # [P, n, 2]
     m2 = torch.einsum("pni,nij,pnj->pn", d, torch.linalg.inv(cov2d), d)
     raw = opacities[order] * torch.exp(-0.5 * m2)
     alpha = torch.where((m2 <= 9.0) & (raw >= 1.0 / 255.0), torch.clamp(raw, max=0.99), torch.zeros_like(raw))
-    trans = torch.ones(len(pix), dtype=means.dtype)
-    done = torch.zeros(len(pix), dtype=torch.bool)
-    rgb = torch.zeros(len(pix), colors.shape[-1], dtype=means.dtype)
-    depth_sum = torch.zeros(len(pix), dtype=means.dtype)
-    weight_sum = torch.zeros(len(pix), dtype=means.dtype)
+    trans = means.new_ones(len(pix))
+    done = torch.zeros_like(trans, dtype=torch.bool)
+    rgb = means.new_zeros(len(pix), colors.shape[-1])
+    depth_sum = means.new_zeros(len(pix))
+    weight_sum = means.new_zeros(len(pix))
     for i, gi in enumerate(order.tolist()):
         a = torch.where(done, torch.zeros_like(alpha[:, i]), alpha[:, i])
         stop = (a > 0) & (trans * (1 - a) < 1e-4)
