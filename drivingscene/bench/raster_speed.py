@@ -70,8 +70,12 @@ def _ray_depth(origin: Tensor, dirs: Tensor) -> Tensor:
     return torch.where(torch.isfinite(t), t, sky)
 
 
-def surround_scene(height: int, width: int, seed: int = 0) -> dict[str, Tensor]:
-    """Gaussians (one per pixel of 6 views) plus the cameras, as keyword arguments of ``rasterize``."""
+def surround_scene(height: int, width: int, seed: int = 0, sh_degree: int | None = None) -> dict:
+    """Gaussians (one per pixel of 6 views) plus the cameras, as keyword arguments of ``rasterize``.
+
+    Colours are RGB ``[N, 3]``, or with ``sh_degree`` SH coefficients ``[N, (d+1)², 3]`` (random
+    colour as DC term plus small view-dependent terms).
+    """
     import torch
 
     from drivingscene.geometry import invert_rigid
@@ -88,7 +92,7 @@ def surround_scene(height: int, width: int, seed: int = 0) -> dict[str, Tensor]:
         means.append(c2w[:3, 3] + depth[:, None] * d_world)
         scales.append((depth / k[0, 0])[:, None] * (0.8 + 0.4 * torch.rand(len(depth), 3, generator=g)))
     n = sum(len(m) for m in means)
-    return dict(
+    scene = dict(
         means=torch.cat(means),
         quats=torch.randn(n, 4, generator=g),
         scales=torch.cat(scales),
@@ -99,6 +103,12 @@ def surround_scene(height: int, width: int, seed: int = 0) -> dict[str, Tensor]:
         width=width,
         height=height,
     )
+    if sh_degree is not None:
+        from drivingscene.render import rgb_to_sh
+
+        rest = 0.1 * torch.randn(n, (sh_degree + 1) ** 2 - 1, 3, generator=g)
+        scene.update(colors=torch.cat([rgb_to_sh(scene["colors"])[:, None], rest], dim=1), sh_degree=sh_degree)
+    return scene
 
 
 def _rss_bytes() -> int:
@@ -120,7 +130,7 @@ def _timed(fn, repeats: int) -> list[float]:
     return times
 
 
-def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int | None = None) -> dict:
+def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int | None = None, sh_degree: int | None = None) -> dict:
     """Forward and forward+backward times (s) and peak RSS above the scene's baseline (MiB) for one case."""
     import torch
 
@@ -129,7 +139,7 @@ def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int
     if threads:
         torch.set_num_threads(threads)
     height, width = (int(x) for x in size.split("x"))
-    scene = surround_scene(height, width)
+    scene = surround_scene(height, width, sh_degree=sh_degree)
     grad_keys = ("means", "quats", "scales", "opacities", "colors")
 
     def forward():
@@ -147,7 +157,7 @@ def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int
     fwd_bwd = _timed(forward_backward, repeats)
     peak_fwd_bwd = _peak_rss_bytes() - base
     return dict(
-        size=size, backend=backend, gaussians=len(scene["means"]), max_layers=max_layers,
+        size=size, backend=backend, gaussians=len(scene["means"]), max_layers=max_layers, sh_degree=sh_degree,
         fwd=statistics.median(fwd), fwd_min=min(fwd), fwd_bwd=statistics.median(fwd_bwd), fwd_bwd_min=min(fwd_bwd),
         peak_fwd_mib=peak_fwd / 2**20, peak_fwd_bwd_mib=peak_fwd_bwd / 2**20, threads=torch.get_num_threads(),
     )  # fmt: skip
@@ -172,11 +182,12 @@ def _load() -> str:
 
 def markdown_table(rows: list[dict]) -> str:
     head = (
-        "| views × size | Gaussians | backend | max_layers | forward s (median / min) | forward+backward s (median / min) "
-        "| peak RSS fwd / fwd+bwd MiB |\n|---|---|---|---|---|---|---|\n"
+        "| views × size | Gaussians | colour | backend | max_layers | forward s (median / min) "
+        "| forward+backward s (median / min) | peak RSS fwd / fwd+bwd MiB |\n|---|---|---|---|---|---|---|---|\n"
     )
     lines = [
-        f"| 6×{r['size'].replace('x', '×')} | {r['gaussians']:,} | {r['backend']} | {r['max_layers']} "
+        f"| 6×{r['size'].replace('x', '×')} | {r['gaussians']:,} | {'RGB' if r['sh_degree'] is None else 'SH%d' % r['sh_degree']} "
+        f"| {r['backend']} | {r['max_layers']} "
         f"| {r['fwd']:.3f} / {r['fwd_min']:.3f} | {r['fwd_bwd']:.3f} / {r['fwd_bwd_min']:.3f} "
         f"| {r['peak_fwd_mib']:.0f} / {r['peak_fwd_bwd_mib']:.0f} |"
         for r in rows
@@ -222,6 +233,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-layers", default="", help="comma-separated layer caps (default: rasterize's)")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs after one warm-up (median reported)")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    parser.add_argument("--sh-degree", type=int, default=None, help="colours as SH of this degree (default RGB)")
     parser.add_argument("--layers-study", default="", help="comma-separated max_layers to compare (skips timing)")
     parser.add_argument("--study-size", default="24x44", help="HxW per view for --layers-study")
     parser.add_argument("--in-process", action="store_true", help="no subprocess per case (peak RSS then cumulative)")
@@ -240,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
         load_start = _load()
         ctx = multiprocessing.get_context("spawn")
         for size, backend, max_layers in cases:
-            call = (size, backend, max_layers, args.repeats, args.threads)
+            call = (size, backend, max_layers, args.repeats, args.threads, args.sh_degree)
             if args.in_process:
                 rows.append(measure(*call))
             else:
