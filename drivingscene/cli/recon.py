@@ -27,6 +27,50 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--refine", type=int, default=1, metavar="N", help="colour deconvolution steps (default 1; 0 = raw pixel colours)")
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_oracle)
+    _register_prune(sub)
+
+
+def _register_prune(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("prune", help="model no more than the scene needs: prune and merge a reconstruction's Gaussians")
+    p.add_argument("recon", type=Path, metavar="RECON")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
+    p.add_argument("--scene", type=Path, default=None, help="scene.npz with intermediate frames: report the PSNR change there")
+    p.add_argument("--target", type=positive_int, default=None, help="at most this many Gaussians")
+    p.add_argument("--min-opacity", type=float, default=0.02)
+    p.add_argument("--merge-cell", type=float, default=3.0, help="merge cell in multiples of a Gaussian's size (0: no merging)")
+    p.add_argument("--max-distance", type=float, default=None, help="drop Gaussians farther from the rig (metres)")
+    p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    p.set_defaults(func=run_prune)
+
+
+def run_prune(args: argparse.Namespace) -> int:
+    import torch
+
+    from drivingscene.gaussians.budget import BudgetConfig, apply_budget
+    from drivingscene.gaussians.recon import load_reconstruction, save_reconstruction
+
+    check_output(args.out, args.force, "-o")
+    if not 0 <= args.min_opacity < 1:
+        raise InputError(f"--min-opacity: expected a value in [0, 1), found {args.min_opacity}")
+    if args.merge_cell < 0:
+        raise InputError(f"--merge-cell: expected a value >= 0, found {args.merge_cell}")
+    recon = load_reconstruction(args.recon)
+    config = BudgetConfig(args.min_opacity, args.max_distance, args.merge_cell, target_count=args.target)
+    centre = torch.from_numpy(recon.ego_to_world[:, :3, 3].mean(0)).float()
+    gaussians, report = apply_budget(recon.visible(), config, centre)
+    pruned = recon.with_gaussians(gaussians)
+    for line in report.lines():
+        print(line)
+    if args.scene is not None:
+        from drivingscene.data.frame_pair import load_frame_pair
+        from drivingscene.eval.reconstruction import score_novel_views
+
+        pair = load_frame_pair(args.scene)
+        before, after = (score_novel_views(r, pair, None)["psnr"] for r in (recon, pruned))
+        print(f"intermediate-frame PSNR {before:.2f} -> {after:.2f} dB ({after - before:+.2f})")
+    save_reconstruction(pruned, args.out)
+    print(f"{args.out}: written")
+    return 0
 
 
 def _report(recon, path: Path) -> None:

@@ -30,7 +30,7 @@ from drivingscene.geometry.se3 import matrix_to_quat, quat_to_matrix
 class BudgetConfig:
     min_opacity: float = 0.02
     max_distance: float | None = None  # metres from the rig centre; None keeps everything
-    merge_cell: float = 1.0  # grid cell as a multiple of a Gaussian's footprint; 0 disables merging
+    merge_cell: float = 3.0  # grid cell in multiples of a Gaussian's size (~ one pixel at the 0.35-px assembly); 0: off
     flow_tolerance: float = 0.1  # metres; Gaussians merge only if their flows agree this well
     target_count: int | None = None
 
