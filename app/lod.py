@@ -20,7 +20,7 @@ import torch
 from app.splats import SplatArrays
 from drivingscene.gaussians.budget import merge_groups, merge_keys
 
-DEFAULT_CELLS = (6.0, 16.0)
+TARGET_FRACTIONS = (1 / 6, 1 / 30)  # of the scene's Gaussians, per level
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,17 +55,27 @@ def _widen(splats: SplatArrays, start: int, boost: float) -> SplatArrays:
     return replace(splats, log_scales=log_scales)
 
 
-def build_levels(splats: SplatArrays, cells=DEFAULT_CELLS, flow_tolerance: float = 0.1, boost: float = 1.6,
-                 min_reduction: float = 1.5) -> list[LodLevel]:
-    """Coarser and coarser levels (each merged from the previous, unwidened one); stops when a level
-    would not reduce the count by ``min_reduction``."""
+def _cell_for(splats: SplatArrays, target: int, flow_tolerance: float, cell: float) -> float:
+    """The smallest cell (doubling from ``cell``) whose merge leaves at most ``target`` Gaussians."""
+    g = splats.to_gaussians()
+    while cell < 4096 and int(merge_keys(g, cell, flow_tolerance).max()) + 1 > target:
+        cell *= 2
+    return cell
+
+
+def build_levels(splats: SplatArrays, fractions=TARGET_FRACTIONS, flow_tolerance: float = 0.1, boost: float = 1.6,
+                 cells: tuple[float, ...] | None = None) -> list[LodLevel]:
+    """Coarser and coarser levels, each merged from the previous (unwidened) one, with about
+    ``fraction`` x N Gaussians each (or with the given merge ``cells``)."""
     levels = []
     current, to_current = splats, np.arange(len(splats))
     weight = (splats.opacities * np.exp(np.sort(splats.log_scales, axis=1)[:, 1:].sum(axis=1))).astype(np.float32)
     num_uids = int(splats.uid.max()) + 1 if len(splats) else 0
-    for cell in cells:
+    cell = 2.0
+    for i in range(len(cells) if cells else len(fractions)):
+        cell = cells[i] if cells else _cell_for(current, int(fractions[i] * len(splats)), flow_tolerance, cell)
         merged, index, singles = _merge(current, cell, flow_tolerance)
-        if len(merged) * min_reduction > len(current):
+        if len(merged) >= len(current):
             break
         to_current = index[to_current]
         source = np.zeros(num_uids, np.int64)

@@ -82,6 +82,9 @@ class Target:
         return data[::-1].astype(np.float32 if dt != np.uint8 else np.uint8)
 
     def release(self) -> None:
+        ctx = self.fbo.ctx
+        if ctx.fbo == self.fbo:  # moderngl re-binds the "current" framebuffer later: never leave it a deleted one
+            (ctx.screen or ctx.detect_framebuffer(0)).use()
         self.fbo.release()
         self.texture.release()
 

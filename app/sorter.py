@@ -27,8 +27,8 @@ MIN_ALPHA = 1.0 / 255.0
 class SortInput:
     """A snapshot of what the order depends on (arrays are never mutated after creation)."""
 
-    means: np.ndarray  # [N, 3] float32, origin-relative, at their keyframe
-    flows: np.ndarray  # [N, 3] float32
+    means: np.ndarray  # [3, N] float32 (coordinate-major: fast matrix-vector products), origin-relative
+    flows: np.ndarray  # [3, N] float32
     keyframes: np.ndarray  # [N] uint8
     max_scales: np.ndarray  # [N] float32, largest standard deviation (metres), for frustum culling
     opacities: np.ndarray  # [N] float32
@@ -58,41 +58,51 @@ class SortResult:
 
 
 def _frustum_keep(p_cam: np.ndarray, max_scales: np.ndarray, req: SortRequest, eps2d: float = 0.3) -> np.ndarray:
-    """Conservative on-image test for camera points with z > 0 (``project.cull_bound`` in numpy).
+    """Conservative on-image test for camera points ``[3, M]`` with z > 0 (``project.cull_bound`` in numpy).
 
     The splat's 3-sigma radius is bounded by ``3 sqrt((||J|| s_max)² + eps2d)`` with the Jacobian
     norm ``||J|| <= ||K[:2, :2]||_F sqrt(1 + tx² + ty²) / z`` (tx, ty clamped as in the projection),
     so everything the exact projection could draw is kept.
     """
-    k = req.intrinsics.astype(np.float64)
-    fx, fy, cx, cy, skew = k[0, 0], k[1, 1], k[0, 2], k[1, 2], k[0, 1]
-    inv_z = 1.0 / p_cam[:, 2]
-    xz, yz = p_cam[:, 0] * inv_z, p_cam[:, 1] * inv_z
+    k = req.intrinsics
+    fx, fy, cx, cy, skew = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), float(k[0, 1]))
+    w, h = req.width, req.height
+    inv_z = 1.0 / p_cam[2]
+    xz, yz = p_cam[0] * inv_z, p_cam[1] * inv_z
     u = fx * xz + skew * yz + cx
     v = fy * yz + cy
-    mx, my = 0.15 * req.width / fx, 0.15 * req.height / fy  # JACOBIAN_CLAMP_MARGIN * half extent
-    tx = np.clip(xz, -(cx + 0.5) / fx - mx, (req.width - 0.5 - cx) / fx + mx)
-    ty = np.clip(yz, -(cy + 0.5) / fy - my, (req.height - 0.5 - cy) / fy + my)
-    j_norm = np.float32(np.sqrt(fx * fx + skew * skew + fy * fy)) * np.sqrt(1 + tx * tx + ty * ty) * inv_z
-    r = 3.0 * np.sqrt((j_norm * max_scales) ** 2 + eps2d) * (1 + 1e-4) + 1e-3
-    return (u + r >= 0) & (u - r <= req.width - 1) & (v + r >= 0) & (v - r <= req.height - 1)
+    mx, my = 0.15 * w / fx, 0.15 * h / fy  # JACOBIAN_CLAMP_MARGIN * half extent
+    tx = np.clip(xz, -(cx + 0.5) / fx - mx, (w - 0.5 - cx) / fx + mx)
+    ty = np.clip(yz, -(cy + 0.5) / fy - my, (h - 0.5 - cy) / fy + my)
+    j = float(np.sqrt(fx * fx + skew * skew + fy * fy)) * np.sqrt(1 + tx * tx + ty * ty) * inv_z * max_scales
+    r = 3.0001 * np.sqrt(j * j + eps2d) + 1e-3
+    return (u + r >= 0) & (u - r <= w - 1) & (v + r >= 0) & (v - r <= h - 1)
+
+
+def _camera_points(data: SortInput, req: SortRequest) -> np.ndarray:
+    """Camera coordinates ``[3, N]`` of the splats at time t."""
+    rot = req.world_to_cam[:3, :3].astype(np.float32)
+    trans = req.world_to_cam[:3, 3].astype(np.float32)
+    step = np.where(data.keyframes == 0, np.float32(req.t), np.float32(1.0 - req.t))
+    p = rot @ data.flows
+    p *= step
+    p += rot @ data.means
+    p += trans[:, None]
+    return p
 
 
 def depth_order(data: SortInput, req: SortRequest) -> np.ndarray:
     """Indices ``[count]`` (uint32) of the splats that can be seen, front to back."""
-    rot = req.world_to_cam[:3, :3].astype(np.float32)
-    trans = req.world_to_cam[:3, 3].astype(np.float32)
-    step = np.where(data.keyframes == 0, np.float32(req.t), np.float32(1.0 - req.t))
-    pos = data.means + step[:, None] * data.flows
-    p_cam = pos @ rot.T + trans
-    z = p_cam[:, 2]
+    p_cam = _camera_points(data, req)
+    z = p_cam[2]
     keep = (z >= req.near) & (z <= req.far) & ~data.hidden
     if req.blend != "all":
         k1 = data.keyframes == 1
         weight = np.where(k1, req.t, 1.0 - req.t) if req.blend == "fade" else np.where(k1, float(req.t >= 0.5), float(req.t < 0.5))
         keep &= data.opacities * weight >= MIN_ALPHA
-    index = np.flatnonzero(keep)
-    index = index[_frustum_keep(p_cam[index], data.max_scales[index], req)].astype(np.uint32)
+    # The frustum test on every splat (culled ones get a harmless z) beats gathering the kept ones first.
+    keep &= _frustum_keep(np.where(keep, p_cam, np.float32(1.0)), data.max_scales, req)
+    index = np.flatnonzero(keep).astype(np.uint32)
     if len(index) == 0:
         return index
     zk = z[index]
@@ -100,8 +110,7 @@ def depth_order(data: SortInput, req: SortRequest) -> np.ndarray:
         return index[np.argsort(zk.astype(np.float64), kind="stable")]
     lz = np.log(zk)
     lo, hi = float(lz.min()), float(lz.max())
-    scale = 65535.0 / max(hi - lo, 1e-12)
-    keys = ((lz - lo) * np.float32(scale)).astype(np.uint16)
+    keys = ((lz - lo) * np.float32(65535.0 / max(hi - lo, 1e-12))).astype(np.uint16)
     return index[np.argsort(keys, kind="stable")]
 
 
@@ -168,8 +177,8 @@ def make_sort_input(splats, origin: np.ndarray, hidden: np.ndarray | None = None
     """The snapshot of ``SplatArrays`` that ``depth_order`` reads (positions relative to ``origin``)."""
     n = len(splats)
     return SortInput(
-        means=(splats.means.astype(np.float64) - np.asarray(origin, np.float64)).astype(np.float32),
-        flows=splats.flows,
+        means=np.ascontiguousarray((splats.means.astype(np.float64) - np.asarray(origin, np.float64)).T, np.float32),
+        flows=np.ascontiguousarray(splats.flows.T),
         keyframes=splats.keyframes,
         max_scales=np.exp(splats.log_scales.max(axis=1)).astype(np.float32) if n else np.zeros(0, np.float32),
         opacities=splats.opacities.astype(np.float32),

@@ -83,8 +83,7 @@ vec3 splat_color(int gid, vec3 mean, float z, float flow_mag, bool selected) {
     if (u_mode == 3) {
         rgb = texture(u_lut, vec2(clamp(flow_mag / u_flow_max, 0.0, 1.0) * (255.0 / 256.0) + 0.5 / 256.0, 0.5)).rgb;
     } else {
-        rgb = eval_sh(gid, mean - u_cam_centre) + 0.5;
-        rgb = u_sh_k == 1 ? clamp(rgb, 0.0, 1.0) : max(rgb, 0.0);  // Gaussians.colors() clamps degree 0
+        rgb = max(eval_sh(gid, mean - u_cam_centre) + 0.5, 0.0);
         if (u_mode == 2) {
             float grey = dot(min(rgb, 1.0), vec3(0.299, 0.587, 0.114));
             rgb = flow_mag > 0.0 ? mix(rgb, vec3(1.0, 0.45, 0.05), 0.65) : vec3(0.25 + 0.45 * grey);

@@ -129,7 +129,7 @@ def test_edited_reconstruction_round_trips(doc, tmp_path):
 
 def test_levels_of_detail_follow_edits():
     doc = SceneDoc(street_recon())
-    levels = build_levels(doc.splats, cells=(4.0,), min_reduction=1.01)
+    levels = build_levels(doc.splats, cells=(4.0,))
     assert levels and len(levels[0]) < len(doc.splats)
     level = levels[0]
     flags, _ = level_state(level, doc.splats, doc.hidden, doc.selected, False)
