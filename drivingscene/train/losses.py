@@ -9,19 +9,42 @@ from __future__ import annotations
 
 import kornia
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.geometry.flow import backward_warp
 
-SSIM_WINDOW = 3  # monodepth2's photometric SSIM uses 3x3 windows
 SSIM_WEIGHT = 0.85
+
+
+def _box3(x: Tensor) -> Tensor:
+    """Mean over 3x3 windows of a padded ``[B, C, H + 2, W + 2]`` tensor, as sums of shifted
+    slices (separable); several times faster on CPU than ``avg_pool2d`` with stride 1."""
+    rows = x[..., :-2, :] + x[..., 1:-1, :] + x[..., 2:, :]
+    return (rows[..., :-2] + rows[..., 1:-1] + rows[..., 2:]) / 9.0
+
+
+def ssim_box(x: Tensor, y: Tensor) -> Tensor:
+    """SSIM map ``[B, C, H, W]`` over 3x3 box windows with reflection padding (monodepth2's
+    photometric SSIM). Box means are summed slices: far cheaper on CPU than the Gaussian-window
+    depthwise convolutions of ``kornia.metrics.ssim``, which dominated the training step."""
+    c1, c2 = 0.01**2, 0.03**2
+    x = F.pad(x, (1, 1, 1, 1), mode="reflect")
+    y = F.pad(y, (1, 1, 1, 1), mode="reflect")
+    mu_x, mu_y = _box3(x), _box3(y)
+    sigma_x = _box3(x * x) - mu_x**2
+    sigma_y = _box3(y * y) - mu_y**2
+    sigma_xy = _box3(x * y) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)
+    den = (mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2)
+    return num / den
 
 
 def photometric_error(pred: Tensor, target: Tensor) -> Tensor:
     """Per-pixel SSIM + L1 error ``[B, H, W]`` (monodepth2): 0.85 (1 - SSIM) / 2 + 0.15 |d|."""
     l1 = (pred - target).abs().mean(1)
-    ssim = kornia.metrics.ssim(pred, target, SSIM_WINDOW).mean(1)
-    return SSIM_WEIGHT * (1 - ssim) / 2 + (1 - SSIM_WEIGHT) * l1
+    dssim = ((1 - ssim_box(pred, target)) / 2).clamp(0, 1).mean(1)
+    return SSIM_WEIGHT * dssim + (1 - SSIM_WEIGHT) * l1
 
 
 def reprojection_loss(
@@ -37,11 +60,14 @@ def reprojection_loss(
     (static camera, objects moving with the ego, textureless regions). Returns the loss and the
     mask of pixels used ``[B, H, W]``.
     """
-    errors = torch.stack([torch.where(v, photometric_error(w, target), torch.full_like(v, 1e3, dtype=target.dtype)) for w, v in zip(warped, valid)])
+    num = len(warped)
+    errors = photometric_error(torch.cat(list(warped)), target.repeat(num, 1, 1, 1)).unflatten(0, (num, -1))
+    errors = torch.where(torch.stack(list(valid)), errors, torch.full_like(errors, 1e3))  # [S, B, H, W]
     best, _ = errors.min(0)
     used = best < 1e3
     if identity:
-        ident = torch.stack([photometric_error(i, target) for i in identity])
+        n_id = len(identity)
+        ident = photometric_error(torch.cat(list(identity)), target.repeat(n_id, 1, 1, 1)).unflatten(0, (n_id, -1))
         ident = ident + torch.randn_like(ident) * 1e-5  # break ties as monodepth2 does
         used = used & (best < ident.min(0).values)
     loss = (best * used).sum() / used.sum().clamp(min=1)
@@ -80,8 +106,7 @@ def warp_loss(
     mask = valid[:, None].to(target.dtype)
     denom = mask.sum().clamp(min=1)
     l1 = ((warped - target).abs() * mask).sum() / (3 * denom)
-    ssim = kornia.metrics.ssim(warped, target, SSIM_WINDOW)
-    dssim = (((1 - ssim) / 2) * mask).sum() / (3 * denom)
+    dssim = (((1 - ssim_box(warped, target)) / 2).clamp(0, 1) * mask).sum() / (3 * denom)
     loss = l1 + ssim_weight * dssim
     if lpips_weight and perceptual is not None:
         loss = loss + lpips_weight * perceptual(warped * mask + target * (1 - mask), target).mean()

@@ -95,3 +95,24 @@ def test_consistency_loss_zero_for_inverse_flows_and_positive_otherwise():
     fw[..., 0] = 2.0
     assert consistency_loss(fw, -fw) < 1e-6
     torch.testing.assert_close(consistency_loss(fw, fw), torch.tensor(4.0))
+
+
+def test_box_ssim_matches_a_float64_window_loop():
+    from drivingscene.train.losses import ssim_box
+
+    x, y = _image(0, 6, 7).double(), _image(1, 6, 7).double()
+    got = ssim_box(x, y)
+    xp = torch.nn.functional.pad(x, (1, 1, 1, 1), mode="reflect")
+    yp = torch.nn.functional.pad(y, (1, 1, 1, 1), mode="reflect")
+    c1, c2 = 0.01**2, 0.03**2
+    for c in range(3):
+        for i in range(6):
+            for j in range(7):
+                a = xp[0, c, i : i + 3, j : j + 3].flatten()
+                b = yp[0, c, i : i + 3, j : j + 3].flatten()
+                ma, mb = a.mean(), b.mean()
+                va, vb = (a * a).mean() - ma**2, (b * b).mean() - mb**2
+                cov = (a * b).mean() - ma * mb
+                ref = (2 * ma * mb + c1) * (2 * cov + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2))
+                torch.testing.assert_close(got[0, c, i, j], ref)
+    torch.testing.assert_close(ssim_box(x, x), torch.ones_like(x))
