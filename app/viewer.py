@@ -271,7 +271,7 @@ class Viewer:
         x, y, w, h = self.image_rect()
         gl_viewport = (x, window_height - y - h, w, h)
         if self.viewport.target is not None:
-            self.viewport.renderer.present(self.viewport.target, gl_viewport, opts, self.view.depth_range)
+            self.viewport.renderer.present(self.viewport.target, gl_viewport, self.viewport.target_opts or opts, self.view.depth_range)
         v = self.view
         groups = scene_overlays(self.doc.recon, v.t, v.show_frusta and self.camera.rig_index is None, v.show_path, v.show_grid,
                                 self.camera.rig_index)

@@ -104,6 +104,8 @@ class Viewport:
         self.ladder = Ladder()
         self.stats = FrameStats()
         self.target: Target | None = None  # the picture to show
+        self.target_opts: RenderOptions | None = None  # the options it was drawn with (present depth as depth)
+        self._want = None  # (full-scene request stamp, options) of the latest update
         self._versions: dict | None = None
         self._lod_thread: threading.Thread | None = None
         self._lod_result: list[LodLevel] | None = None
@@ -213,7 +215,7 @@ class Viewport:
             start = time.perf_counter()
             order = depth_order(s.sort_input, req)
             self._upload(s, order, req.stamp, time.perf_counter() - start)
-        self._submitted = self._shown = self._refine = None  # the interactive view must sort again
+        self._submitted = self._refine = None  # the interactive view sorts again (its picture stays valid)
 
     def render_sync(self, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions) -> Target:
         """Sort on this thread for exactly this camera and time, then draw the full scene in one pass."""
@@ -231,6 +233,7 @@ class Viewport:
     def update(self, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions, moving: bool) -> bool:
         """Sort, upload and draw what this frame needs; True if ``target`` changed."""
         self.sync(doc)
+        self._want = (self._request(self.full, camera, t, opts).stamp, opts)
         if moving:
             self._refine = None
             return self._preview(camera, t, opts)
@@ -251,7 +254,7 @@ class Viewport:
             return False
         cam = camera if scale == 1.0 else camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
         start = time.perf_counter()
-        self.target = self.renderer.render(s.gpu, cam, t, opts)
+        self.target, self.target_opts = self.renderer.render(s.gpu, cam, t, opts), opts
         self.ctx.finish()
         seconds = time.perf_counter() - start
         self.ladder.update(seconds + self.stats.upload_ms / 1e3)
@@ -292,7 +295,7 @@ class Viewport:
         self.stats.render_ms, self.stats.refining = 1e3 * seconds, r["next"] / max(s.gpu.count, 1)
         if r["next"] < s.gpu.count:
             return False
-        self.target, self._refine = r["target"], None
+        self.target, self.target_opts, self._refine = r["target"], opts, None
         self._target_name = self._target_name_next
         self._shown = (key, None, 1.0, opts)
         self.stats.full_ms, self.stats.scale, self.stats.level = 1e3 * r["seconds"], 1.0, "full"
@@ -301,7 +304,7 @@ class Viewport:
     @property
     def settled(self) -> bool:
         """The shown picture is the full-quality one for the last requested view."""
-        return self._shown is not None and self._shown[1] is None
+        return self._shown is not None and self._shown[1] is None and self._shown[0] == self._want
 
     def close(self) -> None:
         if self._lod_thread is not None:

@@ -20,6 +20,7 @@ KINDS = {"images": "Images", "depth": "Depth", "rigid_flow": "Rigid flow", "resi
 class StripState:
     kind: str = "images"
     keyframe: int = 0
+    force: int = 2  # frames left to select the ``kind`` tab (the tab bar otherwise keeps its own)
     enlarged: list = field(default_factory=list)  # (kind, keyframe, view)
 
 
@@ -34,14 +35,16 @@ def raw_map(viewer: Viewer, kind: str, keyframe: int, v: int) -> np.ndarray | No
 
 
 def flow_scale(viewer: Viewer, kind: str) -> float:
-    """Colour-wheel radius (pixels) of a flow kind: the 99th percentile magnitude over every camera and keyframe."""
+    """Colour-wheel radius (pixels) of a flow kind: the 95th percentile magnitude over every camera and keyframe,
+    ignoring flows longer than the image diagonal (points that leave the view, or cross the camera plane)."""
     cache = viewer.panels.setdefault("flow_scales", {})
     key = (id(viewer.doc), kind)
     if key not in cache:
         recon = viewer.doc.recon
         data = recon.total_flow if kind == "total_flow" else getattr(recon, kind)
-        mag = np.linalg.norm(data[:, :, ::4, ::4], axis=-1)
-        cache[key] = max(float(np.percentile(mag, 99)), 1e-3)
+        mag = np.linalg.norm(data[:, :, ::2, ::2], axis=-1)
+        mag = mag[(mag > 0) & (mag < np.hypot(*recon.image_size))]
+        cache[key] = max(float(np.percentile(mag, 95)), 1e-3) if mag.size else 1.0
     return cache[key]
 
 
@@ -96,12 +99,15 @@ def draw_strip(viewer: Viewer) -> None:
         for kind, label in KINDS.items():
             available = raw_map(viewer, kind, 0, 0) is not None
             imgui.begin_disabled(not available)
-            selected, _ = imgui.begin_tab_item(label)
+            flags = imgui.TabItemFlags_.set_selected if st.force > 0 and kind == st.kind else 0
+            selected, _ = imgui.begin_tab_item(label, None, flags)
             imgui.end_disabled()
             if selected:
-                st.kind = kind
+                if st.force == 0:  # while forcing, the bar may still report the old tab for a frame
+                    st.kind = kind
                 imgui.end_tab_item()
         imgui.end_tab_bar()
+    st.force = max(st.force - 1, 0)
     imgui.same_line(imgui.get_window_width() - 190)
     for k in (0, 1):
         if k:
@@ -109,7 +115,7 @@ def draw_strip(viewer: Viewer) -> None:
         if imgui.radio_button(f"keyframe {k}", st.keyframe == k):
             st.keyframe = k
     height, width = doc.recon.image_size
-    legend_w = 150
+    legend_w = 175
     avail = imgui.get_content_region_avail()
     thumb_w = min((avail.x - legend_w) / doc.num_views - 6, (avail.y - 22) * width / height)
     thumb_h = thumb_w * height / width
@@ -132,7 +138,7 @@ def _legend(viewer: Viewer, kind: str) -> None:
         tex = viewer.textures.get("legend:wheel", lambda: flow_legend(96))
         imgui.text_disabled("flow colour wheel")
         imgui.image(texture_ref(tex), imgui.ImVec2(96, 96))
-        imgui.text(f"radius = {flow_scale(viewer, kind):.2f} px")
+        imgui.text(f"rim = {flow_scale(viewer, kind):.1f} px")
     elif kind == "depth":
         from app.renderer import depth_lut
 
