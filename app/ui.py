@@ -108,10 +108,11 @@ def _status_bar(viewer: Viewer) -> None:
         imgui.text_colored(imgui.ImVec4(1.0, 0.42, 0.38, 1.0), f"{fa.ICON_FA_TRIANGLE_EXCLAMATION} {status.text}")
     else:
         imgui.text_disabled(status.text or "Ready")
-    for label, action in status.actions:
+    for i, (label, action) in enumerate(status.actions):
         imgui.same_line()
         if imgui.small_button(label):
             action()
+        viewer.ui_rects[f"status_action_{i}"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())
 
 
 def _view_overlay(viewer: Viewer) -> None:

@@ -47,6 +47,7 @@ def test_scripted_session(xvfb, tmp_path):
     run = subprocess.run([sys.executable, "-m", "tests.app.xvfb_session", str(tmp_path)], env=env, capture_output=True,
                          text=True, timeout=240, cwd=Path(__file__).resolve().parents[2])
     assert run.returncode == 0, run.stderr[-3000:]
+    assert "drivingscene-view: error: " in run.stderr  # the same error line on stderr
     r = json.loads((tmp_path / "result.json").read_text())
     # The slider went to ~80 % of its width and the picture is the scene at that time (not the old one).
     assert r["t_before"] == 0.0 and 0.7 < r["t_after"] < 0.9
@@ -57,3 +58,6 @@ def test_scripted_session(xvfb, tmp_path):
     assert r["after_delete"] == r["count"] - r["selected"] and r["after_undo"] == r["count"]
     # File > Export view as PNG wrote a file that loads back at the chosen size.
     assert len(r["exported"]) == 1 and cv2.imread(r["exported"][0]).shape == (180, 320, 3)
+    # A scene without model weights: one-line error in the window, which stays up and offers the oracle.
+    assert "model weights not found" in r["error"] and "\n" not in r["error"]
+    assert r["actions"] == ["Reconstruct from ground truth (oracle)"] and r["after_offer"] == "oracle"

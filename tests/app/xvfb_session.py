@@ -26,7 +26,7 @@ class Session:
         from app.window import ViewerWindow
 
         self.out = out
-        self.win = ViewerWindow(1280, 720, lod=False)
+        self.win = ViewerWindow(1280, 720, weights=out / "missing.safetensors", lod=False)
         self.wid = str(self.win.window._window)  # the X window id
         for _ in range(5):
             self.win.step()
@@ -102,8 +102,26 @@ def run(out: Path) -> dict:
     result["err_to_old_time"] = float(np.abs(after - ref_before).mean())
     _edit(s, result)
     _export(s, result)
+    _missing_weights(s, result)
     s.win.close()
     return result
+
+
+def _missing_weights(s: Session, result: dict) -> None:
+    """A scene.npz without model weights: a one-line error in the status bar with the oracle offer; click it."""
+    from drivingscene.data import save_frame_pair
+    from tests.factories import make_pair
+
+    viewer = s.win.viewer
+    viewer.open(save_frame_pair(make_pair(num_views=2, height=24, width=32), s.out / "scene.npz"))
+    s.pump(3, until=lambda: viewer.job is None and viewer.status.error)
+    result["error"] = viewer.status.text
+    result["actions"] = [label for label, _ in viewer.status.actions]
+    x0, y0, x1, y1 = viewer.ui_rects["status_action_0"]
+    s.move((x0 + x1) / 2, (y0 + y1) / 2)
+    _xdo("click", "1")
+    s.pump(3, until=lambda: viewer.job is None and viewer.doc is not None and viewer.doc.info.get("method") == "oracle")
+    result["after_offer"] = viewer.doc.info.get("method")
 
 
 def _edit(s: Session, result: dict) -> None:
