@@ -27,6 +27,7 @@ from app.renderer import RenderOptions
 from drivingscene.errors import InputError
 
 WIDTH, HEIGHT = 1280, 720
+CEILING = (35e6, 45e6)  # fragments/s of splat rendering measured on these machines (shared/FACTS.md)
 FRAGMENT_SHADER_INVOCATIONS = 0x82F4  # GL_FRAGMENT_SHADER_INVOCATIONS_ARB
 
 
@@ -221,7 +222,9 @@ def report(r: dict) -> str:
         f"typical step {common}; levels {', '.join(f'{n:,}' for n in r['levels'])} Gaussians |",
         f"| at rest, full quality 1280x720 | {1e3 * rest_total:.0f} ms (draw {1e3 * rest_draw:.0f} ms) | {_ms(rest['sort'])} ms | "
         f"{_ms(rest['upload'])} ms | {100 * (rest_total - rest_draw) / rest_total:.1f} % | {rest['visible']:,} splats in view, "
-        f"{frags / 1e6:.1f} M fragments; fill-rate floor {1e3 * floor:.0f} ms -> {rest_total / floor:.2f}x the floor |",
+        f"{frags / 1e6:.1f} M fragments: floor {1e3 * frags / CEILING[1]:.0f}-{1e3 * frags / CEILING[0]:.0f} ms at 35-45 M/s -> "
+        f"{rest_total * CEILING[0] / frags:.2f}-{rest_total * CEILING[1] / frags:.2f}x; {1e3 * floor:.0f} ms at this run's "
+        f"large-splat rate -> {rest_total / floor:.2f}x |",
         f"| baseline: float argsort of all + full res every frame | {_ms(base['frame'])} ms | {_ms(base['sort'])} ms | "
         f"{_ms(base['upload'])} ms | {100 * statistics.median([s + u for s, u in zip(base['sort'], base['upload'])]) / statistics.median(base['frame']):.1f} % | "
         f"moving-frame speed-up {statistics.median(base['frame']) / statistics.median(mv['frame']):.1f}x |",

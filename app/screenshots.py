@@ -36,6 +36,32 @@ def shoot(win: ViewerWindow, path: Path) -> None:
     print(path)
 
 
+def _most_dynamic_camera(viewer) -> int:
+    """The rig camera whose view holds the most moving Gaussians at keyframe 0 (by source camera)."""
+    splats = viewer.doc.splats
+    counts = [int(((splats.cameras == v) & splats.dynamic & (splats.keyframes == 0)).sum()) for v in range(viewer.doc.num_views)]
+    return int(max(range(len(counts)), key=counts.__getitem__))
+
+
+def _look_at_moving_objects(viewer) -> None:
+    """A free camera above the ego looking at the moving Gaussians seen by the busiest rig camera."""
+    import math
+
+    import numpy as np
+
+    splats, t = viewer.doc.splats, viewer.view.t
+    v = _most_dynamic_camera(viewer)
+    points = splats.means_at(t)[(splats.cameras == v) & splats.dynamic]
+    target = np.median(points, axis=0)
+    ego = viewer.doc.recon.ego_to_world_at(t).numpy()[:3, 3]
+    nav = viewer.camera.nav
+    viewer.snap(None)
+    nav.target = target
+    nav.yaw = math.atan2(target[1] - ego[1], target[0] - ego[0])
+    nav.pitch = -0.45
+    nav.distance = 0.9 * float(np.linalg.norm((target - ego)[:2])) + 6.0
+
+
 def main(out: Path, scene: Path, method: str = "oracle") -> None:
     out.mkdir(parents=True, exist_ok=True)
     win = ViewerWindow(1600, 900, method=method)
@@ -55,9 +81,7 @@ def main(out: Path, scene: Path, method: str = "oracle") -> None:
     v.panels["cameras"] = StripState(kind="residual_flow")
     shoot(win, out / "viewer_rig.png")
     v.view.mode = "rgb"
-    v.snap(None)
-    v.reset_camera()
-    v.camera.nav.pitch, v.camera.nav.distance = -0.6, 20.0
+    _look_at_moving_objects(v)
     v.doc.select_dynamic()
     v.panels["cameras"] = StripState(kind="images")
     shoot(win, out / "viewer_edit_before.png")
