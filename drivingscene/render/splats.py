@@ -1,11 +1,11 @@
 """Visible (camera, Gaussian) pairs, projected and sorted front to back per camera.
 
 A cheap conservative cull without grad over all ``B x N`` pairs (``project.cull_bound``: depth
-range, a bound on the footprint, opacity < 1/255 which can never contribute) keeps ``M`` candidates;
-only these are projected with grad, so autograd only sees Gaussians that may reach a pixel. The exact
-culling rule (``radii == 0``) is applied by the pair finder. Sorting is by camera, then camera-space ``z`` of
-the centre (evaluated in float64 whatever the input dtype), ties broken by Gaussian index (a stable
-sort), which is the compositing order.
+range, a bound on the footprint, opacity < 1/255 which can never contribute) keeps ``M``
+candidates; only these are projected with grad, so autograd only sees Gaussians that may reach a
+pixel. The exact culling rule (``radii == 0``) is applied by the pair finder. Sorting is by camera,
+then camera-space ``z`` of the centre (evaluated in float64 whatever the input dtype), ties broken
+by Gaussian index (a stable sort): the compositing order.
 """
 
 from __future__ import annotations
