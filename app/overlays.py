@@ -52,10 +52,22 @@ def grid_segments(centre: np.ndarray, height: float, extent: float = 60.0, spaci
     return np.array(segs, np.float64)
 
 
+_CACHE: dict = {}
+
+
 def scene_overlays(recon, t: float, show_frusta: bool, show_path: bool, show_grid: bool, snapped: int | None) -> list[tuple[np.ndarray, tuple]]:
-    """(segments, colour) groups for a reconstruction with a rig at time t."""
+    """(segments, colour) groups for a reconstruction with a rig at time t (cached per recon and arguments)."""
     if not recon.num_views:
         return []
+    key = (id(recon), float(t), show_frusta, show_path, show_grid, snapped)
+    if key not in _CACHE:
+        if len(_CACHE) > 64:
+            _CACHE.clear()
+        _CACHE[key] = _scene_overlays(recon, t, show_frusta, show_path, show_grid, snapped)
+    return _CACHE[key]
+
+
+def _scene_overlays(recon, t: float, show_frusta: bool, show_path: bool, show_grid: bool, snapped: int | None):
     groups = []
     if show_grid:
         ego = ego_pose(recon, t)

@@ -8,6 +8,7 @@ stays precise for scenes far from the world origin.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -69,13 +70,14 @@ class SplatArrays:
     def sh_degree(self) -> int:
         return round(self.sh.shape[1] ** 0.5) - 1
 
-    @property
+    @cached_property
     def opacities(self) -> np.ndarray:
+        """``[N]`` float64 activated opacities (cached: the arrays never change)."""
         return 1.0 / (1.0 + np.exp(-self.opacity_logits.astype(np.float64)))
 
-    @property
+    @cached_property
     def dynamic(self) -> np.ndarray:
-        """``[N]`` bool: Gaussians with a non-zero flow (as ``Gaussians.dynamic``)."""
+        """``[N]`` bool: Gaussians with a non-zero flow (as ``Gaussians.dynamic``; cached)."""
         return np.abs(self.flows).max(axis=1) > 0 if len(self) else np.zeros(0, bool)
 
     def means_at(self, t: float) -> np.ndarray:
@@ -100,6 +102,9 @@ class SplatArrays:
 
     def nbytes(self) -> int:
         return sum(getattr(self, f.name).nbytes for f in fields(self))
+
+    def __getstate__(self):  # the cached properties are not part of the data
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 def insert_rows(base: SplatArrays, index: np.ndarray, rows: SplatArrays) -> SplatArrays:

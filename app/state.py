@@ -161,12 +161,17 @@ class SceneDoc:
         return replace(self.recon, gaussians=self.splats.to_gaussians(), hidden=hidden, meta={**self.recon.meta, "edited": True})
 
     def stats(self) -> dict[str, int]:
-        return {
-            "total": len(self.splats),
-            "dynamic": int(self.splats.dynamic.sum()),
-            "hidden": int(self.hidden.sum()),
-            "selected": int(self.selected.sum()),
-        }
+        """Counts (total, dynamic, hidden, selected), cached until the next change."""
+        key = tuple(self.versions.values())
+        if getattr(self, "_stats_key", None) != key:
+            self._stats = {
+                "total": len(self.splats),
+                "dynamic": int(self.splats.dynamic.sum()),
+                "hidden": int(self.hidden.sum()),
+                "selected": int(self.selected.sum()),
+            }
+            self._stats_key = key
+        return self._stats
 
 
 @dataclass

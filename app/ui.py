@@ -116,8 +116,9 @@ def _status_bar(viewer: Viewer) -> None:
 
 
 def _view_overlay(viewer: Viewer) -> None:
-    """Things drawn on top of the 3D view: the active selection shape, a busy indicator, the legend."""
-    draw = imgui.get_foreground_draw_list()
+    """Things drawn on top of the 3D view (below imgui's windows and menus): the active selection shape,
+    a busy indicator, the legend, the summary line."""
+    draw = imgui.get_background_draw_list()
     tools = viewer.tools
     x, y, w, h = viewer.view_rect
     if tools.tool == "rect" and tools.drag_start and tools.drag_now:

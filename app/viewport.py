@@ -64,7 +64,7 @@ class SplatSet:
 class Ladder:
     """Preview quality steps (level, resolution scale), finest first; moves to stay within ``budget_s``."""
 
-    def __init__(self, budget_s: float = 0.08):
+    def __init__(self, budget_s: float = 0.06):  # leaves ~40 ms of a 100 ms frame to the UI and the buffer swap
         self.budget_s = budget_s
         self.position = 2
         self.steps: list[tuple[int, float]] = [(-1, s) for s in SCALES]

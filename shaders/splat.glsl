@@ -89,7 +89,7 @@ vec3 splat_color(int gid, vec3 mean, float z, float flow_mag, bool selected) {
             rgb = flow_mag > 0.0 ? mix(rgb, vec3(1.0, 0.45, 0.05), 0.65) : vec3(0.25 + 0.45 * grey);
         }
     }
-    if (selected && u_show_selection) rgb = mix(rgb, vec3(1.0, 0.9, 0.1), 0.6);
+    if (selected && u_show_selection) rgb = mix(rgb, vec3(1.0, 0.2, 0.85), 0.6);  // magenta: apart from every colour map
     return rgb;
 }
 

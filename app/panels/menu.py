@@ -10,11 +10,20 @@ from app.renderer import MODES
 from app.viewer import Viewer
 
 MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "dynamic": "Dynamic highlighted", "flow": "Flow magnitude"}
-CONTROLS = """Mouse (3D view)     left drag: orbit (fly mode: look)   right/middle or shift+left drag: pan   wheel: zoom
-Keys                WASD/QE fly (shift: faster)   F frame all   R reset   1-9 rig cameras   0 free camera   G follow ego
-Time                Space play/pause   Left/Right or ,/. step   Home/End keyframes
-Editing             Esc clear selection   I invert   H hide   Delete delete   Ctrl+Z undo   Ctrl+Shift+Z / Ctrl+Y redo
-Selection tools     shift adds, ctrl subtracts"""
+CONTROLS = (
+    ("left drag", "orbit (fly mode: look around)"),
+    ("right / middle / shift+left drag", "pan"),
+    ("wheel", "zoom"),
+    ("W A S D, Q E", "fly (shift: faster)"),
+    ("F, R", "frame all, reset camera"),
+    ("1-9, 0", "rig camera, free camera"),
+    ("G", "follow ego"),
+    ("Space", "play / pause"),
+    ("Left/Right, Home/End", "step time, go to a keyframe"),
+    ("Esc, I, H, Delete", "clear, invert, hide, delete selection"),
+    ("shift / ctrl + select", "add / subtract"),
+    ("Ctrl+Z, Ctrl+Shift+Z", "undo, redo"),
+)
 
 
 def draw(viewer: Viewer) -> int:
@@ -34,7 +43,14 @@ def draw(viewer: Viewer) -> int:
         _view_menu(viewer)
         imgui.end_menu()
     if imgui.begin_menu("Help"):
-        imgui.text(CONTROLS)
+        if imgui.begin_table("controls", 2, imgui.TableFlags_.sizing_fixed_fit | imgui.TableFlags_.row_bg):
+            for key, action in CONTROLS:
+                imgui.table_next_row()
+                imgui.table_next_column()
+                imgui.text_disabled(key)
+                imgui.table_next_column()
+                imgui.text(action)
+            imgui.end_table()
         imgui.end_menu()
     imgui.end_main_menu_bar()
     return height
