@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from drivingscene.bench.raster_speed import surround_scene
 from drivingscene.errors import InputError
 from drivingscene.render import rasterize, rasterize_reference
 from tests.render.conftest import max_contributors, random_scene
@@ -41,6 +42,23 @@ def test_forward_and_gradients_match_reference(backend, sh_degree, seed):
         assert scale > 0, name
         err = (grads[name].double() - ref_grads[name]).abs().max() / scale
         assert err <= 1e-3, f"d/d{name}: relative error {err:.2e}"
+
+
+@pytest.fixture(scope="module")
+def surround_and_reference():
+    scene = surround_scene(24, 44)  # one Gaussian per pixel, 6 views: deep pixels, depth ties on the ground
+    with torch.no_grad():
+        return scene, rasterize_reference(**scene)
+
+
+def test_dense_surround_scene_matches_reference_without_cap(backend, surround_and_reference):
+    scene, ref = surround_and_reference
+    assert 32 < max_contributors(scene) <= 64
+    with torch.no_grad():
+        out = rasterize(**scene, max_layers=64, backend=backend)
+    for name in ("colors", "depths", "alphas"):
+        err = (getattr(out, name).double() - getattr(ref, name)).abs().max()
+        assert err <= 1e-4, f"{name}: max abs error {err:.2e}"
 
 
 def _single_gaussian(opacity: float, z: float = 4.0, s: float = 0.08, f: float = 50.0):
