@@ -20,8 +20,11 @@ $(STAMP): pyproject.toml .ci/install-system-deps.sh
 	$(PY) -m pip install -q -e ".[dev]"
 	touch $@
 
+# With a display: the viewer window on the bundled demo scene. Without one: the same viewer renders
+# every rig camera at three times (and a PLY) to $(OUT)/view through EGL, then exits.
 run: setup
-	$(VENV)/bin/drivingscene info assets/demo_scene.npz
+	@if [ -n "$$DISPLAY" ]; then $(VENV)/bin/drivingscene-view; \
+	else $(VENV)/bin/drivingscene-view --headless --out $(OUT)/view --force; fi
 
 test: setup
 	$(PY) -m pytest -q -p no:cacheprovider
