@@ -8,7 +8,7 @@ TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup run test bench clean-venv
+.PHONY: setup run test lint clean-venv
 
 setup: $(STAMP)
 
@@ -28,6 +28,9 @@ run: setup
 
 test: setup
 	$(PY) -m pytest -q -p no:cacheprovider
+
+lint: setup
+	$(VENV)/bin/ruff check app drivingscene tests
 
 clean-venv:
 	rm -rf $(VENV)

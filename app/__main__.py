@@ -20,24 +20,9 @@ from pathlib import Path
 from app.loader import DEMO_SCENE, METHODS
 from app.renderer import MODES
 from app.splats import BLEND_MODES
-from drivingscene.errors import DrivingSceneError
+from drivingscene.cli.common import OneLineParser, run_reporting_errors, unit_interval
 
 PROG = "drivingscene-view"
-
-
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def unit_interval(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], found {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1] (0 = keyframe 0, 1 = keyframe 1), found {value:g}")
-    return value
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -94,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     check_args(parser, args)
-    try:
+
+    def dispatch() -> int:
         if args.bench:
             from app.bench import run_bench
 
@@ -106,12 +92,8 @@ def main(argv: list[str] | None = None) -> int:
         from app.window import run_window
 
         return run_window(args)
-    except DrivingSceneError as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+
+    return run_reporting_errors(PROG, dispatch)
 
 
 if __name__ == "__main__":

@@ -42,9 +42,8 @@ def planned_outputs(out: Path, times: list[float], cameras: list[str], ply: bool
 
 
 def run_headless(args) -> int:
-    from drivingscene.gl import create_offscreen_context
-
     from app.viewport import Viewport
+    from drivingscene.gl import create_offscreen_context
 
     loaded = load_for_cli(args.path, args.method, args.weights)
     doc = SceneDoc(loaded.recon, loaded.source, loaded.info)

@@ -11,16 +11,9 @@ import logging
 import sys
 
 from drivingscene import __version__
-from drivingscene.errors import DrivingSceneError
+from drivingscene.cli.common import OneLineParser, run_reporting_errors
 
 COMMAND_MODULES = ("scene", "synth", "export", "recon", "train", "bench")
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """Usage errors as one line (the command, the argument, what was expected), exit code 2."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,14 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        return int(args.func(args) or 0)
-    except DrivingSceneError as e:
-        print(f"drivingscene {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"drivingscene {args.command}: interrupted", file=sys.stderr)
-        return 130
+    return run_reporting_errors(f"drivingscene {args.command}", lambda: args.func(args))
 
 
 if __name__ == "__main__":

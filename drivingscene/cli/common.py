@@ -3,9 +3,30 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
-from drivingscene.errors import InputError
+from drivingscene.errors import DrivingSceneError, InputError
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """Usage errors as one line (the command, the argument, what was expected), exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def run_reporting_errors(prog: str, fn: Callable[[], int | None]) -> int:
+    """Run a command; a ``DrivingSceneError`` becomes one line on stderr and exit code 2."""
+    try:
+        return int(fn() or 0)
+    except DrivingSceneError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
 
 
 def unit_interval(text: str) -> float:

@@ -16,8 +16,8 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
-from drivingscene.models.pipeline import rigid_flows
 from drivingscene.geometry.se3 import invert_rigid
+from drivingscene.models.pipeline import rigid_flows
 from drivingscene.render.scene import render_gaussians
 from drivingscene.render.sky import fit_sky, ray_directions
 

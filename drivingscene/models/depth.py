@@ -20,7 +20,6 @@ from torch import Tensor, nn
 
 from drivingscene.models.blocks import ConvELU, ResNetEncoder, upsample_to
 
-
 INITIAL_DISPARITY_LOGIT = -3.0
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-import torch
 from torch import Tensor, nn
 
 from drivingscene.models.depth import DepthConfig, DepthNet, DepthOutput

@@ -11,7 +11,6 @@ from __future__ import annotations
 import importlib.util
 
 import torch
-from torch import Tensor
 
 
 def gsplat_available() -> bool:

@@ -129,7 +129,7 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
             _after_step(config, out, model, optimizer, step + 1, loss_sum, terms_sum, seconds, info, val_files, bar)
     if rank == 0:
         save_checkpoint(out, config.steps, model, optimizer, info, config.keep_checkpoints)
-        path = export_weights(model, config.model.to_dict(), out / "model.safetensors", {**info, "steps": config.steps})
+        export_weights(model, config.model.to_dict(), out / "model.safetensors", {**info, "steps": config.steps})
     if world > 1:
         dist.barrier()
         dist.destroy_process_group()
