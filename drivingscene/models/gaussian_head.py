@@ -3,11 +3,12 @@
 not give: scale, rotation, opacity and colour.
 
 Each attribute is predicted as a bounded change to a sensible default, and the output layer starts
-at zero, so an untrained head already gives camera-facing discs one pixel footprint wide, with the
-pixel's colour and high opacity:
+at zero, so an untrained head already gives the assembly's default surfels (flat Gaussians lying in
+the surface of the predicted depth, one pixel footprint wide; ``gaussians.assembly.surfel_frames``),
+with the pixel's colour and high opacity:
 
-    log_scale = log(footprint(depth)) + 2 tanh(raw / 2)      (x0.14 .. x7.4 of one pixel)
-    quat      = normalise((1, 0, 0, 0) + raw)                (camera axes)
+    log_scale = log(surfel scales(depth)) + 2 tanh(raw / 2)      (x0.14 .. x7.4)
+    quat      = surfel rotation(depth) * normalise((1, 0, 0, 0) + raw)   (camera axes)
     opacity   = sigmoid(raw + 3)
     colour    = pixel RGB + 0.5 tanh(raw)  -> SH DC; higher SH degrees start at zero
 """
@@ -19,8 +20,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from drivingscene.gaussians.assembly import default_scales
+from drivingscene.gaussians.assembly import surfel_frames
 from drivingscene.gaussians.core import num_sh_coeffs, rgb_to_sh0
+from drivingscene.geometry.se3 import quat_multiply
 from drivingscene.models.blocks import ConvELU, upsample_to
 
 OPACITY_BIAS = 3.0
@@ -77,10 +79,10 @@ class GaussianHead(nn.Module):
 
     def _activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:
         k = num_sh_coeffs(self.config.sh_degree)
-        base = torch.log(default_scales(depth.float(), intrinsics.float()))
-        log_scales = base + 2.0 * torch.tanh(raw[..., 0:3] / 2.0)
+        base_quats, base_log_scales = surfel_frames(depth.detach().float(), intrinsics.float())
+        log_scales = base_log_scales + 2.0 * torch.tanh(raw[..., 0:3] / 2.0)
         identity = raw.new_tensor([1.0, 0.0, 0.0, 0.0])
-        quats = nn.functional.normalize(identity + raw[..., 3:7], dim=-1)
+        quats = quat_multiply(base_quats, nn.functional.normalize(identity + raw[..., 3:7], dim=-1))
         opacity_logits = raw[..., 7] + OPACITY_BIAS
         rgb = images.float().permute(0, 2, 3, 1) + 0.5 * torch.tanh(raw[..., 8:11])
         sh_rest = raw[..., 11:].reshape(*raw.shape[:3], k - 1, 3)

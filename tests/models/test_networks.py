@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from drivingscene.data.tensors import pair_to_tensors
-from drivingscene.gaussians.assembly import default_scales
+from drivingscene.gaussians.assembly import surfel_frames
 from drivingscene.models import DrivingSceneModel, ModelConfig
 from drivingscene.models.depth import DepthConfig
 from drivingscene.models.pipeline import LiftConfig, assemble, predict_flow, predict_static, sky_mask
@@ -43,12 +43,13 @@ def test_depth_scales_with_normalised_focal_length(model):
     torch.testing.assert_close(depth[1], 2 * depth[0])
 
 
-def test_gaussian_head_starts_at_pixel_discs_with_pixel_colours(model):
+def test_gaussian_head_starts_at_surfels_with_pixel_colours(model):
     images = torch.rand(2, 3, 32, 48)
     k = torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]).expand(2, 3, 3)
     depth, params = model.static(images, k)
-    torch.testing.assert_close(params.log_scales, torch.log(default_scales(depth.depth, k)))
-    torch.testing.assert_close(params.quats, torch.tensor([1.0, 0, 0, 0]).expand(2, 32, 48, 4))
+    quats, log_scales = surfel_frames(depth.depth, k)
+    torch.testing.assert_close(params.log_scales, log_scales)
+    torch.testing.assert_close(params.quats, quats)
     rgb = params.sh[..., 0, :] * 0.28209479177387814 + 0.5
     torch.testing.assert_close(rgb, images.permute(0, 2, 3, 1), atol=1e-5, rtol=0)
     assert torch.sigmoid(params.opacity_logits).min() > 0.9
