@@ -137,7 +137,7 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
 
 
 def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info, val_files, bar) -> None:
-    record = {"step": step, "loss": loss, "seconds": round(seconds, 3), **{k: round(v, 6) for k, v in terms.items()}}
+    record = {"step": step, "time": round(time.time(), 1), "loss": loss, "seconds": round(seconds, 3), **{k: round(v, 6) for k, v in terms.items()}}
     if step % config.val_every == 0 and val_files:
         record["val"] = validate(model, val_files, config)
         model.train()

@@ -1,0 +1,109 @@
+"""``drivingscene bench training``: docs/training.md and its loss-curve figure from run folders.
+
+Reads each run's ``config.json`` and ``log.jsonl`` (written by ``drivingscene train``) and reports
+the configuration, steps, wall time, the loss terms over training (PNG) and the validation scores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from drivingscene.errors import InputError
+
+TERMS = ("loc", "smooth", "render", "warp", "consist")
+VAL_KEYS = ("psnr", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("runs", nargs="+", type=Path, metavar="RUN", help="run folders (drivingscene train --out)")
+    p.add_argument("--figure", type=Path, default=Path("docs/images/training_curves.png"))
+    p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/training.md)")
+    p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables")
+
+
+def _read_run(folder: Path) -> tuple[dict, list[dict]]:
+    config, log = folder / "config.json", folder / "log.jsonl"
+    if not config.exists() or not log.exists():
+        raise InputError(f"{folder}: expected config.json and log.jsonl of a training run")
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    return json.loads(config.read_text()), records
+
+
+def _smooth(values: list[float], window: int = 20) -> list[float]:
+    out, acc = [], []
+    for v in values:
+        acc.append(v)
+        if len(acc) > window:
+            acc.pop(0)
+        out.append(sum(acc) / len(acc))
+    return out
+
+
+def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    terms = [t for t in TERMS if any(t in r for _, _, recs in runs for r in recs)]
+    fig, axes = plt.subplots(1, len(terms) + 1, figsize=(3.2 * (len(terms) + 1), 3.0))
+    for name, _, recs in runs:
+        steps = [r["step"] for r in recs]
+        for ax, term in zip(axes, terms):
+            values = [r.get(term, math.nan) for r in recs]
+            if not all(math.isnan(v) for v in values):
+                ax.plot(steps, _smooth(values), label=name, linewidth=1.2)
+        val = [(r["step"], r["val"].get("psnr", math.nan)) for r in recs if "val" in r]
+        if val:
+            axes[-1].plot(*zip(*val), marker="o", label=name, linewidth=1.2)
+    for ax, term in zip(axes, terms):
+        ax.set_title(f"L_{term}")
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    axes[-1].set_title("validation PSNR (dB)")
+    axes[-1].set_xlabel("step")
+    axes[-1].grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def wall_hours(recs: list[dict]) -> float:
+    """Training wall time: summed gaps between log records, ignoring pauses over 10 minutes
+    (a resumed run); runs logged without timestamps fall back to step time x steps."""
+    times = [r["time"] for r in recs if "time" in r]
+    if len(times) > 1:
+        return sum(b - a for a, b in zip(times, times[1:]) if 0 < b - a < 600) / 3600
+    mean_step = sum(r.get("seconds", 0.0) for r in recs) / max(len(recs), 1)
+    return mean_step * (recs[-1]["step"] if recs else 0) / 3600
+
+
+def _row(name: str, config: dict, recs: list[dict]) -> str:
+    steps = recs[-1]["step"] if recs else 0
+    return f"| {name} | {config['stage']} | {steps} | {config['lr']} | {wall_hours(recs):.1f} h | {config['data']} |"
+
+
+def run(args: argparse.Namespace) -> int:
+    runs = [(folder.name, *_read_run(folder)) for folder in args.runs]
+    plot_curves(runs, args.figure)
+    lines = ["| run | stage | steps | lr | wall time | data |", "|---|---|---|---|---|---|"]
+    lines += [_row(name, config, recs) for name, config, recs in runs]
+    lines += ["", "Validation (mean over the validation pairs, recorded during training):", ""]
+    lines += ["| run | step | " + " | ".join(VAL_KEYS) + " |", "|---|---|" + "---|" * len(VAL_KEYS)]
+    for name, _, recs in runs:
+        for r in recs:
+            if "val" in r:
+                vals = [f"{r['val'][k]:.3f}" if k in r["val"] else "–" for k in VAL_KEYS]
+                lines.append(f"| {name} | {r['step']} | " + " | ".join(vals) + " |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        notes = args.notes.read_text() if args.notes else ""
+        figure = Path("images") / args.figure.name
+        args.out.write_text(f"# Training\n\n{notes}\n## Runs\n\n{text}\n![loss curves]({figure})\n")
+    return 0
