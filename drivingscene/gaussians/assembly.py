@@ -78,10 +78,16 @@ def surfel_frames(depth: Tensor, intrinsics: Tensor, footprint: float = FOOTPRIN
     det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
     det = torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
     inv = torch.stack([torch.stack([jac[..., 1, 1], -jac[..., 0, 1]], -1), torch.stack([-jac[..., 1, 0], jac[..., 0, 0]], -1)], -2) / det[..., None, None]
-    evals, evecs = torch.linalg.eigh(footprint**2 * inv @ inv.transpose(-1, -2))  # [..., 2], [..., 2, 2]
+    cov = footprint**2 * inv @ inv.transpose(-1, -2)  # [..., 2, 2] in the tangent basis, m^2
+    # Closed-form eigen-decomposition of the symmetric 2x2 (batched eigh is slow on CPU).
+    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    half_gap = torch.sqrt(((a - c) / 2) ** 2 + b**2)
+    lam_small, lam_large = (a + c) / 2 - half_gap, (a + c) / 2 + half_gap
+    phi = 0.5 * torch.atan2(2 * b, a - c)  # direction of the large axis
     pixel = footprint * z / (0.5 * (fx + fy))  # frontal footprint in metres
-    tangent_scales = torch.minimum(evals.clamp(min=1e-12).sqrt(), (pixel / MIN_COS)[..., None])
-    d1 = F.normalize(evecs[..., 0, :1] * t1 + evecs[..., 1, :1] * t2, dim=-1)
+    cap = (pixel / MIN_COS)[..., None]
+    tangent_scales = torch.minimum(torch.stack([lam_small, lam_large], -1).clamp(min=1e-12).sqrt(), cap)
+    d1 = F.normalize(-torch.sin(phi)[..., None] * t1 + torch.cos(phi)[..., None] * t2, dim=-1)  # small axis
     d2 = torch.cross(normals, d1, dim=-1)
     rotation = torch.stack([d1, d2, normals], dim=-1)
     scales = torch.cat([tangent_scales, (THICKNESS * pixel)[..., None]], dim=-1)
