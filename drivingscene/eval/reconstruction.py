@@ -6,7 +6,9 @@
 - depth: the reconstruction's per-camera depth at both keyframes against ``gt_depth`` (0.1-80 m),
   metric and median-scaled;
 - flow: end-point error of the rigid flow alone and of rigid + residual against ``gt_flow``, on
-  dynamic and on static pixels (both keyframes, both directions).
+  dynamic and on static pixels (both keyframes, both directions), over non-occluded pixels as in
+  KITTI's "noc": the ground-truth flow stays in the image and is forward/backward consistent (this
+  also drops points that pass behind the camera, whose flow is unbounded).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from drivingscene.data.frame_pair import FramePair
 from drivingscene.eval.lpips import PerceptualMetric
 from drivingscene.eval.metrics import depth_metrics, lpips_distance, psnr, ssim
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.geometry.flow import forward_backward_consistency
 
 
 def _nanmean(x: torch.Tensor) -> float:
@@ -62,9 +65,11 @@ def score_depth(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
 def score_flow(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
     if recon.rigid_flow is None or pair.gt_flow is None or pair.gt_dynamic is None:
         return {}
-    gt = torch.from_numpy(pair.gt_flow).flatten(0, 1)
+    gt_pair = torch.from_numpy(pair.gt_flow)
+    gt = gt_pair.flatten(0, 1)
     dyn = torch.from_numpy(pair.gt_dynamic).flatten(0, 1)
-    valid = torch.from_numpy(pair.gt_depth > 0).flatten(0, 1) if pair.gt_depth is not None else torch.ones_like(dyn)
+    noc = torch.cat([forward_backward_consistency(gt_pair[k], gt_pair[1 - k]) for k in (0, 1)])
+    valid = noc & (torch.from_numpy(pair.gt_depth > 0).flatten(0, 1) if pair.gt_depth is not None else True)
     out = {}
     for name, flow in (("rigid", recon.rigid_flow), ("total", recon.total_flow)):
         pred = torch.from_numpy(np.ascontiguousarray(flow)).flatten(0, 1)
