@@ -48,6 +48,28 @@ def surface_normals(points: Tensor) -> Tensor:
     return torch.where(facing_away, -normals, normals)
 
 
+_AXIS_FLIPS = torch.tensor([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
+
+
+def axes_to_quat(rotation: Tensor) -> Tensor:
+    """Quaternions ``[..., 4]`` of the axis frames ``[..., 3, 3]`` (columns) of Gaussians.
+
+    A Gaussian is symmetric under flipping any two of its axes, so among the four equivalent
+    frames this picks the one with the largest trace (the four traces sum to zero, so it is >= 0)
+    and converts it with the trace formula, whose w >= 1/2 keeps it exact and branch-free; much
+    cheaper than a general matrix-to-quaternion conversion on millions of pixels.
+    """
+    diag = rotation.diagonal(dim1=-2, dim2=-1)  # [..., 3]
+    flips = _AXIS_FLIPS.to(rotation)
+    best = (diag[..., None, :] * flips).sum(-1).argmax(-1)  # [...]
+    r = rotation * flips[best][..., None, :]
+    w = 0.5 * torch.sqrt((1.0 + r.diagonal(dim1=-2, dim2=-1).sum(-1)).clamp(min=1e-12))
+    x = (r[..., 2, 1] - r[..., 1, 2]) / (4 * w)
+    y = (r[..., 0, 2] - r[..., 2, 0]) / (4 * w)
+    z = (r[..., 1, 0] - r[..., 0, 1]) / (4 * w)
+    return torch.stack([w, x, y, z], dim=-1)
+
+
 def _tangent_basis(normals: Tensor) -> tuple[Tensor, Tensor]:
     """Two unit tangents ``[..., 3]`` orthogonal to unit ``normals`` and to each other."""
     x_axis = torch.tensor([1.0, 0.0, 0.0], dtype=normals.dtype, device=normals.device).expand_as(normals)
@@ -91,7 +113,7 @@ def surfel_frames(depth: Tensor, intrinsics: Tensor, footprint: float = FOOTPRIN
     d2 = torch.cross(normals, d1, dim=-1)
     rotation = torch.stack([d1, d2, normals], dim=-1)
     scales = torch.cat([tangent_scales, (THICKNESS * pixel)[..., None]], dim=-1)
-    return matrix_to_quat(rotation), torch.log(scales)
+    return axes_to_quat(rotation), torch.log(scales)
 
 
 def gaussians_from_pixels(

@@ -203,3 +203,17 @@ def test_transform_moves_means_flows_and_rotations_consistently():
     torch.testing.assert_close(moved.flows, g.flows @ rot.T)
     torch.testing.assert_close(q2m(moved.quats), rot @ q2m(g.quats), atol=1e-6, rtol=0)
     torch.testing.assert_close(moved.transform(torch.linalg.inv(mat)).means, g.means, atol=1e-4, rtol=0)
+
+
+def test_axes_to_quat_gives_an_equivalent_gaussian_with_w_at_least_half():
+    from drivingscene.gaussians.assembly import axes_to_quat
+    from drivingscene.geometry.se3 import quat_to_matrix as q2m
+
+    rot = q2m(torch.nn.functional.normalize(torch.randn(500, 4, dtype=torch.float64), dim=-1))
+    rot = torch.cat([rot, torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))[None]])  # 180 degrees
+    q = axes_to_quat(rot)
+    assert (q[:, 0] >= 0.5 - 1e-9).all()
+    back = q2m(q)
+    # Same axes up to sign: the covariance R S^2 R^T is unchanged.
+    scales = torch.diag(torch.tensor([0.3, 1.0, 2.0], dtype=torch.float64)) ** 2
+    torch.testing.assert_close(back @ scales @ back.transpose(1, 2), rot @ scales @ rot.transpose(1, 2))
