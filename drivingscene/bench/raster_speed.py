@@ -164,7 +164,7 @@ def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int
 
 
 def machine_description() -> str:
-    """CPU model, logical cores, torch version and threads."""
+    """CPU model, logical cores, torch version and its default thread count."""
     import torch
 
     model = platform.processor() or "unknown CPU"
@@ -173,7 +173,7 @@ def machine_description() -> str:
             model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    return f"{model}, {os.cpu_count()} logical cores, torch {torch.__version__} with {torch.get_num_threads()} threads"
+    return f"{model}, {os.cpu_count()} logical cores, torch {torch.__version__} (default {torch.get_num_threads()} threads)"
 
 
 def _load() -> str:
@@ -182,12 +182,12 @@ def _load() -> str:
 
 def markdown_table(rows: list[dict]) -> str:
     head = (
-        "| views × size | Gaussians | colour | backend | max_layers | forward s (median / min) "
-        "| forward+backward s (median / min) | peak RSS fwd / fwd+bwd MiB |\n|---|---|---|---|---|---|---|---|\n"
+        "| views × size | Gaussians | colour | backend | max_layers | threads | forward s (median / min) "
+        "| forward+backward s (median / min) | peak RSS fwd / fwd+bwd MiB |\n|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = [
         f"| 6×{r['size'].replace('x', '×')} | {r['gaussians']:,} | {'RGB' if r['sh_degree'] is None else 'SH%d' % r['sh_degree']} "
-        f"| {r['backend']} | {r['max_layers']} "
+        f"| {r['backend']} | {r['max_layers']} | {r['threads']} "
         f"| {r['fwd']:.3f} / {r['fwd_min']:.3f} | {r['fwd_bwd']:.3f} / {r['fwd_bwd_min']:.3f} "
         f"| {r['peak_fwd_mib']:.0f} / {r['peak_fwd_bwd_mib']:.0f} |"
         for r in rows

@@ -31,4 +31,4 @@ def test_measure_and_command_write_a_markdown_table(tmp_path):
     args = ["bench", "raster", "--sizes", "8x12", "--backends", "torch", "--repeats", "1", "--in-process", "--out", str(out)]
     assert main(args) == 0
     text = out.read_text()
-    assert "| 6×8×12 | 576 | RGB | torch |" in text and "Machine:" in text
+    assert "| 6×8×12 | 576 | RGB | torch | 8 |" in text and "Machine:" in text
