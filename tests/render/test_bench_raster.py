@@ -25,10 +25,14 @@ def test_surround_scene_is_one_pixel_sized_gaussian_per_pixel():
 
 
 def test_measure_and_command_write_a_markdown_table(tmp_path):
+    threads = torch.get_num_threads()
     row = measure("8x12", "torch", 8, repeats=1)
     assert row["gaussians"] == 6 * 8 * 12 and row["fwd"] > 0 and row["fwd_bwd"] > 0 and row["peak_fwd_bwd_mib"] >= 0
     out = tmp_path / "raster.md"
-    args = ["bench", "raster", "--sizes", "8x12", "--backends", "torch", "--repeats", "1", "--in-process", "--out", str(out)]
+    args = ["bench", "raster", "--sizes", "8x12", "--backends", "torch", "--repeats", "1", "--threads", "1"]
+    args += ["--max-layers", "4,8", "--in-process", "--out", str(out)]
     assert main(args) == 0
     text = out.read_text()
-    assert "| 6×8×12 | 576 | RGB | torch | 8 |" in text and "Machine:" in text
+    assert "| 6×8×12 | 576 | RGB | torch | 4 | 1 |" in text and "| 6×8×12 | 576 | RGB | torch | 8 | 1 |" in text
+    assert "Machine:" in text
+    torch.set_num_threads(threads)  # --in-process changed it for this process
