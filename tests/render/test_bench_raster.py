@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from drivingscene.bench.raster_speed import measure, surround_scene
@@ -24,8 +25,14 @@ def test_surround_scene_is_one_pixel_sized_gaussian_per_pixel():
     assert out.alphas.mean() > 0.95
 
 
-def test_measure_and_command_write_a_markdown_table(tmp_path):
+@pytest.fixture
+def restore_threads():
     threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)  # `--in-process --threads 1` changes this process's setting
+
+
+def test_measure_and_command_write_a_markdown_table(tmp_path, restore_threads):
     row = measure("8x12", "torch", 8, repeats=1)
     assert row["gaussians"] == 6 * 8 * 12 and row["fwd"] > 0 and row["fwd_bwd"] > 0 and row["peak_fwd_bwd_mib"] >= 0
     out = tmp_path / "raster.md"
@@ -35,4 +42,3 @@ def test_measure_and_command_write_a_markdown_table(tmp_path):
     text = out.read_text()
     assert "| 6×8×12 | 576 | RGB | torch | 4 | 1 |" in text and "| 6×8×12 | 576 | RGB | torch | 8 | 1 |" in text
     assert "Machine:" in text
-    torch.set_num_threads(threads)  # --in-process changed it for this process
