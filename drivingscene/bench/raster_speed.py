@@ -212,7 +212,7 @@ def layers_study(size: str, layer_counts: list[int]) -> str:
         ref = rasterize_reference(**scene) if exact else rasterize(**scene, max_layers=1024)
         ref_colors, ref_depths, ref_alphas = (t.float() for t in (ref.colors, ref.depths, ref.alphas))
         lines = [
-            f"Scene 6×{size} ({len(scene['means']):,} Gaussians) against "
+            f"Scene 6×{size.replace('x', '×')} ({len(scene['means']):,} Gaussians) against "
             + ("the float64 reference." if exact else "max_layers=1024 (uncapped)."),
             "",
             "| max_layers | colour max abs err | colour mean abs err | alpha mean abs err | depth mean rel err (alpha > 0.5) |",
