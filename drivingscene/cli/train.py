@@ -31,6 +31,37 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
+    register_ship(sub)
+
+
+def register_ship(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("ship-weights", help="copy trained weights (+ JSON) for shipping, optionally as float16")
+    p.add_argument("source", type=Path, metavar="RUN_OR_WEIGHTS", help="a run folder (its latest checkpoint) or model.safetensors")
+    p.add_argument("dest", type=Path, metavar="OUT.safetensors")
+    p.add_argument("--float32", action="store_true", help="keep float32 (default: float16, half the size)")
+    p.add_argument("--note", default="", help="text stored in the JSON (e.g. which runs it came from)")
+    p.add_argument("--force", action="store_true")
+    p.set_defaults(func=run_ship)
+
+
+def run_ship(args: argparse.Namespace) -> int:
+    from drivingscene.cli.common import check_output
+    from drivingscene.methods.feedforward import load_model
+    from drivingscene.train.checkpoint import export_weights, model_from_run
+
+    check_output(args.dest, args.force, "OUT")
+    if args.source.is_dir():
+        model, info = model_from_run(args.source)
+    else:
+        model = load_model(args.source)
+        meta = json.loads(args.source.with_suffix(".json").read_text())
+        info = {k: v for k, v in meta.items() if k not in ("model", "dtype")}
+    info["source"] = str(args.source)
+    if args.note:
+        info["note"] = args.note
+    path = export_weights(model, model.config.to_dict(), args.dest, info, half=not args.float32)
+    print(f"{path}: {path.stat().st_size / 1e6:.1f} MB")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:

@@ -68,16 +68,22 @@ class GaussianHead(nn.Module):
         enc_features: list[Tensor],  # D's encoder features at 1/2 ... 1/32
         depth_features: Tensor,  # [B, C, H, W] D's last decoder features
     ) -> PixelGaussians:
+        raw = self.predict_raw(images, depth, enc_features, depth_features)
+        return self.activate(raw, images, depth, intrinsics)
+
+    def predict_raw(self, images: Tensor, depth: Tensor, enc_features: list[Tensor], depth_features: Tensor) -> Tensor:
+        """The network's raw per-pixel outputs ``[B, H, W, C]`` before :meth:`activate` (they can be
+        resized to another image size and activated there)."""
         x = None
         for i in (2, 1, 0):  # 1/8, 1/4, 1/2
             lat = self.lateral[i](enc_features[i])
             x = self.fuse[i](lat if x is None else torch.cat([lat, upsample_to(x, lat)], dim=1))
         log_depth = torch.log(depth.clamp(min=1e-3))[:, None]
         x = torch.cat([upsample_to(x, images), depth_features, images, (log_depth - 2.5) / 1.5], dim=1)
-        raw = self.out(self.full(x)).float().permute(0, 2, 3, 1)  # [B, H, W, C]
-        return self._activate(raw, images, depth, intrinsics)
+        return self.out(self.full(x)).float().permute(0, 2, 3, 1)  # [B, H, W, C]
 
-    def _activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:
+    def activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:
+        """Attributes from raw outputs ``[B, H, W, C]``, the image, depth and intrinsics (module docstring)."""
         k = num_sh_coeffs(self.config.sh_degree)
         base_quats, base_log_scales = surfel_frames(depth.detach().float(), intrinsics.float())
         log_scales = base_log_scales + 2.0 * torch.tanh(raw[..., 0:3] / 2.0)

@@ -20,6 +20,11 @@ class ModelConfig:
     depth: DepthConfig = field(default_factory=DepthConfig)
     gaussians: GaussianHeadConfig = field(default_factory=GaussianHeadConfig)
     flow: FlowConfig = field(default_factory=FlowConfig)
+    # (H, W) the networks were trained at (set by the trainer from its data). Convolutional depth
+    # networks do not transfer across image scales, so inputs of another size are resized to this
+    # for the networks, and depth, Gaussian attributes and flow are resized back
+    # (models/pipeline.py). None: run the networks at the input size.
+    input_size: tuple[int, int] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -29,10 +34,12 @@ class ModelConfig:
         def tuples(d: dict) -> dict:
             return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
+        size = data.get("input_size")
         return cls(
             depth=DepthConfig(**tuples(data.get("depth", {}))),
             gaussians=GaussianHeadConfig(**tuples(data.get("gaussians", {}))),
             flow=FlowConfig(**tuples(data.get("flow", {}))),
+            input_size=None if size is None else (int(size[0]), int(size[1])),
         )
 
 
@@ -51,6 +58,12 @@ class DrivingSceneModel(nn.Module):
         depth = self.depth_net(images, intrinsics)
         params = self.gaussian_head(images, depth.depth, intrinsics, depth.features, depth.decoder_features)
         return depth, params
+
+    def static_raw(self, images: Tensor, intrinsics: Tensor) -> tuple[DepthOutput, Tensor]:
+        """D and P's raw outputs ``[B, H, W, C]`` (to be resized, then ``gaussian_head.activate``)."""
+        depth = self.depth_net(images, intrinsics)
+        raw = self.gaussian_head.predict_raw(images, depth.depth, depth.features, depth.decoder_features)
+        return depth, raw
 
     def residual_flow(self, warped_source: Tensor, target: Tensor, rigid_flow: Tensor, slots: Tensor) -> list[Tensor]:
         """Stage-2 network: residual flows ``[B, 2, H, W]`` per pyramid level, finest last."""

@@ -15,11 +15,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.data.tensors import PairTensors
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
+from drivingscene.geometry.camera import scale_intrinsics
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
 from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
 from drivingscene.models.depth import DepthOutput
@@ -64,12 +66,40 @@ class FlowPrediction:
         return self.rigid + self.residual
 
 
+def _resize(x: Tensor, size: tuple[int, int], mode: str) -> Tensor:
+    """Resize ``[B, C, H, W]``; "area" to shrink images, "bilinear" for smooth fields."""
+    if tuple(x.shape[-2:]) == tuple(size):
+        return x
+    kwargs = {"align_corners": False} if mode == "bilinear" else {}
+    return F.interpolate(x, size=size, mode=mode, **kwargs)
+
+
+def _scaled_intrinsics(intrinsics: Tensor, src: tuple[int, int], dst: tuple[int, int]) -> Tensor:
+    return scale_intrinsics(intrinsics, dst[1] / src[1], dst[0] / src[0])
+
+
 def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPrediction:
-    """D and P on both keyframes' V images."""
+    """D and P on both keyframes' V images.
+
+    When the model has an ``input_size`` other than the images', the networks run on resized
+    images (intrinsics scaled to match) and their outputs come back at full size: depth through
+    bilinear inverse depth, P's raw outputs bilinearly, activated with the full-size image and depth.
+    """
     num_views = batch.num_views
-    images = batch.images.flatten(0, 1).contiguous(memory_format=torch.channels_last)
-    depth_out, params = model.static(images, batch.intrinsics.repeat(2, 1, 1))
-    return StaticPrediction(depth=depth_out.depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
+    size = batch.image_size
+    net_size = model.config.input_size or size
+    images = batch.images.flatten(0, 1)
+    intrinsics = batch.intrinsics.repeat(2, 1, 1)
+    if tuple(net_size) == tuple(size):
+        depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics)
+        depth = depth_out.depth
+    else:
+        small = _resize(images, net_size, "area").contiguous(memory_format=torch.channels_last)
+        depth_out, raw = model.static_raw(small, _scaled_intrinsics(intrinsics, size, net_size))
+        depth = 1.0 / _resize(1.0 / depth_out.depth.float()[:, None], size, "bilinear")[:, 0]
+        raw = _resize(raw.permute(0, 3, 1, 2), size, "bilinear").permute(0, 2, 3, 1)
+        params = model.gaussian_head.activate(raw, images, depth, intrinsics)
+    return StaticPrediction(depth=depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
 
 
 def rigid_flows(depth: Tensor, batch: PairTensors) -> Tensor:
@@ -81,14 +111,26 @@ def rigid_flows(depth: Tensor, batch: PairTensors) -> Tensor:
 
 
 def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) -> FlowPrediction:
-    """Rigid flow from ``depth`` ``[2, V, H, W]`` and R's residual, both directions."""
+    """Rigid flow from ``depth`` ``[2, V, H, W]`` and R's residual, both directions.
+
+    The rigid flow is always computed at full size; R runs at the model's ``input_size`` on the
+    resized images and rigid flow, and its residual is resized (and rescaled) back.
+    """
+    size = batch.image_size
+    net_size = tuple(model.config.input_size or size)
     rigid = rigid_flows(depth, batch)
-    targets = batch.images  # [2, V, 3, H, W]
-    sources = batch.images.flip(0)  # the other keyframe
-    warped, _ = backward_warp(sources.flatten(0, 1), rigid.flatten(0, 1))
+    targets = batch.images.flatten(0, 1)  # [2V, 3, H, W]
+    sources = batch.images.flip(0).flatten(0, 1)  # the other keyframe
     rigid_chw = rigid.flatten(0, 1).permute(0, 3, 1, 2)
+    if net_size != tuple(size):
+        to_net = rigid_chw.new_tensor([net_size[1] / size[1], net_size[0] / size[0]]).view(1, 2, 1, 1)
+        targets, sources = _resize(targets, net_size, "area"), _resize(sources, net_size, "area")
+        rigid_chw = _resize(rigid_chw, net_size, "bilinear") * to_net
+    warped, _ = backward_warp(sources, rigid_chw.permute(0, 2, 3, 1))
     slots = model.camera_slots(batch.cam_to_ego).repeat(2)
-    residuals = model.residual_flow(warped, targets.flatten(0, 1), rigid_chw, slots)
+    residuals = model.residual_flow(warped, targets, rigid_chw, slots)
+    if net_size != tuple(size):
+        residuals = [_resize(r.float(), size, "bilinear") / to_net for r in residuals]
     residuals = [r.float().permute(0, 2, 3, 1).unflatten(0, (2, batch.num_views)) for r in residuals]
     return FlowPrediction(rigid=rigid, residuals=residuals, warped_sources=warped.unflatten(0, (2, batch.num_views)))
 

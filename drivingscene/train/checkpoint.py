@@ -88,14 +88,39 @@ def restore(model: torch.nn.Module, optimizer, meta: dict, tensors: dict[str, to
     return int(meta["step"])
 
 
-def export_weights(model: torch.nn.Module, config_dict: dict, path: str | os.PathLike, info: dict) -> Path:
-    """Ship-ready weights: ``NAME.safetensors`` (model only) and ``NAME.json`` (config + info)."""
+def export_weights(model: torch.nn.Module, config_dict: dict, path: str | os.PathLike, info: dict, half: bool = False) -> Path:
+    """Ship-ready weights: ``NAME.safetensors`` (model only) and ``NAME.json`` (config + info).
+
+    ``half`` stores floating tensors as float16 (half the size; they load back into float32)."""
     path = Path(path)
     tensors = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    if half:
+        tensors = {k: v.half() if v.is_floating_point() else v for k, v in tensors.items()}
     atomic_write(path, lambda f: f.write(_safetensors_bytes(tensors)))
-    meta = {"model": config_dict, **info}
+    meta = {"model": config_dict, **info, "dtype": "float16" if half else "float32"}
     atomic_write(path.with_suffix(".json"), lambda f: f.write(json.dumps(meta, indent=1, sort_keys=True).encode()))
     return path
 
 
 __all__ = ["export_weights", "load_checkpoint", "restore", "save_checkpoint"]
+
+
+def model_from_run(run_dir: Path):
+    """The model of a run's latest checkpoint and its info (for shipping an unfinished run)."""
+    from drivingscene.models.model import DrivingSceneModel
+    from drivingscene.train.config import TrainConfig
+
+    loaded = load_checkpoint(run_dir)
+    if loaded is None:
+        raise InputError(f"{run_dir}: expected a training run folder with latest.json")
+    meta, tensors = loaded
+    from drivingscene.train.data import list_pairs
+    from drivingscene.train.trainer import with_data_size
+
+    config = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    if config.model.input_size is None:  # runs started before the size was recorded
+        config = with_data_size(config, list_pairs(config.data))
+    model = DrivingSceneModel(config.model)
+    restore(model, None, meta, tensors)
+    info = {k: meta[k] for k in ("stage", "lpips", "world") if k in meta}
+    return model, {**info, "steps": int(meta["step"])}

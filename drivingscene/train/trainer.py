@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -78,8 +79,20 @@ def _prepare_out(config: TrainConfig, resume: bool, rank: int):
     return out, ckpt
 
 
+def with_data_size(config: TrainConfig, files: list[Path]) -> TrainConfig:
+    """The config with the model's ``input_size`` set to the training images' size."""
+    if config.model.input_size is not None:
+        return config
+    from drivingscene.data.frame_pair import load_frame_pair
+
+    size = load_frame_pair(files[0]).image_size
+    return replace(config, model=replace(config.model, input_size=size))
+
+
 def train(config: TrainConfig, resume: bool = False, show_progress: bool = True) -> Path:
     """Run (or resume) a training job; returns the exported weights path."""
+    files = list_pairs(config.data)
+    config = with_data_size(config, files)
     rank, world = _distributed()
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed + rank)
@@ -97,7 +110,7 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
         runner = torch.nn.parallel.DistributedDataParallel(step_module, find_unused_parameters=True)
     optimizer = torch.optim.Adam(params, lr=config.lr)
     start = restore(model, optimizer, *ckpt) if ckpt is not None else 0
-    data = PairSequence(list_pairs(config.data), config.seed, rank, world)
+    data = PairSequence(files, config.seed, rank, world)
     val_files = list_pairs(config.val_data)[: config.val_pairs] if config.val_data and rank == 0 else []
     info = {"stage": config.stage, "lpips": perceptual.name, "world": world}
     bar = tqdm(range(start, config.steps), initial=start, total=config.steps, disable=not show_progress or rank != 0, desc=config.stage)

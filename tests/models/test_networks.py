@@ -96,3 +96,23 @@ def test_assembly_excludes_sky_and_counts_pixels(model):
     assert len(g) == 2 * 2 * 32 * 48
     sky[0, 0, :10] = True
     assert len(assemble(static, batch, sky)) == 2 * 2 * 32 * 48 - 10 * 48
+
+
+def test_networks_run_at_the_training_size_and_outputs_come_back_full_size():
+    """A model trained at 32x48 reconstructs a 64x96 pair: networks at 32x48, outputs at 64x96."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    small_model = DrivingSceneModel(dataclasses.replace(SMALL, input_size=(32, 48))).eval()
+    pair = make_pair(num_views=2, height=64, width=96)
+    batch = pair_to_tensors(pair)
+    with torch.no_grad():
+        static = predict_static(small_model, batch)
+        flow = predict_flow(small_model, batch, static.depth)
+    assert static.depth.shape == (2, 2, 64, 96) and static.params.sh.shape[:3] == (4, 64, 96)
+    assert static.depth_output.depth.shape[-2:] == (32, 48)
+    assert flow.residual.shape == (2, 2, 64, 96, 2)
+    # Depth is a property of the scene, not of the pixel grid: the 64x96 depth, shrunk, matches
+    # the depth the network predicts on the 32x48 images (focal scaling keeps metres metres).
+    shrunk = torch.nn.functional.interpolate(1 / static.depth.flatten(0, 1)[:, None], size=(32, 48), mode="area")[:, 0]
+    torch.testing.assert_close(1 / shrunk, static.depth_output.depth.float(), rtol=0.05, atol=0.0)
