@@ -14,9 +14,8 @@ the car) does. Measured on test scenes: +0.9 to +1.1 dB at the intermediate fram
 from __future__ import annotations
 
 import torch
-from torch import Tensor
-
 import torch.nn.functional as F
+from torch import Tensor
 
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
 from drivingscene.geometry.camera import unproject

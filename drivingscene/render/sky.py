@@ -24,7 +24,7 @@ def ray_directions(cam_to_world: Tensor, intrinsics: Tensor, height: int, width:
     y = (uv[..., 1] - k[..., 1, 2]) / k[..., 1, 1]
     x = (uv[..., 0] - k[..., 0, 2] - k[..., 0, 1] * y) / k[..., 0, 0]
     rays = torch.stack([x, y, torch.ones_like(x)], dim=-1)  # camera axes
-    dirs = (cam_to_world[:, None, None, :3, :3].to(rays.dtype) @ rays[..., None]).squeeze(-1)
+    dirs = rays @ cam_to_world[:, None, :3, :3].to(rays.dtype).transpose(-1, -2)  # row-wise R @ ray
     return torch.nn.functional.normalize(dirs, dim=-1)
 
 
