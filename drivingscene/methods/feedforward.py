@@ -34,7 +34,7 @@ DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
 class InferenceOptions:
     use_residual: bool = True  # False: static-only ablation (rigid flow, no dynamic Gaussians)
     lift: LiftConfig = LiftConfig()
-    amp: bool = True  # bf16 autocast for the networks on CPU
+    amp: bool = True  # bf16 autocast for D and P on CPU (R runs in float32: faster there, see training-notes)
     threads: int | None = None
 
 
@@ -75,8 +75,7 @@ def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOpt
     depth = static.depth.float()
     sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
     t0 = time.perf_counter()
-    with amp:
-        flow = predict_flow(model, batch, depth) if options.use_residual else None
+    flow = predict_flow(model, batch, depth) if options.use_residual else None
     rigid = flow.rigid if flow is not None else None
     scene_flow = None
     if flow is not None:

@@ -83,7 +83,13 @@ class GaussianHead(nn.Module):
         return self.out(self.full(x)).float().permute(0, 2, 3, 1)  # [B, H, W, C]
 
     def activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:
-        """Attributes from raw outputs ``[B, H, W, C]``, the image, depth and intrinsics (module docstring)."""
+        """Attributes from raw outputs ``[B, H, W, C]``, the image, depth and intrinsics (module docstring).
+
+        Geometry stays float32 even inside a bf16 autocast region (the surfel covariances need it)."""
+        with torch.autocast(raw.device.type, enabled=False):
+            return self._activate(raw.float(), images.float(), depth.float(), intrinsics.float())
+
+    def _activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:
         k = num_sh_coeffs(self.config.sh_degree)
         base_quats, base_log_scales = surfel_frames(depth.detach().float(), intrinsics.float())
         log_scales = base_log_scales + 2.0 * torch.tanh(raw[..., 0:3] / 2.0)

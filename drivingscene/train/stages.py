@@ -82,7 +82,7 @@ class TrainStep(nn.Module):
                 static = predict_static(self.model, batch)
             terms.update(self.static_terms(static, batch, step))
         if stage != "static":
-            terms.update(self.dynamic_terms(static, batch, step, amp))
+            terms.update(self.dynamic_terms(static, batch, step))
         w = self.config.weights
         weight = {"loc": w.loc, "smooth": w.smooth, "render": w.render, "warp": w.warp, "consist": w.consist}
         loss = sum(weight[k] * v for k, v in terms.items() if k in weight)
@@ -139,10 +139,11 @@ class TrainStep(nn.Module):
         return render_loss(pred, target, self.perceptual, self.config.weights.render_lpips)
 
     # -- stage 2 ---------------------------------------------------------------------------
-    def dynamic_terms(self, static: StaticPrediction, batch: PairTensors, step: int, amp) -> dict[str, Tensor]:
+    def dynamic_terms(self, static: StaticPrediction, batch: PairTensors, step: int) -> dict[str, Tensor]:
         depth = static.depth.float()
-        with amp:
-            flow = predict_flow(self.model, batch, depth)
+        # R in float32: its cost volumes and small convolutions gain nothing from bf16 on CPU, and
+        # autocast's per-call weight casts cost more than they save.
+        flow = predict_flow(self.model, batch, depth)
         targets = batch.images.flatten(0, 1)
         sources = batch.images.flip(0).flatten(0, 1)
         w = self.config.weights
