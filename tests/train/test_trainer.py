@@ -94,3 +94,23 @@ def test_torchrun_two_processes(data_dir, tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     meta = json.loads((tmp_path / "ddp" / "model.json").read_text())
     assert meta["world"] == 2 and meta["steps"] == 2
+
+
+def test_ship_weights_from_a_run_in_float16(data_dir, tmp_path, capsys):
+    from drivingscene.cli import main
+    from drivingscene.methods.feedforward import load_model
+
+    run = tmp_path / "run"
+    train(_config(data_dir, run, steps=2), show_progress=False)
+    assert main(["ship-weights", str(run), str(tmp_path / "w.safetensors")]) == 0
+    shipped = load_file(str(tmp_path / "w.safetensors"))
+    assert all(v.dtype == torch.float16 for v in shipped.values() if v.is_floating_point())
+    meta = json.loads((tmp_path / "w.json").read_text())
+    assert meta["dtype"] == "float16" and meta["steps"] == 2 and meta["model"]["input_size"] == [32, 48]
+    full = load_model(run / "model.safetensors")
+    half = load_model(tmp_path / "w.safetensors")
+    for (name, a), b in zip(full.state_dict().items(), half.state_dict().values()):
+        if a.is_floating_point():
+            torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-4, msg=name)
+    assert main(["ship-weights", str(run), str(tmp_path / "w.safetensors")]) == 2  # never overwrites
+    assert "exists" in capsys.readouterr().err
