@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from drivingscene.data.npz import load_npz, save_npz
+from drivingscene.data.npz import save_npz
 from drivingscene.errors import InputError, SceneFormatError
 from drivingscene.gaussians import Gaussians, Reconstruction, gaussians_from_pixels, load_reconstruction, save_reconstruction
 from drivingscene.gaussians.assembly import FOOTPRINT
