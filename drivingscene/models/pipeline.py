@@ -21,7 +21,7 @@ from torch import Tensor
 from drivingscene.data.tensors import PairTensors
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
-from drivingscene.geometry.camera import scale_intrinsics
+from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
 from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
 from drivingscene.models.depth import DepthOutput
@@ -102,12 +102,26 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPredic
     return StaticPrediction(depth=depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
 
 
+def bound_flow(flow: Tensor) -> Tensor:
+    """Clamp flow ``[..., H, W, 2]`` so that its destinations stay within one image size of the image.
+
+    Points that land behind the destination camera project to arbitrarily far (up to 1e6 px)
+    coordinates; such a flow only says "leaves the view", and unbounded it would swamp R's input
+    and every pooled flow error. Destinations are clamped to [-W, 2W - 1] x [-H, 2H - 1].
+    """
+    height, width = flow.shape[-3:-1]
+    grid = pixel_grid(height, width, dtype=flow.dtype, device=flow.device)
+    lo = flow.new_tensor([-width, -height])
+    hi = flow.new_tensor([2 * width - 1, 2 * height - 1])
+    return torch.minimum(torch.maximum(grid + flow, lo), hi) - grid
+
+
 def rigid_flows(depth: Tensor, batch: PairTensors) -> Tensor:
-    """``[2, V, H, W, 2]`` rigid flow 0->1 from depth_0 and 1->0 from depth_1."""
+    """``[2, V, H, W, 2]`` rigid flow 0->1 from depth_0 and 1->0 from depth_1, bounded (`bound_flow`)."""
     c2l = batch.cam_to_local
     f01, _ = rigid_flow(depth[0], batch.intrinsics, c2l[0], c2l[1])
     f10, _ = rigid_flow(depth[1], batch.intrinsics, c2l[1], c2l[0])
-    return torch.stack([f01, f10])
+    return bound_flow(torch.stack([f01, f10]))
 
 
 def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) -> FlowPrediction:

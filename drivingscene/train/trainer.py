@@ -71,6 +71,8 @@ def _prepare_out(config: TrainConfig, resume: bool, rank: int):
         raise InputError(f"{out}: a run is already there; pass --resume to continue it or choose another --out")
     if ckpt is not None:
         saved = TrainConfig.from_dict(json.loads((out / "config.json").read_text()))
+        if saved.model.input_size is None:  # runs saved before input_size existed trained at the data size
+            saved = replace(saved, model=replace(saved.model, input_size=config.model.input_size))
         if saved.model != config.model or saved.stage != config.stage:
             raise InputError(f"{out}/config.json: --resume: the saved stage/model config differs from this command's")
     if rank == 0:

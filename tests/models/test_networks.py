@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -11,7 +12,8 @@ from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.gaussians.assembly import surfel_frames
 from drivingscene.models import DrivingSceneModel, ModelConfig
 from drivingscene.models.depth import DepthConfig
-from drivingscene.models.pipeline import LiftConfig, assemble, predict_flow, predict_static, sky_mask
+from drivingscene.geometry.camera import pixel_grid
+from drivingscene.models.pipeline import LiftConfig, assemble, predict_flow, predict_static, rigid_flows, sky_mask
 from drivingscene.models.residual_flow import decoder_slots, local_cost_volume
 from tests.factories import make_pair, make_rig
 
@@ -116,3 +118,22 @@ def test_networks_run_at_the_training_size_and_outputs_come_back_full_size():
     # the depth the network predicts on the 32x48 images (focal scaling keeps metres metres).
     shrunk = torch.nn.functional.interpolate(1 / static.depth.flatten(0, 1)[:, None], size=(32, 48), mode="area")[:, 0]
     torch.testing.assert_close(1 / shrunk, static.depth_output.depth.float(), rtol=0.05, atol=0.0)
+
+
+def test_rigid_flow_of_points_behind_the_destination_camera_is_bounded():
+    # The ego drives 8 m forward; a point 3 m ahead of the front camera ends up behind it.
+    pair = make_pair(height=12, width=16)
+    batch = pair_to_tensors(pair)
+    depth = torch.full((2, batch.num_views, 12, 16), 3.0)
+    c2l = batch.cam_to_local.clone()
+    forward = torch.eye(4).repeat(batch.num_views, 1, 1)
+    forward[:, 0, 3] = 8.0
+    batch = replace(batch, cam_to_local=torch.stack([c2l[0], forward @ c2l[0]]))
+    flow = rigid_flows(depth, batch)
+    dest = flow + pixel_grid(12, 16)
+    assert torch.isfinite(flow).all()
+    assert dest[..., 0].min() >= -16 and dest[..., 0].max() <= 31
+    assert dest[..., 1].min() >= -12 and dest[..., 1].max() <= 23
+    # Points that stay in front keep their exact flow: bounding only touches far destinations.
+    near = rigid_flows(torch.full_like(depth, 200.0), batch)
+    assert near.abs().max() < 8
