@@ -13,12 +13,12 @@ import argparse
 import math
 import multiprocessing
 import os
-import platform
-import resource
 import statistics
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from drivingscene.bench.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
 if TYPE_CHECKING:  # torch is imported inside the functions: `drivingscene --help` stays fast
     from torch import Tensor
@@ -111,15 +111,6 @@ def surround_scene(height: int, width: int, seed: int = 0, sh_degree: int | None
     return scene
 
 
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-def _peak_rss_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
-
-
 def _timed(fn, repeats: int) -> list[float]:
     fn()  # warm-up (and the one-time C++ build/load)
     times = []
@@ -130,7 +121,9 @@ def _timed(fn, repeats: int) -> list[float]:
     return times
 
 
-def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int | None = None, sh_degree: int | None = None) -> dict:
+def measure(
+    size: str, backend: str, max_layers: int, repeats: int, threads: int | None = None, sh_degree: int | None = None
+) -> dict:
     """Forward and forward+backward times (s) and peak RSS above the scene's baseline (MiB) for one case."""
     import torch
 
@@ -151,29 +144,16 @@ def measure(size: str, backend: str, max_layers: int, repeats: int, threads: int
         out = rasterize(**params, max_layers=max_layers, backend=backend)
         (out.colors.sum() + 0.01 * out.depths.sum() + out.alphas.sum()).backward()
 
-    base = _rss_bytes()
+    base = current_rss_bytes()
     fwd = _timed(forward, repeats)
-    peak_fwd = _peak_rss_bytes() - base
+    peak_fwd = peak_rss_bytes() - base
     fwd_bwd = _timed(forward_backward, repeats)
-    peak_fwd_bwd = _peak_rss_bytes() - base
+    peak_fwd_bwd = peak_rss_bytes() - base
     return dict(
         size=size, backend=backend, gaussians=len(scene["means"]), max_layers=max_layers, sh_degree=sh_degree,
         fwd=statistics.median(fwd), fwd_min=min(fwd), fwd_bwd=statistics.median(fwd_bwd), fwd_bwd_min=min(fwd_bwd),
         peak_fwd_mib=peak_fwd / 2**20, peak_fwd_bwd_mib=peak_fwd_bwd / 2**20, threads=torch.get_num_threads(),
     )  # fmt: skip
-
-
-def machine_description() -> str:
-    """CPU model, logical cores, torch version and its default thread count."""
-    import torch
-
-    model = platform.processor() or "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as f:
-            model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return f"{model}, {os.cpu_count()} logical cores, torch {torch.__version__} (default {torch.get_num_threads()} threads)"
 
 
 def _load() -> str:

@@ -22,7 +22,12 @@ from pathlib import Path
 from drivingscene.bench.machine import machine_description
 
 NVS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "{lpips}", "{:.3f}")]
-DEPTH = [("abs_rel", "AbsRel", "{:.3f}"), ("sq_rel", "SqRel", "{:.3f}"), ("rmse", "RMSE (m)", "{:.2f}"), ("a1", "δ<1.25", "{:.3f}")]
+DEPTH = [
+    ("abs_rel", "AbsRel", "{:.3f}"),
+    ("sq_rel", "SqRel", "{:.3f}"),
+    ("rmse", "RMSE (m)", "{:.2f}"),
+    ("a1", "δ<1.25", "{:.3f}"),
+]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -77,11 +82,21 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, float], lpips_name:
         for prefix, label in (("depth", "metric"), ("depth_ms", "median-scaled")):
             depth_rows.append([m, label] + [_fmt(_mean(rows, f"{prefix}_{k}"), f) for k, _, f in DEPTH])
     flow_rows = [
-        [m, _fmt(_mean(rows, "epe_dyn_rigid"), "{:.2f}"), _fmt(_mean(rows, "epe_dyn_total"), "{:.2f}"), _fmt(_mean(rows, "epe_static_total"), "{:.2f}")]
+        [
+            m,
+            _fmt(_mean(rows, "epe_dyn_rigid"), "{:.2f}"),
+            _fmt(_mean(rows, "epe_dyn_total"), "{:.2f}"),
+            _fmt(_mean(rows, "epe_static_total"), "{:.2f}"),
+        ]
         for m, rows in scores.items()
     ]
-    speed = [[m, f"{seconds[m]:.2f}", f"{_mean(rows, 'gaussians') / 1e3:.0f}k", f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k"] for m, rows in scores.items()]
-    cmd = f"drivingscene bench results --data {args.data} --count {args.count}" + (f" --joint-weights {args.joint_weights}" if args.joint_weights else "")
+    speed = [
+        [m, f"{seconds[m]:.2f}", f"{_mean(rows, 'gaussians') / 1e3:.0f}k", f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k"]
+        for m, rows in scores.items()
+    ]
+    cmd = f"drivingscene bench results --data {args.data} --count {args.count}" + (
+        f" --joint-weights {args.joint_weights}" if args.joint_weights else ""
+    )
     parts = [
         "# Results\n",
         f"Regenerate with `{cmd} --out docs/results.md`. {count} test-split pairs never seen in training; "
@@ -119,7 +134,11 @@ def run(args: argparse.Namespace) -> int:
             recon = method(pair)
             seconds[name] += (time.perf_counter() - tic) / len(files)
             scores[name].append({"file": path.name, **score_reconstruction(recon, pair, perceptual)})
-        print(f"[{i + 1}/{len(files)}] {path.name}: " + ", ".join(f"{n.split(' ')[0]} {scores[n][-1].get('psnr', math.nan):.2f} dB" for n, _ in methods), flush=True)
+        print(
+            f"[{i + 1}/{len(files)}] {path.name}: "
+            + ", ".join(f"{n.split(' ')[0]} {scores[n][-1].get('psnr', math.nan):.2f} dB" for n, _ in methods),
+            flush=True,
+        )
     text = report(scores, seconds, perceptual.name, args, len(files))
     print(text)
     if args.out:

@@ -10,12 +10,12 @@ markdown table (and writes it to ``--out``) with the machine: CPU, cores, GL ren
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import tempfile
 import time
 from pathlib import Path
+
+from drivingscene.bench.machine import machine_description
 
 DEFAULT_SIZES = ("176x320", "96x176")
 
@@ -25,18 +25,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=int, default=5, help="timed pairs per size after one warm-up (default 5)")
     p.add_argument("--preset", default="default", help="difficulty preset (default: default)")
     p.add_argument("--out", type=Path, help="also write the markdown report to this file")
-
-
-def machine_description(gl_renderer: str) -> str:
-    model = platform.processor() or "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as f:
-            model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    return f"{model}, {usable} usable cores, OpenGL renderer {gl_renderer}, load average {load} (shared machine)"
 
 
 def measure(size: str, runs: int, preset: str, renderer) -> dict:
@@ -60,9 +48,18 @@ def measure(size: str, runs: int, preset: str, renderer) -> dict:
             path = save_frame_pair(pair, Path(tmp) / f"{i}.npz")
             totals.append(time.perf_counter() - t0)
             sizes.append(path.stat().st_size / 1e6)
-    return dict(size=size, supersample=config.supersample, num_eval=config.num_eval, wall=statistics.mean(walls),
-                wall_min=min(walls), cpu=statistics.mean(cpus), total=statistics.mean(totals), total_min=min(totals),
-                mb=statistics.mean(sizes), stages={k: v / runs for k, v in stages.items()})
+    return dict(
+        size=size,
+        supersample=config.supersample,
+        num_eval=config.num_eval,
+        wall=statistics.mean(walls),
+        wall_min=min(walls),
+        cpu=statistics.mean(cpus),
+        total=statistics.mean(totals),
+        total_min=min(totals),
+        mb=statistics.mean(sizes),
+        stages={k: v / runs for k, v in stages.items()},
+    )
 
 
 def markdown(rows: list[dict], machine: str, runs: int) -> str:
@@ -73,8 +70,10 @@ def markdown(rows: list[dict], machine: str, runs: int) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['size']} | {r['supersample']} | {2 + r['num_eval']} | {r['wall']:.2f} / {r['wall_min']:.2f} "
-                     f"| {r['cpu']:.2f} | {r['total']:.2f} / {r['total_min']:.2f} | {r['mb']:.1f} |")
+        lines.append(
+            f"| {r['size']} | {r['supersample']} | {2 + r['num_eval']} | {r['wall']:.2f} / {r['wall_min']:.2f} "
+            f"| {r['cpu']:.2f} | {r['total']:.2f} / {r['total_min']:.2f} | {r['mb']:.1f} |"
+        )
     lines += ["", "| size | " + " | ".join(rows[0]["stages"]) + " |", "|---|" + "---|" * len(rows[0]["stages"])]
     for r in rows:
         lines.append(f"| {r['size']} | " + " | ".join(f"{v:.3f}" for v in r["stages"].values()) + " |")
@@ -89,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--runs: expected a positive number of runs, found {args.runs}")
     renderer = SynthRenderer()
     rows = [measure(size, args.runs, args.preset, renderer) for size in args.sizes]
-    report = markdown(rows, machine_description(renderer.renderer_name), args.runs)
+    report = markdown(rows, machine_description(f"OpenGL renderer {renderer.renderer_name}"), args.runs)
     print(report, end="")
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
