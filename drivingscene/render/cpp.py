@@ -1,4 +1,5 @@
-"""Loader of the optional compiled pair-finding step (``csrc/find_pairs.cpp``).
+"""Loader of the optional compiled CPU kernels: the rasterizer's pair finding (``csrc/find_pairs.cpp``)
+and the per-pixel surfel frames of the Gaussian assembly (``csrc/surfels.cpp``).
 
 Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenMP, ninja) into
 ``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
@@ -22,7 +23,7 @@ import torch
 log = logging.getLogger(__name__)
 
 EXTENSION_NAME = "drivingscene_render"
-SOURCES = (Path(__file__).parent / "csrc" / "find_pairs.cpp",)
+SOURCES = (Path(__file__).parent / "csrc" / "find_pairs.cpp", Path(__file__).parent / "csrc" / "surfels.cpp")
 CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")  # no FMA: must match the torch path's rounding
 
 
@@ -55,7 +56,7 @@ def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> 
         )
         return torch.ops.drivingscene_render.find_pairs
     except Exception as e:  # any build/load failure means "use the torch path"
-        log.warning("C++ rasterizer step unavailable, using the pure-torch path (same image, slower): %s", _first_line(e))
+        log.warning("C++ kernels unavailable, using the pure-torch paths (same results, slower): %s", _first_line(e))
         return None
 
 
@@ -63,11 +64,18 @@ def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> 
 def load_extension() -> Callable | None:
     """The compiled ``find_pairs`` op, built once per process; ``None`` if disabled or unavailable."""
     if os.environ.get("DRIVINGSCENE_NO_CPP", "") not in ("", "0"):
-        log.info("C++ rasterizer step disabled by DRIVINGSCENE_NO_CPP")
+        log.info("C++ kernels disabled by DRIVINGSCENE_NO_CPP")
         return None
     if hasattr(torch.ops.drivingscene_render, "find_pairs"):
         return torch.ops.drivingscene_render.find_pairs
     return build_extension()
+
+
+def load_op(name: str) -> Callable | None:
+    """The compiled op ``torch.ops.drivingscene_render.<name>``, or ``None`` where the extension is unavailable."""
+    if load_extension() is None:
+        return None
+    return getattr(torch.ops.drivingscene_render, name)
 
 
 def _first_line(e: Exception) -> str:

@@ -217,3 +217,33 @@ def test_axes_to_quat_gives_an_equivalent_gaussian_with_w_at_least_half():
     # Same axes up to sign: the covariance R S^2 R^T is unchanged.
     scales = torch.diag(torch.tensor([0.3, 1.0, 2.0], dtype=torch.float64)) ** 2
     torch.testing.assert_close(back @ scales @ back.transpose(1, 2), rot @ scales @ rot.transpose(1, 2))
+
+
+def test_compiled_surfel_frames_match_the_torch_path():
+    from drivingscene.gaussians.assembly import surfel_frames, surfel_frames_torch
+    from drivingscene.geometry.se3 import quat_to_matrix as q2m
+    from drivingscene.render import cpp
+
+    if cpp.load_extension() is None:
+        pytest.skip("C++ kernels unavailable (no compiler/ninja; see the logged warning)")
+    g = torch.Generator().manual_seed(0)
+    # Blocky depth with edges, slanted planes and near/far jumps, in 3 cameras with skew and offsets.
+    depth = 2.0 + 60.0 * torch.rand(3, 6, 8, generator=g).repeat_interleave(5, 1).repeat_interleave(5, 2)
+    depth = depth + torch.linspace(0, 4, 40)[None, None, :] + 0.05 * torch.rand(3, 30, 40, generator=g)
+    k = torch.tensor([[[50.0, 0.3, 19.5], [0.0, 48.0, 14.5], [0, 0, 1]]]).repeat(3, 1, 1) * torch.tensor([1.0, 1.2, 0.8])[:, None, None]
+    k[:, 2, 2] = 1
+    q_cpp, s_cpp = surfel_frames(depth, k, backend="cpp")
+    q_ref, s_ref = surfel_frames_torch(depth, k)
+    torch.testing.assert_close(s_cpp, s_ref, atol=1e-4, rtol=0)
+
+    def cov(q, s):
+        r = q2m(q)
+        return r @ torch.diag_embed(torch.exp(2 * s)) @ r.transpose(-1, -2)
+
+    c_cpp, c_ref = cov(q_cpp, s_cpp), cov(q_ref, s_ref)
+    rel = (c_cpp - c_ref).abs().amax((-1, -2)) / c_ref.abs().amax((-1, -2))
+    assert rel.max() < 1e-4
+    torch.testing.assert_close(q_cpp.norm(dim=-1), torch.ones(3, 30, 40), atol=1e-5, rtol=0)
+    # "auto" takes the compiled path for float32 CPU input and the torch path for float64.
+    torch.testing.assert_close(surfel_frames(depth, k)[1], s_cpp, atol=0, rtol=0)
+    assert surfel_frames(depth.double(), k.double())[1].dtype == torch.float64
