@@ -37,13 +37,21 @@ def image_size(text: str) -> tuple[int, int]:
 
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog=PROG, description="DrivingScene viewer and editor: scrub time, inspect depth and flow, edit, export.")
-    p.add_argument("path", nargs="?", type=Path, metavar="FILE", help="scene.npz, recon.npz or 3DGS .ply (default: the demo scene)")
-    p.add_argument("--method", choices=METHODS, default="auto",
-                   help="for a scene.npz: the model (auto: when its weights exist) or the ground-truth oracle")
+    p.add_argument(
+        "path", nargs="?", type=Path, metavar="FILE", help="scene.npz, recon.npz or 3DGS .ply (default: the demo scene)"
+    )
+    p.add_argument(
+        "--method",
+        choices=METHODS,
+        default="auto",
+        help="for a scene.npz: the model (auto: when its weights exist) or the ground-truth oracle",
+    )
     p.add_argument("--weights", type=Path, default=None, help="model weights .safetensors (JSON config beside it)")
     p.add_argument("--headless", action="store_true", help="render to files through EGL, no window")
     p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder of --headless")
-    p.add_argument("--time", type=unit_interval, action="append", metavar="T", help="normalised time (repeatable; default 0, 0.5, 1)")
+    p.add_argument(
+        "--time", type=unit_interval, action="append", metavar="T", help="normalised time (repeatable; default 0, 0.5, 1)"
+    )
     p.add_argument("--camera", action="append", metavar="NAME", help="rig camera to render (repeatable; default all)")
     p.add_argument("--mode", choices=MODES, default="rgb", help="what to render (headless)")
     p.add_argument("--blend", choices=BLEND_MODES, default="all", help="how both keyframes' Gaussians combine at time t")

@@ -81,10 +81,16 @@ def fill_rate(ctx) -> float:
     from drivingscene.gaussians.recon import Reconstruction
 
     n = 48
-    g = Gaussians.create(torch.tensor([[0.0, 0.0, 5.0]]).repeat(n, 1) + torch.linspace(0, 0.1, n)[:, None],
-                         torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1), torch.full((n, 3), 1.5), torch.full((n,), 0.05),
-                         torch.rand(n, 3))
-    recon = Reconstruction(g, np.zeros((0, 3, 3)), np.zeros((0, 4, 4)), np.tile(np.eye(4), (2, 1, 1)), np.array([0.0, 1.0]), (), (0, 0))
+    g = Gaussians.create(
+        torch.tensor([[0.0, 0.0, 5.0]]).repeat(n, 1) + torch.linspace(0, 0.1, n)[:, None],
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+        torch.full((n, 3), 1.5),
+        torch.full((n,), 0.05),
+        torch.rand(n, 3),
+    )
+    recon = Reconstruction(
+        g, np.zeros((0, 3, 3)), np.zeros((0, 4, 4)), np.tile(np.eye(4), (2, 1, 1)), np.array([0.0, 1.0]), (), (0, 0)
+    )
     doc = SceneDoc(recon)
     cam = CameraController().nav.view(WIDTH, HEIGHT)
     cam = replace(cam, world_to_cam=np.eye(4))
@@ -179,12 +185,19 @@ def run_bench(args) -> int:
             "moving": measure_moving(viewport, doc, _cameras(doc, args.frames), ctx),
             "rest": measure_rest(viewport, doc, _cameras(doc, 3), ctx),
             "baseline": measure_baseline(viewport, doc, _cameras(doc, 3), ctx),
-            "lod_s": lod_s, "levels": [len(s.splats) for s in viewport.levels],
+            "lod_s": lod_s,
+            "levels": [len(s.splats) for s in viewport.levels],
         }
     finally:
         viewport.close()
-    results.update(load=(load_start, os.getloadavg()[0]), gl=ctx.info["GL_RENDERER"], scene=str(args.path), n=len(doc.splats),
-                   dynamic=int(doc.splats.dynamic.sum()), method=doc.info.get("method"))
+    results.update(
+        load=(load_start, os.getloadavg()[0]),
+        gl=ctx.info["GL_RENDERER"],
+        scene=str(args.path),
+        n=len(doc.splats),
+        dynamic=int(doc.splats.dynamic.sum()),
+        method=doc.info.get("method"),
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(report(results))
     print(out.read_text())

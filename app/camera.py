@@ -231,7 +231,9 @@ class CameraController:
     def view(self, recon, t: float, width: int, height: int) -> ViewCamera:
         """The camera at time t for a viewport of ``width`` x ``height`` (rig views keep the rig K/size)."""
         if self.rig_index is not None and self.rig_index < recon.num_views:
-            return rig_camera(recon.cam_to_world_at(float(t))[self.rig_index].numpy(), recon.intrinsics[self.rig_index], recon.image_size)
+            return rig_camera(
+                recon.cam_to_world_at(float(t))[self.rig_index].numpy(), recon.intrinsics[self.rig_index], recon.image_size
+            )
         return self.nav.view(width, height, self.frame_to_world(recon, t))
 
     def snap(self, index: int | None) -> None:

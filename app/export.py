@@ -19,7 +19,11 @@ from app.viewport import Viewport
 from drivingscene.errors import InputError
 from drivingscene.viz import save_png
 
-PLY_KINDS = {"3dgs": "standard 3DGS at time t", "dynamic": "dynamic (keyframe positions + flow)", "points": "point cloud at time t"}
+PLY_KINDS = {
+    "3dgs": "standard 3DGS at time t",
+    "dynamic": "dynamic (keyframe positions + flow)",
+    "points": "point cloud at time t",
+}
 
 
 def free_path(path: str | os.PathLike) -> Path:
@@ -39,8 +43,16 @@ def _prepare(path: Path) -> Path:
     return free_path(path)
 
 
-def export_view(viewport: Viewport, doc: SceneDoc, camera: ViewCamera, t: float, opts: RenderOptions, path: Path,
-                size: tuple[int, int] | None = None, depth_range=(2.0, 80.0)) -> Path:
+def export_view(
+    viewport: Viewport,
+    doc: SceneDoc,
+    camera: ViewCamera,
+    t: float,
+    opts: RenderOptions,
+    path: Path,
+    size: tuple[int, int] | None = None,
+    depth_range=(2.0, 80.0),
+) -> Path:
     """The view of ``camera`` at ``size`` (W, H; default the camera's) as a PNG, without overlays or selection tint."""
     if size is not None and (size[0] < 1 or size[1] < 1 or size[0] > 8192 or size[1] > 8192):
         raise InputError(f"PNG size: expected 1-8192 pixels per side, found {size[0]}x{size[1]}")
@@ -61,8 +73,15 @@ def rig_views(doc: SceneDoc, t: float) -> list[tuple[str, ViewCamera]]:
     return [(name, rig_camera(cams[v], recon.intrinsics[v], recon.image_size)) for v, name in enumerate(recon.camera_names)]
 
 
-def iter_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOptions, folder: Path,
-                   depth_range=(2.0, 80.0), names: list[str] | None = None):
+def iter_rig_views(
+    viewport: Viewport,
+    doc: SceneDoc,
+    t: float,
+    opts: RenderOptions,
+    folder: Path,
+    depth_range=(2.0, 80.0),
+    names: list[str] | None = None,
+):
     """Generator: one PNG per rig camera at time t (rig resolution, exact intrinsics); yields each path."""
     if not doc.num_views:
         raise InputError("this file has no rig cameras (a PLY from another tool); export the current view instead")
@@ -77,13 +96,28 @@ def iter_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOpti
         yield save_png(_prepare(Path(folder) / f"{name}_t{t:.3f}.png"), image)
 
 
-def export_rig_views(viewport: Viewport, doc: SceneDoc, t: float, opts: RenderOptions, folder: Path,
-                     depth_range=(2.0, 80.0), names: list[str] | None = None) -> list[Path]:
+def export_rig_views(
+    viewport: Viewport,
+    doc: SceneDoc,
+    t: float,
+    opts: RenderOptions,
+    folder: Path,
+    depth_range=(2.0, 80.0),
+    names: list[str] | None = None,
+) -> list[Path]:
     return list(iter_rig_views(viewport, doc, t, opts, folder, depth_range, names))
 
 
-def iter_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float], ViewCamera], opts: RenderOptions, path: Path,
-               frames: int = 48, fps: float = 24.0, depth_range=(2.0, 80.0)):
+def iter_video(
+    viewport: Viewport,
+    doc: SceneDoc,
+    camera_at: Callable[[float], ViewCamera],
+    opts: RenderOptions,
+    path: Path,
+    frames: int = 48,
+    fps: float = 24.0,
+    depth_range=(2.0, 80.0),
+):
     """Generator: an MP4 (OpenCV, mp4v) sweeping t from 0 to 1 with ``camera_at(t)``; yields the fraction
     done after each frame and finally the path (written under a hidden name, renamed when complete)."""
     import cv2
@@ -111,8 +145,16 @@ def iter_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float], V
     yield path
 
 
-def export_video(viewport: Viewport, doc: SceneDoc, camera_at: Callable[[float], ViewCamera], opts: RenderOptions, path: Path,
-                 frames: int = 48, fps: float = 24.0, depth_range=(2.0, 80.0)) -> Path:
+def export_video(
+    viewport: Viewport,
+    doc: SceneDoc,
+    camera_at: Callable[[float], ViewCamera],
+    opts: RenderOptions,
+    path: Path,
+    frames: int = 48,
+    fps: float = 24.0,
+    depth_range=(2.0, 80.0),
+) -> Path:
     *_, out = iter_video(viewport, doc, camera_at, opts, path, frames, fps, depth_range)
     return out
 

@@ -57,7 +57,9 @@ def run_headless(args) -> int:
     out = Path(args.out)
     existing = [p for p in planned_outputs(out, times, names, not args.no_ply) if p.exists()]
     if existing and not args.force:
-        raise InputError(f"{existing[0]}: exists ({len(existing)} output file(s) would be overwritten); pass --force or choose another --out")
+        raise InputError(
+            f"{existing[0]}: exists ({len(existing)} output file(s) would be overwritten); pass --force or choose another --out"
+        )
     for p in existing:
         p.unlink()
     ctx = create_offscreen_context()
@@ -78,6 +80,8 @@ def run_headless(args) -> int:
         viewport.close()
         ctx.release()
     stats = doc.stats()
-    print(f"{loaded.source}: {stats['total']} Gaussians ({stats['dynamic']} dynamic), method {doc.info.get('method')}; "
-          f"wrote {len(written)} files to {out}")
+    print(
+        f"{loaded.source}: {stats['total']} Gaussians ({stats['dynamic']} dynamic), method {doc.info.get('method')}; "
+        f"wrote {len(written)} files to {out}"
+    )
     return 0

@@ -92,7 +92,7 @@ def mouse_scroll(viewer: Viewer, scroll_y: float) -> None:
         return
     if viewer.camera.rig_index is not None:
         viewer.camera.unsnap(viewer.doc.recon, viewer.view.t)
-    viewer.camera.nav.zoom(0.88 ** scroll_y)
+    viewer.camera.nav.zoom(0.88**scroll_y)
     viewer.touch()
 
 
@@ -130,21 +130,31 @@ def key_press(viewer: Viewer, key: str, ctrl: bool, shift: bool) -> bool:
     """Shortcuts; ``key`` is a lower-case name ('space', 'left', 'f', '1', ...). True if handled."""
     doc = viewer.doc
     if ctrl:
-        actions = {"z": viewer_redo if shift else viewer_undo, "y": viewer_redo, "q": _quit,
-                   "a": lambda v: v.doc and v.doc.select(np.ones(len(v.doc.splats), bool), "replace", "select all")}
+        actions = {
+            "z": viewer_redo if shift else viewer_undo,
+            "y": viewer_redo,
+            "q": _quit,
+            "a": lambda v: v.doc and v.doc.select(np.ones(len(v.doc.splats), bool), "replace", "select all"),
+        }
         if key in actions:
             actions[key](viewer)
             return True
         return False
     simple = {
         "space": lambda v: setattr(v.view, "playing", not v.view.playing),
-        "left": lambda v: v.step_time(-1), "right": lambda v: v.step_time(1),
-        "comma": lambda v: v.step_time(-1), "period": lambda v: v.step_time(1),
-        "home": lambda v: v.set_time(0.0), "end": lambda v: v.set_time(1.0),
-        "f": lambda v: v.frame_all(), "r": lambda v: v.reset_camera(),
-        "0": lambda v: v.snap(None), "g": lambda v: v.set_follow(not v.camera.follow_ego),
+        "left": lambda v: v.step_time(-1),
+        "right": lambda v: v.step_time(1),
+        "comma": lambda v: v.step_time(-1),
+        "period": lambda v: v.step_time(1),
+        "home": lambda v: v.set_time(0.0),
+        "end": lambda v: v.set_time(1.0),
+        "f": lambda v: v.frame_all(),
+        "r": lambda v: v.reset_camera(),
+        "0": lambda v: v.snap(None),
+        "g": lambda v: v.set_follow(not v.camera.follow_ego),
         "escape": lambda v: (setattr(v.tools, "tool", "navigate"), v.doc and v.doc.clear_selection()),
-        "delete": lambda v: v.doc and v.doc.delete_selected(), "h": lambda v: v.doc and v.doc.hide_selected(),
+        "delete": lambda v: v.doc and v.doc.delete_selected(),
+        "h": lambda v: v.doc and v.doc.hide_selected(),
         "i": lambda v: v.doc and v.doc.invert_selection(),
     }
     if key in simple:

@@ -64,7 +64,7 @@ def ply_reconstruction(gaussians) -> Reconstruction:
 
 
 def _ply_up_axis(path: Path) -> str:
-    """"z" for our own PLYs (z-up world), "-y" for others (COLMAP/OpenCV worlds are y-down)."""
+    """ "z" for our own PLYs (z-up world), "-y" for others (COLMAP/OpenCV worlds are y-down)."""
     with open(path, "rb") as f:
         for _ in range(10000):
             line = f.readline()
@@ -96,7 +96,9 @@ def reconstruct_pair(pair: FramePair, source: Path | None, method: str, weights:
         progress(None, f"running the model on {pair.num_views} cameras")
         recon = reconstruct(model, pair)
     seconds = time.perf_counter() - start
-    return Loaded(recon, source, {"kind": "scene", "method": recon.meta.get("method", method), "seconds": seconds, "up": "z"}, pair)
+    return Loaded(
+        recon, source, {"kind": "scene", "method": recon.meta.get("method", method), "seconds": seconds, "up": "z"}, pair
+    )
 
 
 def open_path(path: Path, method: str = "auto", weights: Path | None = None, progress: Progress = _no_progress) -> Loaded:
@@ -112,7 +114,9 @@ def open_path(path: Path, method: str = "auto", weights: Path | None = None, pro
         from drivingscene.export.ply import read_ply
 
         recon = ply_reconstruction(read_ply(path))
-        return Loaded(recon, path, {"kind": "ply", "method": "ply", "seconds": time.perf_counter() - start, "up": _ply_up_axis(path)})
+        return Loaded(
+            recon, path, {"kind": "ply", "method": "ply", "seconds": time.perf_counter() - start, "up": _ply_up_axis(path)}
+        )
     if path.suffix.lower() != ".npz":
         raise InputError(f"{path}: expected a .npz (scene or reconstruction) or a .ply file, found '{path.suffix}'")
     from drivingscene.data.npz import load_npz

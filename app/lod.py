@@ -63,8 +63,13 @@ def _cell_for(splats: SplatArrays, target: int, flow_tolerance: float, cell: flo
     return cell
 
 
-def build_levels(splats: SplatArrays, fractions=TARGET_FRACTIONS, flow_tolerance: float = 0.1, boost: float = 1.6,
-                 cells: tuple[float, ...] | None = None) -> list[LodLevel]:
+def build_levels(
+    splats: SplatArrays,
+    fractions=TARGET_FRACTIONS,
+    flow_tolerance: float = 0.1,
+    boost: float = 1.6,
+    cells: tuple[float, ...] | None = None,
+) -> list[LodLevel]:
     """Coarser and coarser levels, each merged from the previous (unwidened) one, with about
     ``fraction`` x N Gaussians each (or with the given merge ``cells``)."""
     levels = []
@@ -87,8 +92,9 @@ def build_levels(splats: SplatArrays, fractions=TARGET_FRACTIONS, flow_tolerance
     return levels
 
 
-def level_state(level: LodLevel, splats: SplatArrays, hidden: np.ndarray, selected: np.ndarray,
-                flows_changed: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def level_state(
+    level: LodLevel, splats: SplatArrays, hidden: np.ndarray, selected: np.ndarray, flows_changed: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Flags ``[M]`` (1 hidden, 2 selected) of a level for the document's state, and its flows ``[M, 3]``
     recomputed from the visible sources when ``flows_changed`` (else None)."""
     m, u = len(level), len(level.source)

@@ -17,7 +17,9 @@ PATH_COLOR = (1.0, 0.35, 0.35, 0.95)
 GRID_COLOR = (1.0, 1.0, 1.0, 0.16)
 
 
-def frustum_segments(cam_to_world: np.ndarray, intrinsics: np.ndarray, image_size: tuple[int, int], depth: float = 1.6) -> np.ndarray:
+def frustum_segments(
+    cam_to_world: np.ndarray, intrinsics: np.ndarray, image_size: tuple[int, int], depth: float = 1.6
+) -> np.ndarray:
     """``[8, 2, 3]``: the 4 edges from the centre to the image corners at ``depth`` metres and the far rectangle."""
     height, width = image_size
     k_inv = np.linalg.inv(np.asarray(intrinsics, np.float64))
@@ -55,7 +57,9 @@ def grid_segments(centre: np.ndarray, height: float, extent: float = 60.0, spaci
 _CACHE: dict = {}
 
 
-def scene_overlays(recon, t: float, show_frusta: bool, show_path: bool, show_grid: bool, snapped: int | None) -> list[tuple[np.ndarray, tuple]]:
+def scene_overlays(
+    recon, t: float, show_frusta: bool, show_path: bool, show_grid: bool, snapped: int | None
+) -> list[tuple[np.ndarray, tuple]]:
     """(segments, colour) groups for a reconstruction with a rig at time t (cached per recon and arguments)."""
     if not recon.num_views:
         return []

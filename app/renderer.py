@@ -222,13 +222,16 @@ class SplatRenderer:
             t = self._targets[name] = Target(self.ctx, width, height, dtype)
         return t
 
-    def render(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions = RenderOptions(), name: str = "view") -> Target:
+    def render(
+        self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions = RenderOptions(), name: str = "view"
+    ) -> Target:
         """Sky + ``splats`` in their current order into the target ``name`` of the camera's size."""
         target = self.target(camera.width, camera.height, "f4" if opts.mode == "depth" else None, name)
         return self.render_range(splats, camera, t, opts, target, 0, splats.count)
 
-    def render_range(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, target: Target,
-                     start: int, count: int) -> Target:
+    def render_range(
+        self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, target: Target, start: int, count: int
+    ) -> Target:
         """Draw splats ``[start, start + count)`` of the back-to-front order into ``target`` (the sky
         first when ``start`` is 0): drawing a picture in several calls gives the same result."""
         target.fbo.use()
@@ -286,7 +289,9 @@ class SplatRenderer:
         self._quad_vao(splats.count).render(mode=self.ctx.TRIANGLES, vertices=6 * count, first=6 * start)
         self.ctx.disable(self.ctx.BLEND)
 
-    def present(self, target: Target, viewport: tuple[int, int, int, int], opts: RenderOptions, depth_range=(1.0, 100.0), fbo=None) -> None:
+    def present(
+        self, target: Target, viewport: tuple[int, int, int, int], opts: RenderOptions, depth_range=(1.0, 100.0), fbo=None
+    ) -> None:
         """Draw ``target`` into ``viewport`` (x, y, w, h; GL bottom-left origin) of ``fbo`` (default: the screen)."""
         (fbo or self.ctx.screen).use()
         self.ctx.viewport = viewport
@@ -300,7 +305,9 @@ class SplatRenderer:
         prog["u_depth_range"].value = tuple(float(x) for x in depth_range)
         self.present_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
 
-    def render_image(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, depth_range=(1.0, 100.0)) -> np.ndarray:
+    def render_image(
+        self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, depth_range=(1.0, 100.0)
+    ) -> np.ndarray:
         """Finished RGB ``[H, W, 3]`` uint8 of ``splats`` in their current order (depth colour-mapped)."""
         target = self.render(splats, camera, t, opts, name="export")
         out = self.target(camera.width, camera.height, "f1", name="image")

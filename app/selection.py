@@ -33,8 +33,9 @@ def sphere_mask(points: np.ndarray, centre: np.ndarray, radius: float) -> np.nda
     return ((points - np.asarray(centre, points.dtype)) ** 2).sum(axis=1) <= radius * radius
 
 
-def pick(points: np.ndarray, camera: ViewCamera, pixel: tuple[float, float], candidates: np.ndarray,
-         tolerance: float = 6.0) -> int | None:
+def pick(
+    points: np.ndarray, camera: ViewCamera, pixel: tuple[float, float], candidates: np.ndarray, tolerance: float = 6.0
+) -> int | None:
     """Index of the nearest-to-camera Gaussian among ``candidates`` (bool ``[N]``) whose centre projects
     within ``tolerance`` pixels of ``pixel``; None if there is none."""
     uv, z = camera.project(points)

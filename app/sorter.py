@@ -98,7 +98,9 @@ def depth_order(data: SortInput, req: SortRequest) -> np.ndarray:
     keep = (z >= req.near) & (z <= req.far) & ~data.hidden
     if req.blend != "all":
         k1 = data.keyframes == 1
-        weight = np.where(k1, req.t, 1.0 - req.t) if req.blend == "fade" else np.where(k1, float(req.t >= 0.5), float(req.t < 0.5))
+        weight = (
+            np.where(k1, req.t, 1.0 - req.t) if req.blend == "fade" else np.where(k1, float(req.t >= 0.5), float(req.t < 0.5))
+        )
         keep &= data.opacities * weight >= MIN_ALPHA
     # The frustum test on every splat (culled ones get a harmless z) beats gathering the kept ones first.
     keep &= _frustum_keep(np.where(keep, p_cam, np.float32(1.0)), data.max_scales, req)

@@ -42,7 +42,9 @@ class ViewState:
 class SceneDoc:
     """A reconstruction opened in the viewer, with its edits."""
 
-    def __init__(self, recon: Reconstruction, source: Path | None = None, info: dict | None = None, budget_bytes: int = 256 << 20):
+    def __init__(
+        self, recon: Reconstruction, source: Path | None = None, info: dict | None = None, budget_bytes: int = 256 << 20
+    ):
         self.recon = recon
         self.source = source
         self.info = dict(info or {})  # kind, method, seconds, ...

@@ -17,8 +17,13 @@ LEFT_W = 340
 STRIP_H = 196
 TIMELINE_H = 44
 STATUS_H = 26
-FIXED = (imgui.WindowFlags_.no_move | imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_collapse
-         | imgui.WindowFlags_.no_saved_settings | imgui.WindowFlags_.no_bring_to_front_on_focus)
+FIXED = (
+    imgui.WindowFlags_.no_move
+    | imgui.WindowFlags_.no_resize
+    | imgui.WindowFlags_.no_collapse
+    | imgui.WindowFlags_.no_saved_settings
+    | imgui.WindowFlags_.no_bring_to_front_on_focus
+)
 
 
 def setup_style(font_size: float = 15.0) -> None:
@@ -147,6 +152,9 @@ def _progress(viewer: Viewer, draw) -> None:
     imgui.begin("##progress", None, FIXED | imgui.WindowFlags_.no_title_bar | imgui.WindowFlags_.always_auto_resize)
     imgui.text(f"{fa.ICON_FA_SPINNER}  {viewer.job.label}")
     imgui.text_disabled(f"{message}  ({viewer.job.elapsed:.1f} s)")
-    imgui.progress_bar(fraction if fraction is not None else -1.0 * imgui.get_time(), imgui.ImVec2(-1, 0),
-                       None if fraction is not None else "working")
+    imgui.progress_bar(
+        fraction if fraction is not None else -1.0 * imgui.get_time(),
+        imgui.ImVec2(-1, 0),
+        None if fraction is not None else "working",
+    )
     imgui.end()

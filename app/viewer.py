@@ -151,7 +151,9 @@ class Viewer:
             return
         if isinstance(job.error, MissingWeightsError):
             self.pair = job.error.pair
-            actions = [("Reconstruct from ground truth (oracle)", self.reconstruct_oracle)] if self.pair.gt_depth is not None else []
+            actions = (
+                [("Reconstruct from ground truth (oracle)", self.reconstruct_oracle)] if self.pair.gt_depth is not None else []
+            )
             self.error(str(job.error), actions)
         else:
             self.error(str(job.error))
@@ -167,8 +169,10 @@ class Viewer:
         self._auto_ranges()
         stats = self.doc.stats()
         seconds = loaded.info.get("seconds", 0.0)
-        self.info(f"{loaded.source.name if loaded.source else 'scene'}: {stats['total']:,} Gaussians "
-                  f"({stats['dynamic']:,} dynamic), {loaded.info.get('method')} in {seconds:.1f} s")
+        self.info(
+            f"{loaded.source.name if loaded.source else 'scene'}: {stats['total']:,} Gaussians "
+            f"({stats['dynamic']:,} dynamic), {loaded.info.get('method')} in {seconds:.1f} s"
+        )
 
     def _auto_ranges(self) -> None:
         """Depth colour-map range and flow scale from the scene (2nd/98th percentiles)."""
@@ -271,10 +275,13 @@ class Viewer:
         x, y, w, h = self.image_rect()
         gl_viewport = (x, window_height - y - h, w, h)
         if self.viewport.target is not None:
-            self.viewport.renderer.present(self.viewport.target, gl_viewport, self.viewport.target_opts or opts, self.view.depth_range)
+            self.viewport.renderer.present(
+                self.viewport.target, gl_viewport, self.viewport.target_opts or opts, self.view.depth_range
+            )
         v = self.view
-        groups = scene_overlays(self.doc.recon, v.t, v.show_frusta and self.camera.rig_index is None, v.show_path, v.show_grid,
-                                self.camera.rig_index)
+        groups = scene_overlays(
+            self.doc.recon, v.t, v.show_frusta and self.camera.rig_index is None, v.show_path, v.show_grid, self.camera.rig_index
+        )
         self.ctx.screen.use()  # a refinement chunk may have left its target bound
         self.ctx.viewport = gl_viewport
         self.lines.draw(groups, self.display_camera, self.doc.origin)

@@ -188,8 +188,18 @@ class Viewport:
     def _request(self, s: SplatSet, camera: ViewCamera, t: float, opts: RenderOptions) -> SortRequest:
         stamp = (s.name, _camera_key(camera), float(t), opts.blend, id(s.sort_input))
         cam = camera.shifted(self.doc.origin)
-        return SortRequest(cam.world_to_cam, cam.intrinsics, camera.width, camera.height, float(t), opts.blend,
-                           opts.near, opts.far, self.keys, stamp)
+        return SortRequest(
+            cam.world_to_cam,
+            cam.intrinsics,
+            camera.width,
+            camera.height,
+            float(t),
+            opts.blend,
+            opts.near,
+            opts.far,
+            self.keys,
+            stamp,
+        )
 
     def _upload(self, s: SplatSet, order: np.ndarray, stamp, sort_seconds: float) -> None:
         self.stats.upload_ms = 1e3 * s.gpu.set_order(order)
@@ -252,7 +262,9 @@ class Viewport:
         shown = (req.stamp, s.order_stamp, scale, opts)
         if shown == self._shown:
             return False
-        cam = camera if scale == 1.0 else camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+        cam = (
+            camera if scale == 1.0 else camera.resized(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+        )
         start = time.perf_counter()
         self.target, self.target_opts = self.renderer.render(s.gpu, cam, t, opts), opts
         self.ctx.finish()

@@ -18,8 +18,17 @@ import numpy as np
 from app import interaction, ui
 from app.viewer import Viewer
 
-KEY_NAMES = {"SPACE": "space", "LEFT": "left", "RIGHT": "right", "HOME": "home", "END": "end", "ESCAPE": "escape",
-             "DELETE": "delete", "COMMA": "comma", "PERIOD": "period"}
+KEY_NAMES = {
+    "SPACE": "space",
+    "LEFT": "left",
+    "RIGHT": "right",
+    "HOME": "home",
+    "END": "end",
+    "ESCAPE": "escape",
+    "DELETE": "delete",
+    "COMMA": "comma",
+    "PERIOD": "period",
+}
 
 
 class ViewerWindow:
@@ -32,8 +41,9 @@ class ViewerWindow:
         from imgui_bundle.python_backends.pyglet_backend import create_renderer
 
         config = pyglet.gl.Config(major_version=3, minor_version=3, forward_compatible=True, double_buffer=True)
-        self.window = pyglet.window.Window(width, height, "DrivingScene viewer", resizable=True, config=config,
-                                           file_drops=True, vsync=False)
+        self.window = pyglet.window.Window(
+            width, height, "DrivingScene viewer", resizable=True, config=config, file_drops=True, vsync=False
+        )
         self.ctx = moderngl.create_context()
         imgui.create_context()
         imgui.get_io().set_ini_filename("")
@@ -173,7 +183,9 @@ def run_window(args) -> int:
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
         from drivingscene.errors import InputError
 
-        raise InputError("no display (DISPLAY is not set): use --headless --out DIR, or run under Xvfb (xvfb-run drivingscene-view)")
+        raise InputError(
+            "no display (DISPLAY is not set): use --headless --out DIR, or run under Xvfb (xvfb-run drivingscene-view)"
+        )
     size = args.size if args.size != (1280, 720) else (1600, 900)
     win = ViewerWindow(*size, method=args.method, weights=args.weights)
     if args.path is not None and args.path.exists():

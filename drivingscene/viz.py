@@ -17,8 +17,14 @@ def colour_wheel() -> np.ndarray:
     """The Middlebury colour wheel ``[55, 3]`` float in [0, 1], starting at red (flow pointing +u)."""
     ry, yg, gc, cb, bm, mr = _SEGMENTS
     ramps = []
-    for n, start, ch, rising in ((ry, (1, 0, 0), 1, True), (yg, (1, 1, 0), 0, False), (gc, (0, 1, 0), 2, True),
-                                 (cb, (0, 1, 1), 1, False), (bm, (0, 0, 1), 0, True), (mr, (1, 0, 1), 2, False)):
+    for n, start, ch, rising in (
+        (ry, (1, 0, 0), 1, True),
+        (yg, (1, 1, 0), 0, False),
+        (gc, (0, 1, 0), 2, True),
+        (cb, (0, 1, 1), 1, False),
+        (bm, (0, 0, 1), 0, True),
+        (mr, (1, 0, 1), 2, False),
+    ):
         seg = np.tile(np.array(start, np.float64), (n, 1))
         ramp = np.arange(n) / n
         seg[:, ch] = ramp if rising else 1 - ramp
@@ -65,8 +71,9 @@ def flow_legend(size: int = 96) -> np.ndarray:
     return out
 
 
-def depth_to_rgb(depth: np.ndarray, *, inverse: bool = True, vmin: float | None = None, vmax: float | None = None,
-                 cmap: str = "turbo") -> np.ndarray:
+def depth_to_rgb(
+    depth: np.ndarray, *, inverse: bool = True, vmin: float | None = None, vmax: float | None = None, cmap: str = "turbo"
+) -> np.ndarray:
     """Depth ``[H, W]`` (metres, 0 = unknown/sky) to a colour map ``[H, W, 3]`` uint8; unknown is black.
 
     With ``inverse`` the map is linear in 1/depth (near is red, far is blue) between ``vmin`` and
@@ -109,8 +116,9 @@ def label(image: np.ndarray, text: str, scale: float = 0.4) -> np.ndarray:
     return out
 
 
-def contact_sheet(rows: list[list[np.ndarray]], labels: list[list[str]] | None = None, pad: int = 2,
-                  background: int = 255) -> np.ndarray:
+def contact_sheet(
+    rows: list[list[np.ndarray]], labels: list[list[str]] | None = None, pad: int = 2, background: int = 255
+) -> np.ndarray:
     """Tile images (uint8 ``[H, W, 3]``, any sizes) in a grid with ``pad`` pixels between them, each
     optionally labelled. Cells are top-left aligned in cells as large as the largest image."""
     cell_h = max(im.shape[0] for row in rows for im in row)

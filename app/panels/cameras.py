@@ -13,7 +13,13 @@ from app.textures import texture_ref
 from app.viewer import Viewer
 from drivingscene.viz import depth_to_rgb, flow_legend, flow_to_rgb
 
-KINDS = {"images": "Images", "depth": "Depth", "rigid_flow": "Rigid flow", "residual_flow": "Residual flow", "total_flow": "Total flow"}
+KINDS = {
+    "images": "Images",
+    "depth": "Depth",
+    "rigid_flow": "Rigid flow",
+    "residual_flow": "Residual flow",
+    "total_flow": "Total flow",
+}
 
 
 @dataclass
@@ -124,7 +130,9 @@ def draw_strip(viewer: Viewer) -> None:
         imgui.text_disabled(doc.recon.camera_names[v].replace("CAM_", ""))
         tex = _texture(viewer, st.kind, st.keyframe, v)
         if tex is not None:
-            if imgui.image_button(f"thumb{v}", texture_ref(tex), imgui.ImVec2(thumb_w, thumb_h), imgui.ImVec2(0, 0), imgui.ImVec2(1, 1)):
+            if imgui.image_button(
+                f"thumb{v}", texture_ref(tex), imgui.ImVec2(thumb_w, thumb_h), imgui.ImVec2(0, 0), imgui.ImVec2(1, 1)
+            ):
                 st.enlarged.append((st.kind, st.keyframe, v))
             _hover(viewer, st.kind, st.keyframe, v)
         imgui.end_group()

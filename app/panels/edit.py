@@ -10,10 +10,18 @@ from app.panels import filedialog
 from app.state import SELECT_MODES
 from app.viewer import TOOLS, Viewer
 
-TOOL_LABELS = {"navigate": f"{fa.ICON_FA_HAND} nav", "rect": f"{fa.ICON_FA_VECTOR_SQUARE} rect",
-               "brush": f"{fa.ICON_FA_PAINTBRUSH} brush", "sphere": f"{fa.ICON_FA_CIRCLE} sphere"}
-TOOL_TIPS = {"navigate": "orbit / pan / zoom", "rect": "drag a rectangle (shift: add, ctrl: subtract)",
-             "brush": "paint over Gaussians (shift: add, ctrl: subtract)", "sphere": "click a point: select within the radius"}
+TOOL_LABELS = {
+    "navigate": f"{fa.ICON_FA_HAND} nav",
+    "rect": f"{fa.ICON_FA_VECTOR_SQUARE} rect",
+    "brush": f"{fa.ICON_FA_PAINTBRUSH} brush",
+    "sphere": f"{fa.ICON_FA_CIRCLE} sphere",
+}
+TOOL_TIPS = {
+    "navigate": "orbit / pan / zoom",
+    "rect": "drag a rectangle (shift: add, ctrl: subtract)",
+    "brush": "paint over Gaussians (shift: add, ctrl: subtract)",
+    "sphere": "click a point: select within the radius",
+}
 
 
 def draw(viewer: Viewer) -> None:

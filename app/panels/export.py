@@ -25,7 +25,10 @@ def png_view(viewer: Viewer) -> None:
     e, doc = viewer.export, viewer.doc
     cam, t, opts = viewer.display_camera, viewer.view.t, viewer.render_options()
     path = Path(e.folder) / f"view_t{t:.3f}.png"
-    viewer.start_task("PNG", _one(lambda: export.export_view(viewer.viewport, doc, cam, t, opts, path, (e.width, e.height), viewer.view.depth_range)))
+    viewer.start_task(
+        "PNG",
+        _one(lambda: export.export_view(viewer.viewport, doc, cam, t, opts, path, (e.width, e.height), viewer.view.depth_range)),
+    )
 
 
 def rig_pngs(viewer: Viewer) -> None:
@@ -40,15 +43,20 @@ def video(viewer: Viewer) -> None:
         name = recon.camera_names[e.video_camera]
 
         def camera_at(t: float):
-            return rig_camera(recon.cam_to_world_at(t)[e.video_camera].numpy(), recon.intrinsics[e.video_camera], recon.image_size)
+            return rig_camera(
+                recon.cam_to_world_at(t)[e.video_camera].numpy(), recon.intrinsics[e.video_camera], recon.image_size
+            )
     else:
         name = "view"
         controller, (w, h) = viewer.camera, (e.width, e.height)
 
         def camera_at(t: float):
             return controller.view(recon, t, w, h)
+
     path = Path(e.folder) / f"sweep_{name}.mp4"
-    gen = export.iter_video(viewer.viewport, doc, camera_at, viewer.render_options(), path, e.frames, float(e.fps), viewer.view.depth_range)
+    gen = export.iter_video(
+        viewer.viewport, doc, camera_at, viewer.render_options(), path, e.frames, float(e.fps), viewer.view.depth_range
+    )
     viewer.start_task("video", gen)
 
 

@@ -42,7 +42,11 @@ def _entries(folder: Path) -> list[tuple[str, bool]]:
         items = sorted(os.scandir(folder), key=lambda e: (not e.is_dir(), e.name.lower()))
     except OSError:
         return []
-    return [(e.name, e.is_dir()) for e in items if not e.name.startswith(".") and (e.is_dir() or e.name.lower().endswith(OPEN_SUFFIXES))]
+    return [
+        (e.name, e.is_dir())
+        for e in items
+        if not e.name.startswith(".") and (e.is_dir() or e.name.lower().endswith(OPEN_SUFFIXES))
+    ]
 
 
 def draw(viewer: Viewer) -> None:

@@ -103,9 +103,14 @@ def _edit_menu(viewer: Viewer) -> None:
     if imgui.menu_item_simple(f"Redo {redo}", "Ctrl+Shift+Z", False, bool(redo)):
         interaction.viewer_redo(viewer)
     imgui.separator()
-    for label, key, fn in (("Select dynamic", "", lambda: doc.select_dynamic()), ("Invert selection", "I", lambda: doc.invert_selection()),
-                           ("Clear selection", "Esc", lambda: doc.clear_selection()), ("Hide selected", "H", lambda: doc.hide_selected()),
-                           ("Unhide all", "", lambda: doc.unhide_all()), ("Delete selected", "Del", lambda: doc.delete_selected())):
+    for label, key, fn in (
+        ("Select dynamic", "", lambda: doc.select_dynamic()),
+        ("Invert selection", "I", lambda: doc.invert_selection()),
+        ("Clear selection", "Esc", lambda: doc.clear_selection()),
+        ("Hide selected", "H", lambda: doc.hide_selected()),
+        ("Unhide all", "", lambda: doc.unhide_all()),
+        ("Delete selected", "Del", lambda: doc.delete_selected()),
+    ):
         if imgui.menu_item_simple(label, key, False, has):
             fn()
 

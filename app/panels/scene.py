@@ -28,8 +28,10 @@ def draw(viewer: Viewer) -> None:
     rows = [("method", str(doc.info.get("method", "?"))), ("file", str(doc.info.get("kind", "?")))]
     if recon.num_views:
         h, w = recon.image_size
-        rows += [("cameras", f"{recon.num_views} x {w}x{h}"), ("keyframes", f"{recon.timestamps[0]:.2f} s, {recon.timestamps[1]:.2f} s "
-                                                                           f"({doc.duration:.2f} s apart)")]
+        rows += [
+            ("cameras", f"{recon.num_views} x {w}x{h}"),
+            ("keyframes", f"{recon.timestamps[0]:.2f} s, {recon.timestamps[1]:.2f} s ({doc.duration:.2f} s apart)"),
+        ]
     if imgui.begin_table("scene_info", 2, imgui.TableFlags_.sizing_fixed_fit):
         for key, value in rows:
             imgui.table_next_row()

@@ -55,16 +55,26 @@ def draw_overlay(viewer: Viewer, draw) -> None:
     x, y, _, _ = viewer.view_rect
     frame = np.array(viewer.frame_ms, np.float32) if viewer.frame_ms else np.ones(1, np.float32)
     fps = 1e3 / max(float(frame[-20:].mean()), 1e-3)
-    text = (f"{len(doc.splats):,} Gaussians  |  {vs.visible:,} visible  |  {fps:.1f} fps  |  "
-            f"{'preview ' + vs.level + f' @{vs.scale:.2f}x' if vs.level != 'full' else f'full quality {vs.full_ms:.0f} ms'}")
+    text = (
+        f"{len(doc.splats):,} Gaussians  |  {vs.visible:,} visible  |  {fps:.1f} fps  |  "
+        f"{'preview ' + vs.level + f' @{vs.scale:.2f}x' if vs.level != 'full' else f'full quality {vs.full_ms:.0f} ms'}"
+    )
     if viewer.camera.rig_index is not None:
         text += f"  |  {doc.recon.camera_names[viewer.camera.rig_index]} (rig K)"
     elif viewer.camera.follow_ego:
         text += "  |  following ego"
     size = imgui.calc_text_size(text)
-    draw.add_rect_filled(imgui.ImVec2(x + 6, y + 6), imgui.ImVec2(x + 16 + size.x, y + 12 + size.y), imgui.get_color_u32(imgui.ImVec4(0, 0, 0, 0.5)), 3.0)
+    draw.add_rect_filled(
+        imgui.ImVec2(x + 6, y + 6),
+        imgui.ImVec2(x + 16 + size.x, y + 12 + size.y),
+        imgui.get_color_u32(imgui.ImVec4(0, 0, 0, 0.5)),
+        3.0,
+    )
     draw.add_text(imgui.ImVec2(x + 11, y + 9), imgui.get_color_u32(imgui.ImVec4(1, 1, 1, 0.92)), text)
     if vs.refining < 1.0 and not viewer.moving:
         bar_w = (size.x + 10) * vs.refining
-        draw.add_rect_filled(imgui.ImVec2(x + 6, y + 13 + size.y), imgui.ImVec2(x + 6 + bar_w, y + 16 + size.y),
-                             imgui.get_color_u32(imgui.ImVec4(0.3, 0.6, 1.0, 0.9)))
+        draw.add_rect_filled(
+            imgui.ImVec2(x + 6, y + 13 + size.y),
+            imgui.ImVec2(x + 6 + bar_w, y + 16 + size.y),
+            imgui.get_color_u32(imgui.ImVec4(0.3, 0.6, 1.0, 0.9)),
+        )

@@ -29,15 +29,21 @@ def draw(viewer: Viewer) -> None:
     elif v.mode == "flow":
         _, v.flow_max = imgui.drag_float("max flow (m)", v.flow_max, 0.01, 0.01, 100.0, "%.2f")
     imgui.set_next_item_width(200)
-    _, blend = imgui.combo("blend", BLEND_MODES.index(v.blend), ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe"])
+    _, blend = imgui.combo(
+        "blend", BLEND_MODES.index(v.blend), ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe"]
+    )
     v.blend = BLEND_MODES[blend]
     if imgui.is_item_hovered():
-        imgui.set_tooltip("all: both keyframes' Gaussians fully opaque (the library's default, as training renders)\n"
-                          "fade: keyframe-0 opacity x (1 - t), keyframe-1 x t\nnearest: only the keyframe nearer in time")
+        imgui.set_tooltip(
+            "all: both keyframes' Gaussians fully opaque (the library's default, as training renders)\n"
+            "fade: keyframe-0 opacity x (1 - t), keyframe-1 x t\nnearest: only the keyframe nearer in time"
+        )
     imgui.separator_text("Camera")
     _camera(viewer)
     imgui.separator_text("Overlays")
-    for i, (attr, label) in enumerate((("show_frusta", "frusta"), ("show_path", "ego path"), ("show_grid", "grid"), ("show_selection", "selection"))):
+    for i, (attr, label) in enumerate(
+        (("show_frusta", "frusta"), ("show_path", "ego path"), ("show_grid", "grid"), ("show_selection", "selection"))
+    ):
         if i:
             imgui.same_line()
         _, value = imgui.checkbox(label, getattr(v, attr))
@@ -84,9 +90,13 @@ def draw_legend(viewer: Viewer, draw) -> None:
     x, y, w, h = viewer.view_rect
     x0, y0 = x + w - 250, y + h - 46
     white = imgui.get_color_u32(imgui.ImVec4(1, 1, 1, 0.95))
-    draw.add_rect_filled(imgui.ImVec2(x0 - 8, y0 - 22), imgui.ImVec2(x + w - 8, y + h - 8), imgui.get_color_u32(imgui.ImVec4(0, 0, 0, 0.55)), 4.0)
+    draw.add_rect_filled(
+        imgui.ImVec2(x0 - 8, y0 - 22), imgui.ImVec2(x + w - 8, y + h - 8), imgui.get_color_u32(imgui.ImVec4(0, 0, 0, 0.55)), 4.0
+    )
     if v.mode == "dynamic":
-        draw.add_rect_filled(imgui.ImVec2(x0, y0), imgui.ImVec2(x0 + 14, y0 + 14), imgui.get_color_u32(imgui.ImVec4(1.0, 0.45, 0.05, 1)))
+        draw.add_rect_filled(
+            imgui.ImVec2(x0, y0), imgui.ImVec2(x0 + 14, y0 + 14), imgui.get_color_u32(imgui.ImVec4(1.0, 0.45, 0.05, 1))
+        )
         draw.add_text(imgui.ImVec2(x0 + 20, y0 - 1), white, f"dynamic ({viewer.doc.stats()['dynamic']:,})   grey: static")
         return
     if v.mode == "depth":

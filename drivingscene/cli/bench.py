@@ -12,11 +12,23 @@ import importlib
 BENCHMARKS: dict[str, tuple[str, str]] = {
     # name: (module, help)
     "raster": ("drivingscene.bench.raster_speed", "CPU Gaussian rasterizer: forward / forward+backward time, peak memory"),
-    "synth": ("drivingscene.bench.synth_speed", "synthetic benchmark: seconds per pair with all ground truth, with/without writing"),
-    "inference": ("drivingscene.bench.inference", "seconds to reconstruct one pair (networks + assembly) per resolution, peak memory"),
+    "synth": (
+        "drivingscene.bench.synth_speed",
+        "synthetic benchmark: seconds per pair with all ground truth, with/without writing",
+    ),
+    "inference": (
+        "drivingscene.bench.inference",
+        "seconds to reconstruct one pair (networks + assembly) per resolution, peak memory",
+    ),
     "oracle": ("drivingscene.bench.oracle", "oracle reconstruction: input-view and intermediate PSNR, budget effect"),
-    "training": ("drivingscene.bench.training_report", "training report from run folders: config, steps, time, loss curves (docs/training.md)"),
-    "results": ("drivingscene.bench.results", "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)"),
+    "training": (
+        "drivingscene.bench.training_report",
+        "training report from run folders: config, steps, time, loss curves (docs/training.md)",
+    ),
+    "results": (
+        "drivingscene.bench.results",
+        "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)",
+    ),
 }
 
 

@@ -24,7 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path, metavar="SCENE")
     p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON")
     p.add_argument("--no-flow", action="store_true", help="ignore gt_scene_flow (every Gaussian static)")
-    p.add_argument("--refine", type=int, default=1, metavar="N", help="colour deconvolution steps (default 1; 0 = raw pixel colours)")
+    p.add_argument(
+        "--refine", type=int, default=1, metavar="N", help="colour deconvolution steps (default 1; 0 = raw pixel colours)"
+    )
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_oracle)
     _register_prune(sub)

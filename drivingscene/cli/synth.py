@@ -157,8 +157,10 @@ def _run_dataset(args: argparse.Namespace, config) -> int:
         return generate_pair(config, seed, renderer)
 
     written, skipped = write_dataset(args.out, args.split, seeds, config, generate, progress=not args.no_progress)
-    print(f"{args.out}: {written} pair(s) written, {skipped} already present, split {args.split} seeds "
-          f"[{seeds.start}, {seeds.stop})")
+    print(
+        f"{args.out}: {written} pair(s) written, {skipped} already present, split {args.split} seeds "
+        f"[{seeds.start}, {seeds.stop})"
+    )
     if args.preview:
         from drivingscene.data import load_frame_pair
 

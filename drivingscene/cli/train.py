@@ -36,7 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def register_ship(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("ship-weights", help="copy trained weights (+ JSON) for shipping, optionally as float16")
-    p.add_argument("source", type=Path, metavar="RUN_OR_WEIGHTS", help="a run folder (its latest checkpoint) or model.safetensors")
+    p.add_argument(
+        "source", type=Path, metavar="RUN_OR_WEIGHTS", help="a run folder (its latest checkpoint) or model.safetensors"
+    )
     p.add_argument("dest", type=Path, metavar="OUT.safetensors")
     p.add_argument("--float32", action="store_true", help="keep float32 (default: float16, half the size)")
     p.add_argument("--note", default="", help="text stored in the JSON (e.g. which runs it came from)")

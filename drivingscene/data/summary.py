@@ -26,9 +26,7 @@ def summarise(pair: FramePair, path: str | os.PathLike | None = None) -> str:
     rel = np.linalg.inv(pair.ego_to_world[0]) @ pair.ego_to_world[1]
     dist = float(np.linalg.norm(rel[:3, 3]))
     lines.append(f"keyframes   t0={t0:.3f} s, t1={t1:.3f} s, gap {t1 - t0:.3f} s")
-    lines.append(
-        f"ego motion  {dist:.2f} m ({dist / (t1 - t0):.2f} m/s), rotation {_rotation_angle_deg(rel[:3, :3]):.2f} deg"
-    )
+    lines.append(f"ego motion  {dist:.2f} m ({dist / (t1 - t0):.2f} m/s), rotation {_rotation_angle_deg(rel[:3, :3]):.2f} deg")
     fx = pair.intrinsics[:, 0, 0]
     lines.append(f"focal (fx)  {', '.join(f'{f:.1f}' for f in fx)} px")
     if pair.num_eval:

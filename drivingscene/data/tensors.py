@@ -39,7 +39,9 @@ class PairTensors:
         return int(self.images.shape[-2]), int(self.images.shape[-1])
 
     def to(self, device) -> PairTensors:
-        return PairTensors(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device) for f in fields(self)})
+        return PairTensors(
+            **{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device) for f in fields(self)}
+        )
 
 
 def _images(array: np.ndarray) -> Tensor:

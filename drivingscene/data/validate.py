@@ -52,7 +52,12 @@ ROTATION_TOL = {"float32": 1e-4, "float64": 1e-6}
 
 def _fmt_array(a: np.ndarray) -> str:
     """One-line rendering of a small array with enough digits for timestamps of ~1e9 s."""
-    text = np.array2string(np.asarray(a), separator=" ", max_line_width=10_000, formatter={"float_kind": lambda x: np.format_float_positional(x, trim="-")})
+    text = np.array2string(
+        np.asarray(a),
+        separator=" ",
+        max_line_width=10_000,
+        formatter={"float_kind": lambda x: np.format_float_positional(x, trim="-")},
+    )
     return text.replace("\n", "")
 
 
@@ -152,7 +157,9 @@ def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
     """Semantic checks once dtypes and shapes are right."""
     out = check_header(arrays, FORMAT_NAME, FORMAT_VERSION, source)
     if dims["V"] < 1 or dims["H"] < 2 or dims["W"] < 2:
-        out.append(Problem(source, "images", "V >= 1 cameras of at least 2x2 pixels", f"V={dims['V']} H={dims['H']} W={dims['W']}"))
+        out.append(
+            Problem(source, "images", "V >= 1 cameras of at least 2x2 pixels", f"V={dims['V']} H={dims['H']} W={dims['W']}")
+        )
     out += check_intrinsics(arrays["intrinsics"], dims["H"], dims["W"], source)
     out += check_rigid("cam_to_ego", arrays["cam_to_ego"], source)
     out += check_rigid("ego_to_world", arrays["ego_to_world"], source)
@@ -176,9 +183,7 @@ def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
         et = arrays["eval_timestamps"]
         inside = np.all(np.isfinite(et)) and np.all((et >= ts[0]) & (et <= ts[1]))
         if not inside or np.any(np.diff(et) <= 0):
-            out.append(
-                Problem(source, "eval_timestamps", f"increasing times within [{ts[0]:.6g}, {ts[1]:.6g}]", _fmt_array(et))
-            )
+            out.append(Problem(source, "eval_timestamps", f"increasing times within [{ts[0]:.6g}, {ts[1]:.6g}]", _fmt_array(et)))
     if "eval_ego_to_world" in arrays:
         out += check_rigid("eval_ego_to_world", arrays["eval_ego_to_world"], source)
     return out
@@ -212,7 +217,9 @@ def validate_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> 
     """Every problem of a frame pair given as a dict of arrays (as read from the file)."""
     problems, dims = check_keys(arrays, REQUIRED, OPTIONAL, source)
     if "eval_dynamic" in arrays and "eval_images" not in arrays:
-        problems.append(Problem(source, "eval_dynamic", "present only with eval_images, eval_timestamps, eval_ego_to_world", "it alone"))
+        problems.append(
+            Problem(source, "eval_dynamic", "present only with eval_images, eval_timestamps, eval_ego_to_world", "it alone")
+        )
     present_eval = [k for k in EVAL_KEYS if k in arrays]
     if present_eval and len(present_eval) != len(EVAL_KEYS):
         for key in set(EVAL_KEYS) - set(present_eval):

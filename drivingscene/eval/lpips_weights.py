@@ -157,6 +157,4 @@ def check_state(described: str, expected: dict[str, Tensor], found: dict[str, Te
         raise DrivingSceneError(f"{described}: weight keys do not match the network: {'; '.join(parts)}")
     for key, value in found.items():
         if tuple(value.shape) != tuple(expected[key].shape):
-            raise DrivingSceneError(
-                f"{described}: {key}: expected shape {list(expected[key].shape)}, found {list(value.shape)}"
-            )
+            raise DrivingSceneError(f"{described}: {key}: expected shape {list(expected[key].shape)}, found {list(value.shape)}")

@@ -31,7 +31,9 @@ def _nanmean(x: torch.Tensor) -> float:
     return float(x.mean()) if x.numel() else math.nan
 
 
-def score_novel_views(recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None, blend: str = "all") -> dict[str, float]:
+def score_novel_views(
+    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None, blend: str = "all"
+) -> dict[str, float]:
     from drivingscene.render.scene import render_eval_frames
 
     pred = render_eval_frames(recon, pair, blend=blend).flatten(0, 1).permute(0, 3, 1, 2)  # [MV, 3, H, W]

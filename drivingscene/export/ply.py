@@ -26,9 +26,9 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians, num_sh_coeffs
 
 PLY_KINDS = ("3dgs", "dynamic", "points")
-REQUIRED_3DGS = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [
-    f"rot_{i}" for i in range(4)
-]
+REQUIRED_3DGS = (
+    ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+)
 DYNAMIC_PROPS = ("flow_x", "flow_y", "flow_z")
 
 
@@ -121,7 +121,9 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
     rest_idx = sorted(int(m.group(1)) for p in props if (m := re.fullmatch(r"f_rest_(\d+)", p)))
     degree = {0: 0, 9: 1, 24: 2, 45: 3}.get(len(rest_idx))
     if degree is None or rest_idx != list(range(len(rest_idx))):
-        raise InputError(f"{path}: expected 0, 9, 24 or 45 f_rest_* properties numbered from 0 (SH degree 0-3), found {len(rest_idx)}")
+        raise InputError(
+            f"{path}: expected 0, 9, 24 or 45 f_rest_* properties numbered from 0 (SH degree 0-3), found {len(rest_idx)}"
+        )
     col = lambda name: _column(vertex, path, name)  # noqa: E731
     n = len(vertex.data)
     k = num_sh_coeffs(degree)
@@ -145,6 +147,8 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
         opacity_logits=t(opacity),
         sh=t(sh),
         flows=t(np.stack([col(p) for p in DYNAMIC_PROPS], axis=1)) if dynamic else torch.zeros(n, 3),
-        keyframes=t(np.asarray(vertex["keyframe"], np.int64)) if dynamic and "keyframe" in props else torch.zeros(n, dtype=torch.int64),
+        keyframes=t(np.asarray(vertex["keyframe"], np.int64))
+        if dynamic and "keyframe" in props
+        else torch.zeros(n, dtype=torch.int64),
         cameras=t(np.asarray(vertex["camera"], np.int64)) if "camera" in props else torch.full((n,), -1, dtype=torch.int64),
     )

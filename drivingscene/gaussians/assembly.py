@@ -78,7 +78,9 @@ def _tangent_basis(normals: Tensor) -> tuple[Tensor, Tensor]:
     return t1, torch.cross(normals, t1, dim=-1)
 
 
-def surfel_frames(depth: Tensor, intrinsics: Tensor, footprint: float = FOOTPRINT, backend: str = "auto") -> tuple[Tensor, Tensor]:
+def surfel_frames(
+    depth: Tensor, intrinsics: Tensor, footprint: float = FOOTPRINT, backend: str = "auto"
+) -> tuple[Tensor, Tensor]:
     """Default camera-axis rotations ``[V, H, W, 4]`` and log scales ``[V, H, W, 3]`` (see module).
 
     Not differentiable in ``depth``. ``backend``: "cpp" (the compiled one-pass kernel in
@@ -115,10 +117,15 @@ def surfel_frames_torch(depth: Tensor, intrinsics: Tensor, footprint: float = FO
     x, y, z = points.unbind(-1)
     j0 = torch.stack([fx / z, torch.zeros_like(z), -fx * x / z**2], -1)
     j1 = torch.stack([torch.zeros_like(z), fy / z, -fy * y / z**2], -1)
-    jac = torch.stack([torch.stack([(j0 * t1).sum(-1), (j0 * t2).sum(-1)], -1), torch.stack([(j1 * t1).sum(-1), (j1 * t2).sum(-1)], -1)], -2)
+    jac = torch.stack(
+        [torch.stack([(j0 * t1).sum(-1), (j0 * t2).sum(-1)], -1), torch.stack([(j1 * t1).sum(-1), (j1 * t2).sum(-1)], -1)], -2
+    )
     det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
     det = torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
-    inv = torch.stack([torch.stack([jac[..., 1, 1], -jac[..., 0, 1]], -1), torch.stack([-jac[..., 1, 0], jac[..., 0, 0]], -1)], -2) / det[..., None, None]
+    inv = (
+        torch.stack([torch.stack([jac[..., 1, 1], -jac[..., 0, 1]], -1), torch.stack([-jac[..., 1, 0], jac[..., 0, 0]], -1)], -2)
+        / det[..., None, None]
+    )
     cov = footprint**2 * inv @ inv.transpose(-1, -2)  # [..., 2, 2] in the tangent basis, m^2
     # Closed-form eigen-decomposition of the symmetric 2x2 (batched eigh is slow on CPU).
     a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]

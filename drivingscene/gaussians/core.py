@@ -114,7 +114,13 @@ class Gaussians:
     @classmethod
     def empty(cls, sh_degree: int = 0, device=None) -> Gaussians:
         z = torch.zeros(0, 3, device=device)
-        return cls.create(z, torch.zeros(0, 4, device=device), z, torch.zeros(0, device=device), torch.zeros(0, num_sh_coeffs(sh_degree), 3, device=device))
+        return cls.create(
+            z,
+            torch.zeros(0, 4, device=device),
+            z,
+            torch.zeros(0, device=device),
+            torch.zeros(0, num_sh_coeffs(sh_degree), 3, device=device),
+        )
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -171,7 +177,9 @@ class Gaussians:
 
     def at_time(self, t: float | Tensor) -> Gaussians:
         """The Gaussians moved to time t, as static Gaussians of keyframe 0 (for export/rendering)."""
-        return replace(self, means=self.means_at(t), flows=torch.zeros_like(self.flows), keyframes=torch.zeros_like(self.keyframes))
+        return replace(
+            self, means=self.means_at(t), flows=torch.zeros_like(self.flows), keyframes=torch.zeros_like(self.keyframes)
+        )
 
     def transform(self, a_to_b: Tensor) -> Gaussians:
         """The Gaussians in another frame: ``a_to_b`` ``[4, 4]`` rigid (computed in float64)."""

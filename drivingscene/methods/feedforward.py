@@ -55,7 +55,9 @@ def load_model(path: str | Path | None = None, device: str = "cpu") -> DrivingSc
     model = DrivingSceneModel(config)
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
-        raise InputError(f"{path}: weights do not match the model config (missing {len(missing)}, unexpected {len(unexpected)} tensors)")
+        raise InputError(
+            f"{path}: weights do not match the model config (missing {len(missing)}, unexpected {len(unexpected)} tensors)"
+        )
     return model.to(device).eval()
 
 
@@ -83,7 +85,9 @@ def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOpt
     timings["flow_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     gaussians = assemble(static, batch, sky, scene_flow).transform(batch.local_to_world)
-    sky_sh = fit_sky_from_pixels(batch.images, sky, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics)
+    sky_sh = fit_sky_from_pixels(
+        batch.images, sky, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics
+    )
     timings["assembly_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - start
     if rigid is None:

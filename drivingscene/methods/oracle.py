@@ -27,7 +27,9 @@ def _world_cameras(batch) -> torch.Tensor:
     return batch.local_to_world[None, None] @ batch.cam_to_local.double()
 
 
-def fit_sky_from_pixels(images: torch.Tensor, sky: torch.Tensor, cam_to_world: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+def fit_sky_from_pixels(
+    images: torch.Tensor, sky: torch.Tensor, cam_to_world: torch.Tensor, intrinsics: torch.Tensor
+) -> torch.Tensor:
     """Sky SH ``[K, 3]`` from images ``[T, V, 3, H, W]`` where ``sky`` ``[T, V, H, W]`` is true."""
     height, width = images.shape[-2:]
     dirs = ray_directions(cam_to_world.flatten(0, 1), intrinsics.repeat(images.shape[0], 1, 1).double(), height, width)

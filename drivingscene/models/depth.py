@@ -56,7 +56,9 @@ class DepthDecoder(nn.Module):
             skip = enc_channels[i - 1] if i > 0 else 0
             self.up1.append(ConvELU(dec_channels[i] + skip, dec_channels[i]))
             in_ch = dec_channels[i]
-        self.heads = nn.ModuleList(nn.Conv2d(dec_channels[s], 1, 3, padding=1, padding_mode="replicate") for s in range(num_scales))
+        self.heads = nn.ModuleList(
+            nn.Conv2d(dec_channels[s], 1, 3, padding=1, padding_mode="replicate") for s in range(num_scales)
+        )
         for head in self.heads:  # start near 10 m (sigmoid(-3) ~ 0.047), a street's typical depth
             nn.init.constant_(head.bias, INITIAL_DISPARITY_LOGIT)
 

@@ -102,7 +102,9 @@ def _candidates(inp: PairInputs, width: int, height: int) -> tuple[Tensor, Tenso
         stop = max(start + 1, int(torch.searchsorted(ends, base + _CHUNK, right=True)))
         ids = torch.arange(start, stop, device=dev)
         j = torch.repeat_interleave(ids, area[start:stop])
-        local = torch.arange(len(j), device=dev) - torch.repeat_interleave(ends[start:stop] - area[start:stop] - base, area[start:stop])
+        local = torch.arange(len(j), device=dev) - torch.repeat_interleave(
+            ends[start:stop] - area[start:stop] - base, area[start:stop]
+        )
         x = boxes[j, 0] + local % bw[j]
         y = boxes[j, 2] + local // bw[j]
         dx = x.to(inp.means2d.dtype) - inp.means2d[j, 0]
@@ -268,14 +270,18 @@ class _Composite(torch.autograd.Function):
             trans = torch.cumprod(1.0 - g.alpha, dim=1)
             trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
             trans_final[start:end] = trans[:, -1]
-            grads = _chunk_grads(g, trans_before, trans[:, -1], grad_rgb[start:end], grad_d[start:end], grad_alpha[start:end], depth[start:end])
+            grads = _chunk_grads(
+                g, trans_before, trans[:, -1], grad_rgb[start:end], grad_d[start:end], grad_alpha[start:end], depth[start:end]
+            )
             grad_packed.index_add_(0, ids.clamp(min=0).reshape(-1), grads.flatten(0, 1))
         num_cams, channels = backgrounds.shape
         grad_bg = (grad_rgb * trans_final[:, None]).reshape(num_cams, -1, channels).sum(1)
         return grad_packed, grad_bg, None, None, None
 
 
-def _chunk_grads(g, trans_before: Tensor, trans_final: Tensor, grad_rgb: Tensor, grad_d: Tensor, grad_alpha: Tensor, depth: Tensor) -> Tensor:
+def _chunk_grads(
+    g, trans_before: Tensor, trans_final: Tensor, grad_rgb: Tensor, grad_d: Tensor, grad_alpha: Tensor, depth: Tensor
+) -> Tensor:
     """Gradients ``[p, L, 7 + C]`` w.r.t. the gathered splat rows of one pixel block (``grad_d = dL/dD / S``)."""
     weights = g.alpha * trans_before  # [p, L]
     # dL/dw_k: colour, expected depth (z_k - D) / S and alpha (sum of w) terms.
@@ -288,15 +294,18 @@ def _chunk_grads(g, trans_before: Tensor, trans_final: Tensor, grad_rgb: Tensor,
     grad_alpha_k = v * trans_before - behind / (1.0 - g.alpha)
     grad_raw = torch.where(g.passes, grad_alpha_k, 0.0)  # clamp at 0.99 and empty slots stop gradients
     grad_sigma = -grad_raw * g.raw
-    grads = [
-        -grad_sigma * (g.ca * g.dx + g.cb * g.dy),  # mean x
-        -grad_sigma * (g.cb * g.dx + g.cc * g.dy),  # mean y
-        0.5 * grad_sigma * g.dx * g.dx,  # conic a
-        grad_sigma * g.dx * g.dy,  # conic b
-        0.5 * grad_sigma * g.dy * g.dy,  # conic c
-        grad_raw * g.raw_over_opacity,  # opacity
-        weights * grad_d[:, None],  # depth
-    ] + [weights * grad_rgb[:, ch : ch + 1] for ch in range(len(g.colors))]
+    grads = (
+        [
+            -grad_sigma * (g.ca * g.dx + g.cb * g.dy),  # mean x
+            -grad_sigma * (g.cb * g.dx + g.cc * g.dy),  # mean y
+            0.5 * grad_sigma * g.dx * g.dx,  # conic a
+            grad_sigma * g.dx * g.dy,  # conic b
+            0.5 * grad_sigma * g.dy * g.dy,  # conic c
+            grad_raw * g.raw_over_opacity,  # opacity
+            weights * grad_d[:, None],  # depth
+        ]
+        + [weights * grad_rgb[:, ch : ch + 1] for ch in range(len(g.colors))]
+    )
     return torch.stack(grads, -1)
 
 

@@ -18,7 +18,9 @@ def gsplat_available() -> bool:
     return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
 
 
-def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, sh_degree, near, far, eps2d):
+def rasterize_gsplat(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, sh_degree, near, far, eps2d
+):
     """``rasterize`` through ``gsplat.rasterization`` (render mode RGB+ED); returns ``RenderOutput``."""
     from gsplat import rasterization
 

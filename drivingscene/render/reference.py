@@ -43,7 +43,9 @@ def rasterize_reference(
     rot = quat_to_matrix(quats)
     covars = rot @ torch.diag_embed(scales**2) @ rot.transpose(-1, -2)  # [N, 3, 3]
     outs = [
-        _render_camera(means, covars, opacities, colors, viewmats[b], Ks[b], backgrounds[b], width, height, sh_degree, near, far, eps2d)
+        _render_camera(
+            means, covars, opacities, colors, viewmats[b], Ks[b], backgrounds[b], width, height, sh_degree, near, far, eps2d
+        )
         for b in range(viewmats.shape[0])
     ]
     return RenderOutput(*(torch.stack(o) for o in zip(*outs)))

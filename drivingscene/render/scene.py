@@ -64,6 +64,8 @@ def render_eval_frames(recon, pair, blend: str = "all", **raster_kwargs) -> Tens
     frames = []
     for m, t in enumerate(pair.normalised_time(pair.eval_timestamps)):
         cam_to_world = torch.from_numpy(pair.eval_ego_to_world[m]) @ cam_to_ego
-        out = render_gaussians(g, float(t), invert_rigid(cam_to_world), k, height, width, sky_sh=recon.sky_sh, blend=blend, **raster_kwargs)
+        out = render_gaussians(
+            g, float(t), invert_rigid(cam_to_world), k, height, width, sky_sh=recon.sky_sh, blend=blend, **raster_kwargs
+        )
         frames.append(out.colors.clamp(0, 1))
     return torch.stack(frames)

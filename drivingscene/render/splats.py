@@ -63,9 +63,7 @@ def make_splats(
     num_cams = viewmats.shape[0]
     with torch.no_grad():
         # Conservative cull without covariances; the exact rule (radii > 0) is applied after projection.
-        maybe = cull_bound(
-            means.detach(), scales.detach().amax(-1), viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d
-        )
+        maybe = cull_bound(means.detach(), scales.detach().amax(-1), viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d)
         maybe &= (opacities.detach() >= MIN_ALPHA)[None]  # [B, N]
         cam_ids, gs_ids = maybe.nonzero(as_tuple=True)
         # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a

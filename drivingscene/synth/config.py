@@ -80,8 +80,10 @@ def validate_config(cfg: SynthConfig) -> SynthConfig:
     """Return ``cfg`` if every knob is usable, else raise ``InputError`` naming the flag."""
     _check(cfg.height >= 8 and cfg.width >= 8, "--res", "HxW with both sides >= 8 pixels", f"{cfg.height}x{cfg.width}")
     _check(cfg.height * cfg.width <= 1080 * 1920, "--res", "at most 1080x1920", f"{cfg.height}x{cfg.width}")
-    finite = {k: getattr(cfg, k) for k in ("ego_speed", "object_speed_scale", "keyframe_gap", "texture_strength",
-                                           "exposure_change", "noise_std")}
+    finite = {
+        k: getattr(cfg, k)
+        for k in ("ego_speed", "object_speed_scale", "keyframe_gap", "texture_strength", "exposure_change", "noise_std")
+    }
     for key, value in finite.items():
         _check(isinstance(value, (int, float)) and math.isfinite(value), f"--{key.replace('_', '-')}", "a finite number", value)
     _check(0 <= cfg.ego_speed <= 40, "--ego-speed", "a speed in [0, 40] m/s", cfg.ego_speed)
@@ -91,8 +93,12 @@ def validate_config(cfg: SynthConfig) -> SynthConfig:
     _check(0 <= cfg.texture_strength <= 3, "--texture-strength", "a value in [0, 3]", cfg.texture_strength)
     _check(0.1 <= cfg.exposure_change <= 10, "--exposure-change", "a gain in [0.1, 10]", cfg.exposure_change)
     _check(0 <= cfg.noise_std <= 1, "--noise-std", "a standard deviation in [0, 1]", cfg.noise_std)
-    _check(cfg.blackout_camera is None or cfg.blackout_camera in CAMERA_NAMES, "--blackout-camera",
-           f"one of {', '.join(CAMERA_NAMES)} or none", cfg.blackout_camera)
+    _check(
+        cfg.blackout_camera is None or cfg.blackout_camera in CAMERA_NAMES,
+        "--blackout-camera",
+        f"one of {', '.join(CAMERA_NAMES)} or none",
+        cfg.blackout_camera,
+    )
     _check(0 <= cfg.num_eval <= 16, "--num-eval", "an integer in [0, 16]", cfg.num_eval)
     _check(1 <= cfg.supersample <= 6, "--supersample", "an integer in [1, 6]", cfg.supersample)
     return cfg

@@ -22,19 +22,31 @@ def scene_view(scene: Scene, rig: Rig, t: float) -> View:
 def shading_uniforms(scene: Scene, config: SynthConfig) -> dict:
     light = scene.lighting
     return {
-        "u_sun_dir": light.sun_dir, "u_sun_color": light.sun_color, "u_ambient": light.ambient,
-        "u_haze_color": light.sky_horizon, "u_haze_distance": light.haze_distance,
-        "u_texture": float(config.texture_strength), "u_ground_z": float(scene.road_to_world[2, 3]),
-        "u_zenith": light.sky_zenith, "u_horizon": light.sky_horizon, "u_cloud_cover": light.cloud_cover,
-        "u_cloud_offset": light.cloud_offset, "u_band_scale": float(config.supersample),
+        "u_sun_dir": light.sun_dir,
+        "u_sun_color": light.sun_color,
+        "u_ambient": light.ambient,
+        "u_haze_color": light.sky_horizon,
+        "u_haze_distance": light.haze_distance,
+        "u_texture": float(config.texture_strength),
+        "u_ground_z": float(scene.road_to_world[2, 3]),
+        "u_zenith": light.sky_zenith,
+        "u_horizon": light.sky_horizon,
+        "u_cloud_cover": light.cloud_cover,
+        "u_cloud_offset": light.cloud_offset,
+        "u_band_scale": float(config.supersample),
     }
 
 
 def file_rig(config: SynthConfig) -> Rig:
     """The rig as stored in the file (float32), used for rendering too so the file is exact."""
     rig = make_rig(config.height, config.width)
-    return Rig(rig.camera_names, rig.intrinsics.astype(np.float32).astype(np.float64),
-               rig.cam_to_ego.astype(np.float32).astype(np.float64), rig.height, rig.width)
+    return Rig(
+        rig.camera_names,
+        rig.intrinsics.astype(np.float32).astype(np.float64),
+        rig.cam_to_ego.astype(np.float32).astype(np.float64),
+        rig.height,
+        rig.width,
+    )
 
 
 def finish_images(colours: np.ndarray, fractions: list[float], config: SynthConfig, seed: int) -> np.ndarray:
@@ -73,8 +85,9 @@ def _dynamic_mask(buffers: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndar
     return (other[..., 3] > 0.5) & (now[..., 3] > 0.5)
 
 
-def generate_pair(config: SynthConfig, seed: int, renderer: SynthRenderer | None = None,
-                  timings: dict[str, float] | None = None) -> FramePair:
+def generate_pair(
+    config: SynthConfig, seed: int, renderer: SynthRenderer | None = None, timings: dict[str, float] | None = None
+) -> FramePair:
     """One frame pair of the benchmark with exact ground truth (deterministic in config and seed).
 
     Pass a ``SynthRenderer`` to reuse its GL context and programs across pairs; pass a dict as

@@ -19,8 +19,26 @@ MATERIALS: dict[str, int] = {
     name: i
     for i, name in enumerate(
         (
-            "ground", "asphalt", "paint", "kerb", "sidewalk", "plaster", "brick", "glass_facade", "roof", "foliage",
-            "bark", "metal", "car_paint", "car_glass", "rubber", "cloth", "skin", "lamp", "concrete", "hair",
+            "ground",
+            "asphalt",
+            "paint",
+            "kerb",
+            "sidewalk",
+            "plaster",
+            "brick",
+            "glass_facade",
+            "roof",
+            "foliage",
+            "bark",
+            "metal",
+            "car_paint",
+            "car_glass",
+            "rubber",
+            "cloth",
+            "skin",
+            "lamp",
+            "concrete",
+            "hair",
             "shadow",  # last: contact shadows, colour pass only (multiplied onto the ground, no ground truth)
         )
     )
@@ -132,8 +150,13 @@ def cylinder(radius: float, z0: float, z1: float, segments: int = 8, caps: bool 
     )
     arc = radius * ang
     uvs = np.stack(
-        [np.stack([arc[:-1], np.full(segments, z0)], -1), np.stack([arc[1:], np.full(segments, z0)], -1),
-         np.stack([arc[1:], np.full(segments, z1)], -1), np.stack([arc[:-1], np.full(segments, z1)], -1)], axis=1
+        [
+            np.stack([arc[:-1], np.full(segments, z0)], -1),
+            np.stack([arc[1:], np.full(segments, z0)], -1),
+            np.stack([arc[1:], np.full(segments, z1)], -1),
+            np.stack([arc[:-1], np.full(segments, z1)], -1),
+        ],
+        axis=1,
     )
     pos, _, uv = quads_to_tris(corners, np.zeros((segments, 3)), uvs)
     nrm = pos.copy()

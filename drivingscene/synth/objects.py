@@ -13,8 +13,16 @@ from drivingscene.synth.motion import planar_pose
 
 CAR_COLOURS = np.array(
     [
-        [0.85, 0.85, 0.83], [0.08, 0.08, 0.09], [0.55, 0.56, 0.58], [0.62, 0.07, 0.06], [0.10, 0.20, 0.48],
-        [0.30, 0.32, 0.34], [0.80, 0.62, 0.10], [0.12, 0.30, 0.18], [0.90, 0.90, 0.92], [0.42, 0.22, 0.12],
+        [0.85, 0.85, 0.83],
+        [0.08, 0.08, 0.09],
+        [0.55, 0.56, 0.58],
+        [0.62, 0.07, 0.06],
+        [0.10, 0.20, 0.48],
+        [0.30, 0.32, 0.34],
+        [0.80, 0.62, 0.10],
+        [0.12, 0.30, 0.18],
+        [0.90, 0.90, 0.92],
+        [0.42, 0.22, 0.12],
     ]
 )
 
@@ -56,8 +64,14 @@ def _vehicle_template(kind: str) -> np.ndarray:
     b = MeshBuilder()
     extra = (half_l, half_w)
     z_low = 0.3 if kind != "bus" else 0.35
-    body = [(-half_l, z_low), (half_l, z_low), (half_l, v.body_top - 0.22), (half_l - 0.35, v.body_top),
-            (-half_l + 0.1, v.body_top), (-half_l, v.body_top - 0.12)]
+    body = [
+        (-half_l, z_low),
+        (half_l, z_low),
+        (half_l, v.body_top - 0.22),
+        (half_l - 0.35, v.body_top),
+        (-half_l + 0.1, v.body_top),
+        (-half_l, v.body_top - 0.12),
+    ]
     if kind == "bus":
         body = [(-half_l, z_low), (half_l, z_low), (half_l, v.body_top), (-half_l, v.body_top)]
     for tris in prism(np.array(body), -half_w, half_w):
@@ -88,8 +102,14 @@ def _vehicle_template(kind: str) -> np.ndarray:
 
 def contact_shadow(half_length: float, half_width: float, darkness: float) -> np.ndarray:
     """A soft dark patch on the ground under an object (colour pass only): uv spans [-1, 1]^2."""
-    corners = np.array([[-half_length, -half_width, 0.02], [half_length, -half_width, 0.02],
-                        [half_length, half_width, 0.02], [-half_length, half_width, 0.02]])
+    corners = np.array(
+        [
+            [-half_length, -half_width, 0.02],
+            [half_length, -half_width, 0.02],
+            [half_length, half_width, 0.02],
+            [-half_length, half_width, 0.02],
+        ]
+    )
     uv = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
     idx = [0, 1, 2, 0, 2, 3]
     b = MeshBuilder()
@@ -125,8 +145,14 @@ def _windows(cabin: np.ndarray, half_w: float, side_panes: int) -> list[tuple]:
         if np.dot(normal, a - cabin.mean(0)) < 0:
             normal = -normal
         p0, p1 = a + 0.08 * edge + 0.006 * normal, a + 0.92 * edge + 0.006 * normal
-        ring = np.array([[p0[0], -half_w + 0.1, p0[1]], [p0[0], half_w - 0.1, p0[1]],
-                         [p1[0], half_w - 0.1, p1[1]], [p1[0], -half_w + 0.1, p1[1]]])
+        ring = np.array(
+            [
+                [p0[0], -half_w + 0.1, p0[1]],
+                [p0[0], half_w - 0.1, p0[1]],
+                [p1[0], half_w - 0.1, p1[1]],
+                [p1[0], -half_w + 0.1, p1[1]],
+            ]
+        )
         out.append(_polygon(ring, (normal[0], 0.0, normal[1])))
     return out
 
@@ -187,8 +213,7 @@ def tree_mesh(rng: np.random.Generator, param: float) -> np.ndarray:
     """A trunk and a crown of two or three lumpy ellipsoids."""
     b = MeshBuilder()
     height = rng.uniform(2.2, 3.4)
-    b.add(cylinder(rng.uniform(0.11, 0.2), 0.0, height + 0.8, segments=7, caps=False), "bark",
-          (0.27, 0.2, 0.14), param)
+    b.add(cylinder(rng.uniform(0.11, 0.2), 0.0, height + 0.8, segments=7, caps=False), "bark", (0.27, 0.2, 0.14), param)
     green = np.array([0.18, 0.33, 0.1]) * rng.uniform(0.75, 1.25, 3)
     radius = rng.uniform(1.4, 2.4)
     for i in range(int(rng.integers(2, 4))):
@@ -218,8 +243,7 @@ def traffic_light_mesh(param: float, state: int) -> np.ndarray:
     colours = [(1.0, 0.1, 0.05), (1.0, 0.7, 0.0), (0.1, 1.0, 0.4)]
     for i, z in enumerate((3.42, 3.1, 2.78)):
         lit = 1.0 if i == state else 0.18
-        b.add(merge(*box(0.12, 0.14, -0.11, 0.11, z - 0.11, z + 0.11).values()), "lamp",
-              np.array(colours[i]) * lit, param)
+        b.add(merge(*box(0.12, 0.14, -0.11, 0.11, z - 0.11, z + 0.11).values()), "lamp", np.array(colours[i]) * lit, param)
     return b.build()
 
 

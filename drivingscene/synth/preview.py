@@ -32,8 +32,9 @@ def camera_sheet(pair: FramePair) -> np.ndarray:
     return viz.contact_sheet(rows, labels)
 
 
-def ground_truth_sheet(pair: FramePair, cameras: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_BACK"),
-                       keyframe: int = 0) -> np.ndarray:
+def ground_truth_sheet(
+    pair: FramePair, cameras: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_BACK"), keyframe: int = 0
+) -> np.ndarray:
     """Per camera (rows): image, inverse depth, flow keyframe 0->1 (colour wheel), dynamic mask, and
     the flow legend at the end of the first row."""
     names = list(pair.camera_names)
@@ -44,14 +45,17 @@ def ground_truth_sheet(pair: FramePair, cameras: tuple[str, ...] = ("CAM_FRONT",
         # per-camera colour scale: twice the median magnitude, so the near ground passing beside or
         # under the camera (hundreds of pixels) saturates instead of washing out the rest
         scale = max(2.0 * float(np.median(np.linalg.norm(flow, axis=-1))), 1.0)
-        rows.append([
-            image,
-            viz.depth_to_rgb(pair.gt_depth[keyframe, v], vmin=3.0, vmax=80.0),
-            viz.flow_to_rgb(flow, scale),
-            viz.mask_to_rgb(pair.gt_dynamic[keyframe, v], background=image),
-        ])
-        labels.append([names[v], "depth 3-80 m (1/z)", f"flow {keyframe}->{1 - keyframe}, {scale:.0f} px = full colour",
-                       "moving objects"])
+        rows.append(
+            [
+                image,
+                viz.depth_to_rgb(pair.gt_depth[keyframe, v], vmin=3.0, vmax=80.0),
+                viz.flow_to_rgb(flow, scale),
+                viz.mask_to_rgb(pair.gt_dynamic[keyframe, v], background=image),
+            ]
+        )
+        labels.append(
+            [names[v], "depth 3-80 m (1/z)", f"flow {keyframe}->{1 - keyframe}, {scale:.0f} px = full colour", "moving objects"]
+        )
     legend = viz.flow_legend(min(96, pair.image_size[0]))
     rows[0].append(legend)
     labels[0].append("")

@@ -27,8 +27,26 @@ NEAR, FAR = 0.2, 4000.0  # metres
 DRAW_ORDER = tuple(
     MATERIALS[name]
     for name in (
-        "cloth", "skin", "hair", "car_glass", "car_paint", "rubber", "metal", "lamp", "bark", "foliage", "plaster",
-        "brick", "concrete", "glass_facade", "roof", "kerb", "sidewalk", "paint", "asphalt", "ground",
+        "cloth",
+        "skin",
+        "hair",
+        "car_glass",
+        "car_paint",
+        "rubber",
+        "metal",
+        "lamp",
+        "bark",
+        "foliage",
+        "plaster",
+        "brick",
+        "concrete",
+        "glass_facade",
+        "roof",
+        "kerb",
+        "sidewalk",
+        "paint",
+        "asphalt",
+        "ground",
     )
 )
 SHADOW = MATERIALS["shadow"]
@@ -172,8 +190,9 @@ class SynthRenderer:
             self._downsample[factor] = (prog, self.ctx.vertex_array(prog, [(self._tri, "2f", "in_position")]))
         return self._downsample[factor]
 
-    def render_color(self, gpu: GpuScene, view: View, intrinsics: np.ndarray, size: tuple[int, int],
-                     supersample: int, shading: dict) -> np.ndarray:
+    def render_color(
+        self, gpu: GpuScene, view: View, intrinsics: np.ndarray, size: tuple[int, int], supersample: int, shading: dict
+    ) -> np.ndarray:
         """Colour of every camera, float32 ``[V, H, W, 3]`` in [0, 1] (display RGB, before exposure
         and noise). ``shading`` holds the colour and sky programs' lighting uniforms."""
         import moderngl
@@ -250,8 +269,9 @@ class SynthRenderer:
         data = np.frombuffer(fbo.read(components=4, dtype="f4"), np.float32)
         return data.reshape(views, height, width, 4)[:, ::-1, :, :3].copy()
 
-    def render_geometry(self, gpu: GpuScene, now: View, other: View, intrinsics: np.ndarray,
-                        size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def render_geometry(
+        self, gpu: GpuScene, now: View, other: View, intrinsics: np.ndarray, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Ground-truth buffers, each float32 ``[V, H, W, 4]`` in image order: (camera point now,
         dynamic flag), (camera point at the other time in the same camera, coverage),
         (world displacement, object id)."""
@@ -266,7 +286,9 @@ class SynthRenderer:
         self.ctx.front_face = FRONT_FACE
         self.ctx.depth_func = "<"
         prog = self.geometry_prog
-        objects = [(m, a, b, 1.0, i + 1.0) for i, (m, a, b) in enumerate(zip(gpu.agents, now.agents_to_world, other.agents_to_world))]
+        objects = [
+            (m, a, b, 1.0, i + 1.0) for i, (m, a, b) in enumerate(zip(gpu.agents, now.agents_to_world, other.agents_to_world))
+        ]
         objects.append((gpu.static, now.static_to_world, other.static_to_world, 0.0, 0.0))
         for v in range(views):
             fbo.viewport = (0, v * height, width, height)

@@ -63,9 +63,14 @@ def sample_lighting(rng: np.random.Generator) -> Lighting:
     zenith = np.array([0.25, 0.45, 0.78]) * rng.uniform(0.85, 1.1)
     horizon = np.array([0.72, 0.80, 0.88]) * rng.uniform(0.92, 1.05)
     return Lighting(
-        tuple(float(v) for v in sun), tuple(sun_color.tolist()), tuple(ambient.tolist()),
-        tuple(np.clip(zenith, 0, 1).tolist()), tuple(np.clip(horizon, 0, 1).tolist()),
-        float(rng.uniform(250, 500)), float(rng.uniform(0.1, 0.8)), tuple(rng.uniform(-100, 100, 2).tolist()),
+        tuple(float(v) for v in sun),
+        tuple(sun_color.tolist()),
+        tuple(ambient.tolist()),
+        tuple(np.clip(zenith, 0, 1).tolist()),
+        tuple(np.clip(horizon, 0, 1).tolist()),
+        float(rng.uniform(250, 500)),
+        float(rng.uniform(0.1, 0.8)),
+        tuple(rng.uniform(-100, 100, 2).tolist()),
     )
 
 
@@ -92,6 +97,7 @@ def build_scene(config: SynthConfig, seed: int) -> Scene:
     ego = Mover(layout.road.lane_path(-(ego_lane + 0.5) * layout.lane_width, 0.0), config.ego_speed, 0.0, t0)
     static, obstacles = build_static(layout, rng)
     times = t0 + config.keyframe_gap * np.linspace(-0.1, 1.1, 9)
-    agents = spawn_agents(layout, np.random.default_rng([seed, 2]), config.num_moving, times, ego, obstacles,
-                          config.object_speed_scale)
+    agents = spawn_agents(
+        layout, np.random.default_rng([seed, 2]), config.num_moving, times, ego, obstacles, config.object_speed_scale
+    )
     return Scene(layout, road_to_world, static, tuple(agents), ego, lighting, t0, config.keyframe_gap)

@@ -9,8 +9,18 @@ from drivingscene.synth.meshes import MeshBuilder
 from drivingscene.synth.town import SIDEWALK_HEIGHT, Layout
 
 FACADES = {  # material: (probability, palette of wall colours)
-    "plaster": (0.42, [(0.82, 0.76, 0.62), (0.86, 0.84, 0.78), (0.74, 0.62, 0.48), (0.70, 0.74, 0.72),
-                       (0.88, 0.80, 0.58), (0.63, 0.50, 0.42), (0.78, 0.70, 0.66)]),
+    "plaster": (
+        0.42,
+        [
+            (0.82, 0.76, 0.62),
+            (0.86, 0.84, 0.78),
+            (0.74, 0.62, 0.48),
+            (0.70, 0.74, 0.72),
+            (0.88, 0.80, 0.58),
+            (0.63, 0.50, 0.42),
+            (0.78, 0.70, 0.66),
+        ],
+    ),
     "brick": (0.28, [(0.55, 0.27, 0.18), (0.62, 0.36, 0.24), (0.48, 0.30, 0.24), (0.70, 0.55, 0.40)]),
     "concrete": (0.18, [(0.62, 0.62, 0.60), (0.52, 0.53, 0.54), (0.70, 0.68, 0.63)]),
     "glass_facade": (0.12, [(0.30, 0.42, 0.50), (0.28, 0.36, 0.34), (0.40, 0.44, 0.50)]),
@@ -79,8 +89,9 @@ def _vista_ends(b: MeshBuilder, lay: Layout, rng: np.random.Generator) -> None:
         return
     for side in (1, -1):
         material, color, height = _building(rng)
-        verts = objects.building_mesh(2 * (lay.cross_half + lay.sidewalk) + 30.0, rng.uniform(12, 20), max(height, 14.0),
-                                      material, color, rng.uniform())
+        verts = objects.building_mesh(
+            2 * (lay.cross_half + lay.sidewalk) + 30.0, rng.uniform(12, 20), max(height, 14.0), material, color, rng.uniform()
+        )
         _place(b, lay, verts, lay.cross_s, side * (lay.cross_range + 8.0), 0.0)
 
 
@@ -122,8 +133,15 @@ def trees_and_furniture(b: MeshBuilder, lay: Layout, rng: np.random.Generator, o
             s = rng.uniform(-40, 80)
             if not lay.in_cross_gap(s - 1, s + 1, 1.0):
                 color = [(0.85, 0.85, 0.85), (0.1, 0.25, 0.65), (0.75, 0.1, 0.08)][rng.integers(3)]
-                xy = _place(b, lay, objects.sign_mesh(rng.uniform(), color), s, side * (kerb + 0.4),
-                            np.pi if side > 0 else 0.0, SIDEWALK_HEIGHT)
+                xy = _place(
+                    b,
+                    lay,
+                    objects.sign_mesh(rng.uniform(), color),
+                    s,
+                    side * (kerb + 0.4),
+                    np.pi if side > 0 else 0.0,
+                    SIDEWALK_HEIGHT,
+                )
                 obstacles.add(*xy, 0.3)
     if lay.cross_s is not None:
         _traffic_lights(b, lay, rng, obstacles)
@@ -134,8 +152,9 @@ def _traffic_lights(b: MeshBuilder, lay: Layout, rng: np.random.Generator, obsta
     for edge, side in ((-1, -1), (1, 1)):
         s = lay.cross_s + edge * (lay.cross_half + 0.8)
         yaw = np.pi if edge < 0 else 0.0  # faces traffic approaching the intersection
-        xy = _place(b, lay, objects.traffic_light_mesh(rng.uniform(), state), s, side * (lay.half(side) + 0.5),
-                    yaw, SIDEWALK_HEIGHT)
+        xy = _place(
+            b, lay, objects.traffic_light_mesh(rng.uniform(), state), s, side * (lay.half(side) + 0.5), yaw, SIDEWALK_HEIGHT
+        )
         obstacles.add(*xy, 0.3)
 
 

@@ -77,8 +77,15 @@ def _strip(b: MeshBuilder, road: RoadFrame, s0, s1, d0, d1, z, material, color, 
     n = max(1, int(np.ceil((s1 - s0) / ds)))
     s = np.linspace(s0, s1, n + 1)
     sa, sb = s[:-1], s[1:]
-    corners_sd = np.stack([np.stack([sa, np.full(n, d0)], -1), np.stack([sb, np.full(n, d0)], -1),
-                           np.stack([sb, np.full(n, d1)], -1), np.stack([sa, np.full(n, d1)], -1)], 1)
+    corners_sd = np.stack(
+        [
+            np.stack([sa, np.full(n, d0)], -1),
+            np.stack([sb, np.full(n, d0)], -1),
+            np.stack([sb, np.full(n, d1)], -1),
+            np.stack([sa, np.full(n, d1)], -1),
+        ],
+        1,
+    )
     x, y = road.to_xy(corners_sd[..., 0], corners_sd[..., 1])
     pos = np.stack([x, y, np.full_like(x, z)], -1)[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
     uv = corners_sd[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 2)
@@ -93,9 +100,9 @@ def _wall_along(b, road: RoadFrame, s0, s1, d, z0, z1, facing: int, material, co
     h = road.heading(s)
     nrm = facing * np.stack([-np.sin(h), np.cos(h), 0 * h], -1)
     quad = [(0, z0), (1, z0), (1, z1), (0, z0), (1, z1), (0, z1)]
-    pos = np.concatenate([np.stack([x[i:n + i], y[i:n + i], np.full(n, z)], -1)[:, None] for i, z in quad], 1)
-    nr = np.concatenate([nrm[i:n + i][:, None] for i, _ in quad], 1)
-    uv = np.concatenate([np.stack([s[i:n + i], np.full(n, z)], -1)[:, None] for i, z in quad], 1)
+    pos = np.concatenate([np.stack([x[i : n + i], y[i : n + i], np.full(n, z)], -1)[:, None] for i, z in quad], 1)
+    nr = np.concatenate([nrm[i : n + i][:, None] for i, _ in quad], 1)
+    uv = np.concatenate([np.stack([s[i : n + i], np.full(n, z)], -1)[:, None] for i, z in quad], 1)
     b.add((pos.reshape(-1, 3), nr.reshape(-1, 3), uv.reshape(-1, 2)), material, color)
 
 

@@ -59,8 +59,13 @@ def _lane_vehicle(lay: Layout, rng, t0: float, speed_scale: float, oncoming: boo
     s = rng.uniform(-25, 60) if oncoming else rng.choice([-1, 1], p=[0.35, 0.65]) * rng.uniform(7, 40)
     kind, verts = _vehicle(rng)
     speed = rng.uniform(5, 13) * speed_scale
-    return Agent("oncoming" if oncoming else "follow", Mover(lay.road.lane_path(d, s, not oncoming), speed, 0.0, t0),
-                 verts, 0.0, vehicle_circles(kind))
+    return Agent(
+        "oncoming" if oncoming else "follow",
+        Mover(lay.road.lane_path(d, s, not oncoming), speed, 0.0, t0),
+        verts,
+        0.0,
+        vehicle_circles(kind),
+    )
 
 
 def _crossing_vehicle(lay: Layout, rng, t0: float, speed_scale: float) -> Agent:
@@ -96,8 +101,9 @@ def _walker(lay: Layout, rng, t0: float, speed_scale: float) -> Agent:
     offset = lay.half(side) + rng.uniform(2.0, max(2.1, lay.sidewalk - 0.4))
     path = lay.road.lane_path(side * offset, rng.uniform(-25, 40), bool(rng.uniform() < 0.5))
     verts = objects.pedestrian_mesh(rng, rng.uniform())
-    return Agent("walker", Mover(path, rng.uniform(0.9, 1.8) * speed_scale, 0.0, t0), verts, SIDEWALK_HEIGHT,
-                 np.array([[0.0, 0.0, 0.4]]))
+    return Agent(
+        "walker", Mover(path, rng.uniform(0.9, 1.8) * speed_scale, 0.0, t0), verts, SIDEWALK_HEIGHT, np.array([[0.0, 0.0, 0.4]])
+    )
 
 
 def _zebra_walker(lay: Layout, rng, t0: float, speed_scale: float) -> Agent:
@@ -106,12 +112,23 @@ def _zebra_walker(lay: Layout, rng, t0: float, speed_scale: float) -> Agent:
     direction = int(rng.choice([-1, 1]))
     d = rng.uniform(-lay.half_right + 0.5, lay.half_left - 0.5)
     verts = objects.pedestrian_mesh(rng, rng.uniform())
-    return Agent("zebra", Mover(lay.road.radial_path(s, d, direction > 0), rng.uniform(1.0, 1.7) * speed_scale, 0.0, t0),
-                 verts, 0.0, np.array([[0.0, 0.0, 0.4]]))
+    return Agent(
+        "zebra",
+        Mover(lay.road.radial_path(s, d, direction > 0), rng.uniform(1.0, 1.7) * speed_scale, 0.0, t0),
+        verts,
+        0.0,
+        np.array([[0.0, 0.0, 0.4]]),
+    )
 
 
-_MAKERS = {"follow": lambda *a: _lane_vehicle(*a, oncoming=False), "oncoming": lambda *a: _lane_vehicle(*a, oncoming=True),
-           "crossing": _crossing_vehicle, "turning": _turning_vehicle, "walker": _walker, "zebra": _zebra_walker}
+_MAKERS = {
+    "follow": lambda *a: _lane_vehicle(*a, oncoming=False),
+    "oncoming": lambda *a: _lane_vehicle(*a, oncoming=True),
+    "crossing": _crossing_vehicle,
+    "turning": _turning_vehicle,
+    "walker": _walker,
+    "zebra": _zebra_walker,
+}
 
 
 def ego_circles() -> np.ndarray:
@@ -124,8 +141,9 @@ def _overlap(a: np.ndarray, b: np.ndarray, margin: float = 0.3) -> bool:
     return bool(np.any(dist < a[:, None, 2] + b[None, :, 2] + margin))
 
 
-def spawn_agents(lay: Layout, rng: np.random.Generator, count: int, times: np.ndarray, ego: Mover,
-                 obstacles: Obstacles, speed_scale: float) -> list[Agent]:
+def spawn_agents(
+    lay: Layout, rng: np.random.Generator, count: int, times: np.ndarray, ego: Mover, obstacles: Obstacles, speed_scale: float
+) -> list[Agent]:
     """Up to ``count`` agents that stay clear of each other, the ego and obstacles at ``times``."""
     kinds = [k for k in KINDS if lay.cross_s is not None or k not in ("crossing", "turning", "zebra")]
     weights = np.array([WEIGHTS[KINDS.index(k)] for k in kinds])

@@ -93,9 +93,7 @@ class TrainStep(nn.Module):
         out_depths = static.depth_output.depths
         targets = batch.images.flatten(0, 1).float()  # [2V, 3, H, W]
         loc = sum(self.location_loss(d.unflatten(0, (2, batch.num_views)), batch, targets) for d in out_depths) / len(out_depths)
-        smooth = sum(
-            smoothness_loss(disp.float(), targets) / (2**s) for s, disp in enumerate(static.depth_output.disparities)
-        )
+        smooth = sum(smoothness_loss(disp.float(), targets) / (2**s) for s, disp in enumerate(static.depth_output.disparities))
         terms = {"loc": loc, "smooth": smooth}
         if step % self.config.render_every == 0:
             terms["render"] = self.render_term(static, batch, step, scene_flow=None)

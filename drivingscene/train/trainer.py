@@ -56,7 +56,7 @@ def _load_init(model: DrivingSceneModel, path: str) -> None:
         state = load_file(path)
     except (OSError, ValueError) as e:
         raise InputError(f"{path}: --init: expected a .safetensors weights file: {e}") from None
-    state = {k[len("model.model."):] if k.startswith("model.model.") else k: v for k, v in state.items()}
+    state = {k[len("model.model.") :] if k.startswith("model.model.") else k: v for k, v in state.items()}
     missing, unexpected = model.load_state_dict(state, strict=False)
     if unexpected or len(missing) == len(model.state_dict()):
         raise InputError(f"{path}: --init: weights do not match the model ({len(unexpected)} unexpected tensors)")
@@ -115,7 +115,9 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
     data = PairSequence(files, config.seed, rank, world)
     val_files = list_pairs(config.val_data)[: config.val_pairs] if config.val_data and rank == 0 else []
     info = {"stage": config.stage, "lpips": perceptual.name, "world": world}
-    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, disable=not show_progress or rank != 0, desc=config.stage)
+    bar = tqdm(
+        range(start, config.steps), initial=start, total=config.steps, disable=not show_progress or rank != 0, desc=config.stage
+    )
     bad = 0
     for step in bar:
         model.train()
@@ -152,7 +154,13 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
 
 
 def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info, val_files, bar) -> None:
-    record = {"step": step, "time": round(time.time(), 1), "loss": loss, "seconds": round(seconds, 3), **{k: round(v, 6) for k, v in terms.items()}}
+    record = {
+        "step": step,
+        "time": round(time.time(), 1),
+        "loss": loss,
+        "seconds": round(seconds, 3),
+        **{k: round(v, 6) for k, v in terms.items()},
+    }
     if step % config.val_every == 0 and val_files:
         record["val"] = validate(model, val_files, config)
         model.train()

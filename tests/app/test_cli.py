@@ -52,7 +52,9 @@ def test_headless_renders_views_and_a_ply(capsys, tmp_path, recon_file):
     assert len(read_ply(out / "gaussians_t0.500.ply")) == 600
     # Existing outputs: refused without --force, replaced with it.
     assert "--force" in _error(capsys, [str(recon_file), "--headless", "--out", str(out), "--time", "0.5", "--camera", "CAM_1"])
-    assert main([str(recon_file), "--headless", "--out", str(out), "--time", "0.5", "--camera", "CAM_1", "--force", "--no-ply"]) == 0
+    assert (
+        main([str(recon_file), "--headless", "--out", str(out), "--time", "0.5", "--camera", "CAM_1", "--force", "--no-ply"]) == 0
+    )
     assert "unknown camera" in _error(capsys, [str(recon_file), "--headless", "--out", str(out), "--camera", "CAM_9"])
 
 

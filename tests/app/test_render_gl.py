@@ -41,7 +41,9 @@ def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb"):
         target = renderer.target(W, H, name="chunks")
         for start in range(0, gpu.count, 37):
             renderer.render_range(gpu, cam, t, RenderOptions(blend=blend), target, start, 37)
-        np.testing.assert_allclose(target.read()[..., :3], renderer.render(gpu, cam, t, RenderOptions(blend=blend)).read()[..., :3], atol=1e-3)
+        np.testing.assert_allclose(
+            target.read()[..., :3], renderer.render(gpu, cam, t, RenderOptions(blend=blend)).read()[..., :3], atol=1e-3
+        )
     renderer.release()
     gpu.release()
     return out
@@ -60,10 +62,23 @@ def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
     gaussians = random_gaussians(300, sh_degree=sh_degree, seed=sh_degree)
     sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
     cam = _camera()
-    ref = render_gaussians(
-        gaussians, t, torch.from_numpy(cam.world_to_cam)[None].float(), torch.from_numpy(K)[None].float(), H, W,
-        sky_sh=sky, blend=blend, max_layers=1024, backend="torch",
-    ).colors[0].clamp(0, 1).numpy()
+    ref = (
+        render_gaussians(
+            gaussians,
+            t,
+            torch.from_numpy(cam.world_to_cam)[None].float(),
+            torch.from_numpy(K)[None].float(),
+            H,
+            W,
+            sky_sh=sky,
+            blend=blend,
+            max_layers=1024,
+            backend="torch",
+        )
+        .colors[0]
+        .clamp(0, 1)
+        .numpy()
+    )
     gl = _gl_render(gl_ctx, gaussians, sky, t, blend, keys)
     assert _psnr(gl, ref) >= 35.0
     assert ref.std() > 0.05  # the scene is not trivially empty
@@ -73,8 +88,16 @@ def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
 def test_gl_expected_depth_matches_torch(gl_ctx):
     gaussians = random_gaussians(200, sh_degree=0, seed=5)
     cam = _camera()
-    ref = render_gaussians(gaussians, 0.5, torch.from_numpy(cam.world_to_cam)[None].float(), torch.from_numpy(K)[None].float(), H, W,
-                           max_layers=1024, backend="torch")
+    ref = render_gaussians(
+        gaussians,
+        0.5,
+        torch.from_numpy(cam.world_to_cam)[None].float(),
+        torch.from_numpy(K)[None].float(),
+        H,
+        W,
+        max_layers=1024,
+        backend="torch",
+    )
     out = _gl_render(gl_ctx, gaussians, torch.zeros(1, 3), 0.5, "all", "float", mode="depth")
     alpha = ref.alphas[0].numpy()
     np.testing.assert_allclose(out[..., 3], alpha, atol=2e-3)
@@ -90,7 +113,7 @@ def test_sort_matches_float_argsort():
     for t in (0.0, 0.4, 1.0):
         req = SortRequest(cam.world_to_cam, K, W, H, t, keys="float")
         order = depth_order(data, req)
-        z = (splats.means_at(t).astype(np.float64) @ cam.world_to_cam[2, :3] + cam.world_to_cam[2, 3])
+        z = splats.means_at(t).astype(np.float64) @ cam.world_to_cam[2, :3] + cam.world_to_cam[2, 3]
         # Exactly the float argsort of the visible splats' depths (stable: ties by index).
         np.testing.assert_array_equal(order, np.sort(order)[np.argsort(z[np.sort(order)], kind="stable")])
         assert np.all(np.diff(z[order]) >= 0)
@@ -112,8 +135,15 @@ def test_sort_culls_conservatively():
     hidden = np.zeros(len(splats), bool)
     hidden[::7] = True
     order = depth_order(make_sort_input(splats, np.zeros(3), hidden), SortRequest(cam.world_to_cam, K, W, H, 0.0, keys="float"))
-    proj = project_gaussians(g.means_at(0.0), g.quats, g.scales, torch.from_numpy(cam.world_to_cam)[None].float(),
-                             torch.from_numpy(K)[None].float(), W, H)
+    proj = project_gaussians(
+        g.means_at(0.0),
+        g.quats,
+        g.scales,
+        torch.from_numpy(cam.world_to_cam)[None].float(),
+        torch.from_numpy(K)[None].float(),
+        W,
+        H,
+    )
     drawn = set(np.flatnonzero((proj.radii[0] > 0).numpy() & ~hidden).tolist())
     assert drawn <= set(order.tolist())
     assert not hidden[order].any()

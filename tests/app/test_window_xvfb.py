@@ -27,8 +27,9 @@ def xvfb():
     if shutil.which("Xvfb") is None or shutil.which("xdotool") is None:
         pytest.skip("Xvfb and xdotool are needed (apt-get install xvfb xdotool)")
     n = _free_display()
-    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x800x24", "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        ["Xvfb", f":{n}", "-screen", "0", "1280x800x24", "-nolisten", "tcp"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     for _ in range(100):
         if Path(f"/tmp/.X11-unix/X{n}").exists():
             break
@@ -44,8 +45,14 @@ def xvfb():
 @pytest.mark.gl
 def test_scripted_session(xvfb, tmp_path):
     env = {**os.environ, "DISPLAY": xvfb}
-    run = subprocess.run([sys.executable, "-m", "tests.app.xvfb_session", str(tmp_path)], env=env, capture_output=True,
-                         text=True, timeout=240, cwd=Path(__file__).resolve().parents[2])
+    run = subprocess.run(
+        [sys.executable, "-m", "tests.app.xvfb_session", str(tmp_path)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        cwd=Path(__file__).resolve().parents[2],
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     assert "drivingscene-view: error: " in run.stderr  # the same error line on stderr
     r = json.loads((tmp_path / "result.json").read_text())

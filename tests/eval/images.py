@@ -47,8 +47,7 @@ def textured_image(height: int, width: int, seed: int = 0) -> np.ndarray:
     channels = []
     for c in range(3):
         fractal = sum(
-            _value_noise(height, width, cell, seed * 31 + c * 7 + k) / (k + 1)
-            for k, cell in enumerate((24, 12, 6, 3))
+            _value_noise(height, width, cell, seed * 31 + c * 7 + k) / (k + 1) for k, cell in enumerate((24, 12, 6, 3))
         ) / (1 + 1 / 2 + 1 / 3 + 1 / 4)
         stripes = 0.5 + 0.5 * np.sin(0.35 * u + 0.2 * v + 1.3 * c + seed)
         channels.append(0.65 * fractal + 0.2 * stripes)

@@ -121,19 +121,29 @@ def test_missing_weight_key_is_reported(tmp_path):
     del state["lin3.model.1.weight"]
     torch.save(state, tmp_path / "short.pth")
     with pytest.raises(DrivingSceneError, match=r"short\.pth: weight keys do not match the network: missing heads\.3\.weight"):
-        PerceptualMetric(PerceptualConfig("stlpips", "alex")).load_files(WeightFiles("stlpips", "alex", tmp_path / "short.pth", None))
+        PerceptualMetric(PerceptualConfig("stlpips", "alex")).load_files(
+            WeightFiles("stlpips", "alex", tmp_path / "short.pth", None)
+        )
 
 
 def test_unreadable_weight_file(tmp_path):
     (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
     with pytest.raises(DrivingSceneError, match=r"junk\.pth: expected a torch state dict"):
-        PerceptualMetric(PerceptualConfig("stlpips", "alex")).load_files(WeightFiles("stlpips", "alex", tmp_path / "junk.pth", None))
+        PerceptualMetric(PerceptualConfig("stlpips", "alex")).load_files(
+            WeightFiles("stlpips", "alex", tmp_path / "junk.pth", None)
+        )
 
 
 # --- original LPIPS: torchvision trunk + LPIPS heads, checked on synthetic weights ---------------
 
 _TV_CONVS = {  # torchvision features index -> (c_in, c_out, kernel, stride, padding)
-    "alex": {0: (3, 64, 11, 4, 2), 3: (64, 192, 5, 1, 2), 6: (192, 384, 3, 1, 1), 8: (384, 256, 3, 1, 1), 10: (256, 256, 3, 1, 1)},
+    "alex": {
+        0: (3, 64, 11, 4, 2),
+        3: (64, 192, 5, 1, 2),
+        6: (192, 384, 3, 1, 1),
+        8: (384, 256, 3, 1, 1),
+        10: (256, 256, 3, 1, 1),
+    },
     "vgg": {
         i: (c_in, c_out, 3, 1, 1)
         for i, c_in, c_out in zip(

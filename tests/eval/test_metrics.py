@@ -118,8 +118,18 @@ def test_ssim_needs_room_for_its_window():
     [
         ((3, 16, 16), (3, 16, 16), None, r"pred: expected shape \[B, 3, H, W\], found \[3, 16, 16\]"),
         ((2, 16, 16, 3), (2, 16, 16, 3), None, r"pred: expected shape \[B, 3, H, W\], found \[2, 16, 16, 3\]"),
-        ((2, 3, 16, 16), (2, 3, 16, 17), None, r"target: expected shape \[B, 3, H, W\] = \[2, 3, 16, 16\] \(as pred\), found \[2, 3, 16, 17\]"),
-        ((2, 3, 16, 16), (2, 3, 16, 16), (2, 1, 16, 16), r"mask: expected shape \[B, H, W\] = \[2, 16, 16\] \(as pred\), found \[2, 1, 16, 16\]"),
+        (
+            (2, 3, 16, 16),
+            (2, 3, 16, 17),
+            None,
+            r"target: expected shape \[B, 3, H, W\] = \[2, 3, 16, 16\] \(as pred\), found \[2, 3, 16, 17\]",
+        ),
+        (
+            (2, 3, 16, 16),
+            (2, 3, 16, 16),
+            (2, 1, 16, 16),
+            r"mask: expected shape \[B, H, W\] = \[2, 16, 16\] \(as pred\), found \[2, 1, 16, 16\]",
+        ),
     ],
 )
 def test_image_metric_shape_errors(metric, pred_shape, target_shape, mask_shape, message):

@@ -16,7 +16,9 @@ def _grid(n_side: int = 10, spacing: float = 1.0, scale: float = 0.05) -> Gaussi
     means = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
     means = torch.cat([means, torch.zeros(len(means), 1)], 1)
     n = len(means)
-    return Gaussians.create(means, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), scale), torch.full((n,), 0.9), torch.rand(n, 3))
+    return Gaussians.create(
+        means, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), scale), torch.full((n,), 0.9), torch.rand(n, 3)
+    )
 
 
 def test_duplicates_merge_into_the_same_gaussian():
@@ -41,7 +43,9 @@ def test_separate_gaussians_are_kept_exactly():
 
 def test_moment_matching_covers_the_spread_of_the_centres():
     base = torch.tensor([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0]])
-    g = Gaussians.create(base, torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2, 3), 0.05), torch.full((2,), 0.8), torch.rand(2, 3))
+    g = Gaussians.create(
+        base, torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2, 3), 0.05), torch.full((2,), 0.8), torch.rand(2, 3)
+    )
     merged = merge_groups(g, torch.zeros(2, dtype=torch.long))
     assert len(merged) == 1
     torch.testing.assert_close(merged.means[0], torch.tensor([0.01, 0.0, 0.0]))
@@ -54,7 +58,7 @@ def test_different_flows_do_not_merge():
     g = _grid(3)
     moving = Gaussians.cat([g, g])
     flows = torch.zeros(len(moving), 3)
-    flows[len(g):, 0] = 1.0  # the copy moves one metre: a different object
+    flows[len(g) :, 0] = 1.0  # the copy moves one metre: a different object
     moving = Gaussians(**{**moving.__dict__, "flows": flows})
     ids = merge_keys(moving, 1.0, 0.1)
     assert len(torch.unique(ids)) == len(moving)

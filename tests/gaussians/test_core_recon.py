@@ -176,9 +176,13 @@ def test_default_surfels_lie_in_the_surface_and_project_to_round_pixel_splats():
     assert (depth > 0).all()
     points = unproject(depth, k[None])
     torch.testing.assert_close(surface_normals(points)[0], normal.expand(32, 48, 3), atol=1e-6, rtol=0)
-    g = gaussians_from_pixels(depth, k[None], torch.eye(4, dtype=torch.float64)[None], torch.rand(1, 32, 48, 3, dtype=torch.float64), keyframe=0)
+    g = gaussians_from_pixels(
+        depth, k[None], torch.eye(4, dtype=torch.float64)[None], torch.rand(1, 32, 48, 3, dtype=torch.float64), keyframe=0
+    )
     torch.testing.assert_close((q2m(g.quats)[:, :, 2] @ normal).abs(), torch.ones(len(g), dtype=torch.float64), atol=1e-6, rtol=0)
-    proj = project_covariances(g.means, covariances_3d(g.quats, g.scales), torch.eye(4, dtype=torch.float64), k, 48, 32, eps2d=0.0)
+    proj = project_covariances(
+        g.means, covariances_3d(g.quats, g.scales), torch.eye(4, dtype=torch.float64), k, 48, 32, eps2d=0.0
+    )
     a, b, c = proj.conics.unbind(-1)
     cov = torch.stack([c, -b, -b, a], -1).view(-1, 2, 2) / (a * c - b * b)[:, None, None]
     eig = torch.linalg.eigvalsh(cov)
@@ -230,7 +234,10 @@ def test_compiled_surfel_frames_match_the_torch_path():
     # Blocky depth with edges, slanted planes and near/far jumps, in 3 cameras with skew and offsets.
     depth = 2.0 + 60.0 * torch.rand(3, 6, 8, generator=g).repeat_interleave(5, 1).repeat_interleave(5, 2)
     depth = depth + torch.linspace(0, 4, 40)[None, None, :] + 0.05 * torch.rand(3, 30, 40, generator=g)
-    k = torch.tensor([[[50.0, 0.3, 19.5], [0.0, 48.0, 14.5], [0, 0, 1]]]).repeat(3, 1, 1) * torch.tensor([1.0, 1.2, 0.8])[:, None, None]
+    k = (
+        torch.tensor([[[50.0, 0.3, 19.5], [0.0, 48.0, 14.5], [0, 0, 1]]]).repeat(3, 1, 1)
+        * torch.tensor([1.0, 1.2, 0.8])[:, None, None]
+    )
     k[:, 2, 2] = 1
     q_cpp, s_cpp = surfel_frames(depth, k, backend="cpp")
     q_ref, s_ref = surfel_frames_torch(depth, k)

@@ -10,9 +10,9 @@ import torch
 
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.gaussians.assembly import surfel_frames
+from drivingscene.geometry.camera import pixel_grid
 from drivingscene.models import DrivingSceneModel, ModelConfig
 from drivingscene.models.depth import DepthConfig
-from drivingscene.geometry.camera import pixel_grid
 from drivingscene.models.pipeline import LiftConfig, assemble, predict_flow, predict_static, rigid_flows, sky_mask
 from drivingscene.models.residual_flow import decoder_slots, local_cost_volume
 from tests.factories import make_pair, make_rig

@@ -14,7 +14,9 @@ def random_scene(num: int = 40, num_cams: int = 2, width: int = 32, height: int 
     """Random Gaussians 3-7 m in front of ``num_cams`` nearby cameras, as ``rasterize`` keyword arguments."""
     g = torch.Generator().manual_seed(seed)
     means = torch.randn(num, 3, generator=g) * torch.tensor([1.2, 0.9, 1.0]) + torch.tensor([0.0, 0.0, 5.0])
-    colors = torch.rand(num, 3, generator=g) if sh_degree is None else 0.4 * torch.randn(num, (sh_degree + 1) ** 2, 3, generator=g)
+    colors = (
+        torch.rand(num, 3, generator=g) if sh_degree is None else 0.4 * torch.randn(num, (sh_degree + 1) ** 2, 3, generator=g)
+    )
     viewmats = torch.eye(4).repeat(num_cams, 1, 1)
     for b in range(1, num_cams):
         yaw = 0.1 * b

@@ -54,7 +54,9 @@ def test_anisotropic_gaussian_matches_autograd_jacobian():
     p = project_gaussians(mean[None], quat, scale, viewmat[None], Ks, W, H, eps2d=0.3)
     cam = viewmat[:3, :3] @ mean
     jac = torch.autograd.functional.jacobian(_pinhole(Ks[0]), cam)  # [2, 3]
-    cov2d = jac @ viewmat[:3, :3] @ covariances_3d(quat, scale)[0] @ viewmat[:3, :3].T @ jac.T + 0.3 * torch.eye(2, dtype=torch.float64)
+    cov2d = jac @ viewmat[:3, :3] @ covariances_3d(quat, scale)[0] @ viewmat[:3, :3].T @ jac.T + 0.3 * torch.eye(
+        2, dtype=torch.float64
+    )
     conic = torch.linalg.inv(cov2d)
     torch.testing.assert_close(p.conics[0, 0], torch.stack([conic[0, 0], conic[0, 1], conic[1, 1]]))
     torch.testing.assert_close(p.means2d[0, 0], _pinhole(Ks[0])(cam))
@@ -88,7 +90,9 @@ def test_culling_near_far_and_off_image():
 def test_gradcheck_projection():
     g = torch.Generator().manual_seed(1)
     viewmats, Ks = _camera()
-    means = (torch.randn(3, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0, 0, 3.0], dtype=torch.float64)).requires_grad_()
+    means = (
+        torch.randn(3, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0, 0, 3.0], dtype=torch.float64)
+    ).requires_grad_()
     quats = torch.randn(3, 4, generator=g, dtype=torch.float64).requires_grad_()
     scales = (0.05 + torch.rand(3, 3, generator=g, dtype=torch.float64) * 0.2).requires_grad_()
 

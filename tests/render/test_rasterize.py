@@ -93,7 +93,9 @@ def test_single_isotropic_gaussian_is_analytic(renderer, opacity, request):
     alpha = torch.where((d2 <= 9 * var) & (raw >= 1 / 255), raw.clamp(max=0.99), torch.zeros_like(raw))
     assert out.alphas[0, 11, 15] == pytest.approx(min(opacity, 0.99), abs=1e-6)
     torch.testing.assert_close(out.alphas[0].float(), alpha, atol=1e-6, rtol=0)
-    torch.testing.assert_close(out.colors[0].float(), alpha[..., None] * scene["colors"][0] + (1 - alpha[..., None]) * bg, atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        out.colors[0].float(), alpha[..., None] * scene["colors"][0] + (1 - alpha[..., None]) * bg, atol=1e-6, rtol=0
+    )
     torch.testing.assert_close(out.depths[0].float(), torch.where(alpha > 0, 4.0, 0.0), atol=1e-5, rtol=0)
     if opacity > 0.5:  # the 3-sigma cut ends the footprint of an opaque Gaussian before alpha reaches 1/255
         assert (alpha > 0).sum() < (raw >= 1 / 255).sum()

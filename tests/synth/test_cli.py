@@ -27,8 +27,25 @@ def test_single_pair_is_valid_and_reproducible(tmp_path, capsys):
 
 def test_preset_and_flags_reach_the_file(tmp_path):
     out = tmp_path / "x.npz"
-    assert main(["synth", "--seed", "7", "--out", str(out), *TINY, "--preset", "long_gap", "--num-eval", "3",
-                 "--blackout-camera", "CAM_BACK"]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                "--seed",
+                "7",
+                "--out",
+                str(out),
+                *TINY,
+                "--preset",
+                "long_gap",
+                "--num-eval",
+                "3",
+                "--blackout-camera",
+                "CAM_BACK",
+            ]
+        )
+        == 0
+    )
     pair = load_frame_pair(out)
     assert pair.duration == pytest.approx(1.0) and pair.num_eval == 3
     assert not pair.images[:, pair.camera_names.index("CAM_BACK")].any()
@@ -112,6 +129,16 @@ def test_bad_arguments_are_one_line_errors(argv, flag, tmp_path, monkeypatch, ca
 def test_list_presets(capsys):
     assert main(["synth", "--list-presets"]) == 0
     out = capsys.readouterr().out
-    for name in ("default", "easy", "fast_ego", "fast_objects", "crowded", "long_gap", "low_texture", "exposure",
-                 "noisy", "blackout"):
+    for name in (
+        "default",
+        "easy",
+        "fast_ego",
+        "fast_objects",
+        "crowded",
+        "long_gap",
+        "low_texture",
+        "exposure",
+        "noisy",
+        "blackout",
+    ):
         assert any(line.startswith(f"{name} ") for line in out.splitlines())

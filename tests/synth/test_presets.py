@@ -52,8 +52,12 @@ def test_noise_has_the_requested_standard_deviation(generate, small_pair):
 def _dynamic_residual(pair) -> float:
     """Median |gt flow - rigid flow| on moving-object pixels: the objects' own image motion."""
     poses = cams_to_world(torch.tensor(pair.cam_to_ego, dtype=torch.float64), torch.tensor(pair.ego_to_world))
-    flow, _ = rigid_flow(torch.tensor(pair.gt_depth[0], dtype=torch.float64),
-                         torch.tensor(pair.intrinsics, dtype=torch.float64), poses[0], poses[1])
+    flow, _ = rigid_flow(
+        torch.tensor(pair.gt_depth[0], dtype=torch.float64),
+        torch.tensor(pair.intrinsics, dtype=torch.float64),
+        poses[0],
+        poses[1],
+    )
     residual = np.linalg.norm(pair.gt_flow[0] - flow.numpy(), axis=-1)
     return float(np.median(residual[pair.gt_dynamic[0]]))
 
@@ -86,12 +90,24 @@ def test_low_texture_has_weaker_surface_gradients(generate, small_pair):
 def test_ego_speed_gap_and_crowd_presets_change_the_scene_they_should():
     fast_ego = build_scene(resolve_config("fast_ego", height=64, width=112), TEST_SEED)
     t0 = fast_ego.t0
-    assert np.linalg.norm(fast_ego.ego_to_world(t0 + 0.5)[:3, 3] - fast_ego.ego_to_world(t0)[:3, 3]) == pytest.approx(8.0, abs=0.01)
+    assert np.linalg.norm(fast_ego.ego_to_world(t0 + 0.5)[:3, 3] - fast_ego.ego_to_world(t0)[:3, 3]) == pytest.approx(
+        8.0, abs=0.01
+    )
     assert build_scene(resolve_config("long_gap"), TEST_SEED).keyframe_times[1] - t0 == pytest.approx(1.0)
     assert len(build_scene(resolve_config("crowded"), TEST_SEED).agents) == 20
     assert len(build_scene(resolve_config("easy"), TEST_SEED).agents) == 4
-    assert set(PRESETS) >= {"default", "easy", "fast_ego", "fast_objects", "crowded", "long_gap", "low_texture",
-                            "exposure", "noisy", "blackout"}
+    assert set(PRESETS) >= {
+        "default",
+        "easy",
+        "fast_ego",
+        "fast_objects",
+        "crowded",
+        "long_gap",
+        "low_texture",
+        "exposure",
+        "noisy",
+        "blackout",
+    }
 
 
 def test_same_seed_same_bytes_and_other_seeds_differ(renderer, small_pair, tmp_path):

@@ -43,8 +43,12 @@ def test_depth_of_a_ground_plane_is_the_ray_plane_intersection(renderer):
     near = (depth > 0) & (depth < 150)
     covered = other[..., 3] > 0.5
     assert near.sum() > 1000 and np.all(covered[near]) and not np.any(covered[down > 0])
-    np.testing.assert_allclose(now[..., 2][near], depth[near], rtol=1e-4)  # float32 interpolation of a 1 km quad at grazing angles
-    np.testing.assert_allclose(now[..., :3][near], (rays * depth[..., None])[near], rtol=1e-4, atol=2e-4)  # half a pixel would be ~0.5 m here
+    np.testing.assert_allclose(
+        now[..., 2][near], depth[near], rtol=1e-4
+    )  # float32 interpolation of a 1 km quad at grazing angles
+    np.testing.assert_allclose(
+        now[..., :3][near], (rays * depth[..., None])[near], rtol=1e-4, atol=2e-4
+    )  # half a pixel would be ~0.5 m here
     assert np.all(flow3[covered] == 0) and not np.any(now[..., 3][covered])  # static
 
 
@@ -58,8 +62,12 @@ def test_moving_box_has_its_translation_as_scene_flow(renderer):
     other_pose = planar_pose(9.5, -0.3, 0.2)
     try:
         now, other, flow3 = renderer.render_geometry(
-            gpu, _view(rig, ego, np.eye(4), now_pose[None]), _view(rig, ego, np.eye(4), other_pose[None]),
-            rig.intrinsics, (40, 64))
+            gpu,
+            _view(rig, ego, np.eye(4), now_pose[None]),
+            _view(rig, ego, np.eye(4), other_pose[None]),
+            rig.intrinsics,
+            (40, 64),
+        )
     finally:
         gpu.release()
     front = rig.camera_names.index("CAM_FRONT")

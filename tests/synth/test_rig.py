@@ -12,9 +12,7 @@ from drivingscene.synth.rig import CAMERA_NAMES, make_rig, scale_intrinsics_np
 
 def test_camera_order_and_nuscenes_focal_lengths():
     rig = make_rig(900, 1600)
-    assert rig.camera_names == (
-        "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT"
-    )
+    assert rig.camera_names == ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
     fx = rig.intrinsics[:, 0, 0]
     assert np.all(np.abs(np.delete(fx, 3) - 1266) < 10) and abs(fx[3] - 809) < 1
     small = make_rig(176, 320)

@@ -35,7 +35,17 @@ def data_dir(tmp_path_factory) -> Path:
 
 
 def _config(data_dir: Path, out: Path, **kw) -> TrainConfig:
-    base = dict(data=str(data_dir), out=str(out), steps=4, ckpt_every=2, log_every=1, val_every=1000, lpips="stlpips", model=TINY_MODEL, threads=1)
+    base = dict(
+        data=str(data_dir),
+        out=str(out),
+        steps=4,
+        ckpt_every=2,
+        log_every=1,
+        val_every=1000,
+        lpips="stlpips",
+        model=TINY_MODEL,
+        threads=1,
+    )
     base.update(kw)
     return TrainConfig(**base)
 
@@ -85,9 +95,25 @@ def test_torchrun_two_processes(data_dir, tmp_path):
     config = tmp_path / "config.json"
     config.write_text(_config(data_dir, tmp_path / "ddp", steps=2).to_json())
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29517",
-        "-m", "drivingscene", "train", "--stage", "static", "--config", str(config),
-        "--data", str(data_dir), "--out", str(tmp_path / "ddp"), "--no-progress",
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc-per-node",
+        "2",
+        "--master-port",
+        "29517",
+        "-m",
+        "drivingscene",
+        "train",
+        "--stage",
+        "static",
+        "--config",
+        str(config),
+        "--data",
+        str(data_dir),
+        "--out",
+        str(tmp_path / "ddp"),
+        "--no-progress",
     ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
