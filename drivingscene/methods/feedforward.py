@@ -84,7 +84,7 @@ def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOpt
         scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, options.lift)
     timings["flow_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    gaussians = assemble(static, batch, sky, scene_flow).transform(batch.local_to_world)
+    gaussians = assemble(static, batch, sky, scene_flow, local_to_world=batch.local_to_world)
     sky_sh = fit_sky_from_pixels(
         batch.images, sky, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics
     )

@@ -19,7 +19,7 @@ from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.models.pipeline import rigid_flows
 from drivingscene.render.scene import render_gaussians
-from drivingscene.render.sky import fit_sky, ray_directions
+from drivingscene.render.sky import fit_sky, pixel_directions
 
 
 def _world_cameras(batch) -> torch.Tensor:
@@ -31,11 +31,13 @@ def fit_sky_from_pixels(
     images: torch.Tensor, sky: torch.Tensor, cam_to_world: torch.Tensor, intrinsics: torch.Tensor
 ) -> torch.Tensor:
     """Sky SH ``[K, 3]`` from images ``[T, V, 3, H, W]`` where ``sky`` ``[T, V, H, W]`` is true."""
-    height, width = images.shape[-2:]
-    dirs = ray_directions(cam_to_world.flatten(0, 1), intrinsics.repeat(images.shape[0], 1, 1).double(), height, width)
     colors = images.flatten(0, 1).permute(0, 2, 3, 1)
     mask = sky.flatten(0, 1)
-    return fit_sky(dirs[mask].float(), colors[mask]).float()
+    cams = cam_to_world.flatten(0, 1)
+    ks = intrinsics.repeat(images.shape[0], 1, 1).double()
+    # Directions at the sky pixels only (image by image), not at every pixel.
+    dirs = torch.cat([pixel_directions(cams[b], ks[b], mask[b]) for b in range(len(cams))])
+    return fit_sky(dirs.float(), colors[mask]).float()
 
 
 def refine_colors(

@@ -176,10 +176,17 @@ def assemble(
     sky: Tensor,  # [2, V, H, W] bool
     scene_flow: Tensor | None = None,  # [2, V, H, W, 3]
     keyframes: tuple[int, ...] = (0, 1),
+    local_to_world: Tensor | None = None,  # [4, 4]: build them in the world frame directly
 ) -> Gaussians:
-    """Gaussians of the requested keyframes in the local frame (sky pixels excluded)."""
+    """Gaussians of the requested keyframes in the local frame, or the world frame with
+    ``local_to_world`` (one pass, not a second transform of every Gaussian); sky pixels excluded."""
     num_views = batch.num_views
     p = static.params
+    cams = batch.cam_to_local
+    if local_to_world is not None:
+        cams = (local_to_world.double() @ cams.double()).to(cams.dtype)
+        if scene_flow is not None:
+            scene_flow = scene_flow @ local_to_world[:3, :3].to(scene_flow.dtype).T
     parts = []
     for k in keyframes:
         sl = slice(k * num_views, (k + 1) * num_views)
@@ -188,7 +195,7 @@ def assemble(
             gaussians_from_pixels(
                 depth,
                 batch.intrinsics,
-                batch.cam_to_local[k],
+                cams[k],
                 p.sh[sl],
                 keyframe=k,
                 log_scales=p.log_scales[sl],

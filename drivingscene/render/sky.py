@@ -28,6 +28,17 @@ def ray_directions(cam_to_world: Tensor, intrinsics: Tensor, height: int, width:
     return torch.nn.functional.normalize(dirs, dim=-1)
 
 
+def pixel_directions(cam_to_world: Tensor, intrinsics: Tensor, mask: Tensor) -> Tensor:
+    """Unit world directions ``[P, 3]`` through the pixels where ``mask`` ``[H, W]`` is true
+    (row-major order, as ``ray_directions(...)[0][mask]``) of one camera ``[4, 4]``, ``[3, 3]``."""
+    v, u = mask.nonzero(as_tuple=True)
+    v, u = v.to(intrinsics.dtype), u.to(intrinsics.dtype)
+    y = (v - intrinsics[1, 2]) / intrinsics[1, 1]
+    x = (u - intrinsics[0, 2] - intrinsics[0, 1] * y) / intrinsics[0, 0]
+    rays = torch.stack([x, y, torch.ones_like(x)], dim=-1)
+    return torch.nn.functional.normalize(rays @ cam_to_world[:3, :3].to(rays.dtype).T, dim=-1)
+
+
 def sky_colors(sky_sh: Tensor, dirs: Tensor) -> Tensor:
     """Sky RGB ``[..., 3]`` for unit directions ``[..., 3]`` and coefficients ``[K, 3]``."""
     degree = round(sky_sh.shape[0] ** 0.5) - 1

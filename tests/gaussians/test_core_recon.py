@@ -254,3 +254,13 @@ def test_compiled_surfel_frames_match_the_torch_path():
     # "auto" takes the compiled path for float32 CPU input and the torch path for float64.
     torch.testing.assert_close(surfel_frames(depth, k)[1], s_cpp, atol=0, rtol=0)
     assert surfel_frames(depth.double(), k.double())[1].dtype == torch.float64
+
+
+def test_sky_pixel_directions_match_the_full_ray_grid():
+    from drivingscene.render.sky import pixel_directions, ray_directions
+
+    k = torch.tensor([[40.0, 0.5, 15.5], [0.0, 38.0, 11.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cam = torch.eye(4, dtype=torch.float64)
+    cam[:3, :3] = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)))[0]
+    mask = torch.rand(24, 32, generator=torch.Generator().manual_seed(2)) < 0.3
+    torch.testing.assert_close(pixel_directions(cam, k, mask), ray_directions(cam[None], k[None], 24, 32)[0][mask])

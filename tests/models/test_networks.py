@@ -98,6 +98,16 @@ def test_assembly_excludes_sky_and_counts_pixels(model):
     assert len(g) == 2 * 2 * 32 * 48
     sky[0, 0, :10] = True
     assert len(assemble(static, batch, sky)) == 2 * 2 * 32 * 48 - 10 * 48
+    # Built in the world frame directly == built locally, then transformed (flows rotate too).
+    yaw = 0.8
+    to_world = torch.eye(4, dtype=torch.float64)
+    to_world[:2, :2] = torch.tensor([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    to_world[:3, 3] = torch.tensor([50.0, -20.0, 1.0])
+    flows = torch.randn(2, 2, 32, 48, 3)
+    local = assemble(static, batch, sky, flows).transform(to_world)
+    world = assemble(static, batch, sky, flows, local_to_world=to_world)
+    for name in ("means", "flows", "quats", "log_scales", "sh", "opacity_logits"):
+        torch.testing.assert_close(getattr(world, name), getattr(local, name), atol=1e-4, rtol=1e-5)
 
 
 def test_networks_run_at_the_training_size_and_outputs_come_back_full_size():
