@@ -74,13 +74,20 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
 
 
 def wall_hours(recs: list[dict]) -> float:
-    """Training wall time: summed gaps between log records, ignoring pauses over 10 minutes
-    (a resumed run); runs logged without timestamps fall back to step time x steps."""
-    times = [r["time"] for r in recs if "time" in r]
-    if len(times) > 1:
-        return sum(b - a for a, b in zip(times, times[1:]) if 0 < b - a < 600) / 3600
-    mean_step = sum(r.get("seconds", 0.0) for r in recs) / max(len(recs), 1)
-    return mean_step * (recs[-1]["step"] if recs else 0) / 3600
+    """Training wall time from the log: the gap between consecutive records where both carry a
+    timestamp (gaps over 10 minutes are a kill and resume, not training), otherwise the steps
+    between them times the logged step time. A resumed run's repeated steps count once."""
+    by_step = {r["step"]: r for r in recs}  # the resumed run's record wins
+    ordered = [by_step[k] for k in sorted(by_step)]
+    total, prev = 0.0, None
+    for r in ordered:
+        gap = r["time"] - prev["time"] if prev is not None and "time" in r and "time" in prev else None
+        if gap is not None and 0 < gap < 600:
+            total += gap
+        else:
+            total += (r["step"] - (prev["step"] if prev is not None else 0)) * r.get("seconds", 0.0)
+        prev = r
+    return total / 3600
 
 
 def _row(name: str, config: dict, recs: list[dict]) -> str:

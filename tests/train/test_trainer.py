@@ -140,3 +140,16 @@ def test_ship_weights_from_a_run_in_float16(data_dir, tmp_path, capsys):
             torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-4, msg=name)
     assert main(["ship-weights", str(run), str(tmp_path / "w.safetensors")]) == 2  # never overwrites
     assert "exists" in capsys.readouterr().err
+
+
+def test_training_report_wall_time_survives_a_kill_and_resume():
+    from drivingscene.bench.training_report import wall_hours
+
+    # Old records without timestamps (2 s steps, logged every 10), a kill, a resume that repeats
+    # steps 20-30 with timestamps 1.5 s apart per step, and an hour-long pause that is not training.
+    recs = [{"step": s, "seconds": 2.0} for s in (10, 20, 30)]
+    recs += [{"step": s, "seconds": 1.5, "time": 1000.0 + 1.5 * (s - 20)} for s in (20, 30, 40)]
+    recs += [{"step": 50, "seconds": 1.5, "time": 1000.0 + 30 + 3600}]
+    # 0-10: 10 x 2 s (old run); 10-20: retrained by the resumed run, 10 x 1.5 s (its step-20
+    # record replaces the old one); 20-40: 30 s of timestamps; 40-50: the pause counts as 10 x 1.5 s.
+    assert wall_hours(recs) * 3600 == pytest.approx(20 + 15 + 30 + 15)
