@@ -159,30 +159,39 @@ def gaussians_from_pixels(
     valid: Tensor | None = None,  # [V, H, W] bool; default depth > 0
     default_opacity: float = 0.95,
 ) -> Gaussians:
-    """One Gaussian per valid pixel, in the world frame (differentiable in every input)."""
+    """One Gaussian per valid pixel, in the world frame (differentiable in every input).
+
+    Valid pixels are selected once (flat indices) and every attribute is computed or gathered
+    for them only."""
     num_views, height, width = depth.shape
     if valid is None:
         valid = depth > 0
-    points_cam = unproject(depth, intrinsics)  # [V, H, W, 3]
-    means = transform_points(cam_to_world, points_cam.flatten(1, 2)).view(num_views, height, width, 3)
     if log_scales is None or quats is None:
         surfel_quats, surfel_log_scales = surfel_frames(depth.detach(), intrinsics)
         quats = surfel_quats if quats is None else quats
         log_scales = surfel_log_scales if log_scales is None else log_scales
-    cam_quats = matrix_to_quat(cam_to_world[:, :3, :3])[:, None, None, :].expand(num_views, height, width, 4)
-    world_quats = quat_multiply(cam_quats, quats)
+    idx = valid.flatten().nonzero().squeeze(1)  # row-major pixel order, as valid-mask indexing
+    counts = valid.flatten(1).sum(1)
+    cameras = torch.repeat_interleave(torch.arange(num_views, device=depth.device), counts)
+
+    def pick(x: Tensor, tail: int) -> Tensor:  # [V, H, W, *tail dims] -> [N, *tail dims]
+        return x.reshape(num_views * height * width, *x.shape[3 : 3 + tail]).index_select(0, idx)
+
+    points = transform_points(cam_to_world, unproject(depth, intrinsics).flatten(1, 2))  # [V, HW, 3]
+    means = pick(points.view(num_views, height, width, 3), 1)
+    cam_quats = matrix_to_quat(cam_to_world[:, :3, :3])[cameras]
+    world_quats = quat_multiply(cam_quats, pick(quats, 1))
     sh = rgb_to_sh0(colors)[..., None, :] if colors.ndim == 4 else colors
     if opacity_logits is None:
         opacity_logits = torch.full_like(depth, torch.logit(torch.tensor(default_opacity)).item())
-    cameras = torch.arange(num_views, device=depth.device)[:, None, None].expand(num_views, height, width)
-    n = int(valid.sum())
+    n = idx.numel()
     return Gaussians(
-        means=means[valid],
-        quats=world_quats[valid],
-        log_scales=log_scales[valid],
-        opacity_logits=opacity_logits[valid],
-        sh=sh[valid],
-        flows=torch.zeros_like(means[valid]) if flows is None else flows[valid],
+        means=means,
+        quats=world_quats,
+        log_scales=pick(log_scales, 1),
+        opacity_logits=pick(opacity_logits, 0),
+        sh=pick(sh, 2),
+        flows=torch.zeros_like(means) if flows is None else pick(flows, 1),
         keyframes=torch.full((n,), keyframe, dtype=torch.int64, device=depth.device),
-        cameras=cameras[valid],
+        cameras=cameras,
     )
