@@ -69,7 +69,43 @@ def forward_backward_consistency(
     |f + b(p + f)|^2 < alpha (|f|^2 + |b(p + f)|^2) + beta, and p + f inside the image.
     """
     bw_at_fw, inside = backward_warp(flow_bw.permute(0, 3, 1, 2), flow_fw)
-    bw_at_fw = bw_at_fw.permute(0, 2, 3, 1)
-    diff = (flow_fw + bw_at_fw).square().sum(-1)
-    bound = alpha * (flow_fw.square().sum(-1) + bw_at_fw.square().sum(-1)) + beta
-    return (diff < bound) & inside
+    return _consistent(flow_fw, bw_at_fw.permute(0, 2, 3, 1), alpha, beta) & inside
+
+
+def _consistent(fw: Tensor, bw_at_fw: Tensor, alpha: float, beta: float) -> Tensor:
+    diff = (fw + bw_at_fw).square().sum(-1)
+    return diff < alpha * (fw.square().sum(-1) + bw_at_fw.square().sum(-1)) + beta
+
+
+def sample_bilinear(image: Tensor, index: Tensor, uv: Tensor) -> Tensor:
+    """``image`` ``[B, H, W, C]`` at points ``uv`` ``[P, 2]`` of images ``index`` ``[P]``, bilinear
+    with border clamping (what `backward_warp` computes at every pixel, here at chosen points)."""
+    _, height, width, channels = image.shape
+    x = uv[:, 0].clamp(0, width - 1)
+    y = uv[:, 1].clamp(0, height - 1)
+    x0 = x.detach().floor().clamp(max=max(width - 2, 0))
+    y0 = y.detach().floor().clamp(max=max(height - 2, 0))
+    wx, wy = (x - x0)[:, None], (y - y0)[:, None]
+    x0, y0 = x0.long(), y0.long()
+    x1, y1 = (x0 + 1).clamp(max=width - 1), (y0 + 1).clamp(max=height - 1)
+    flat = image.reshape(-1, channels)
+    base = index * (height * width)
+
+    def at(r: Tensor, c: Tensor) -> Tensor:
+        return flat.index_select(0, base + r * width + c)
+
+    top = at(y0, x0) * (1 - wx) + at(y0, x1) * wx
+    bottom = at(y1, x0) * (1 - wx) + at(y1, x1) * wx
+    return top * (1 - wy) + bottom * wy
+
+
+def forward_backward_consistency_at(
+    flow_fw: Tensor, flow_bw: Tensor, index: Tensor, pixels: Tensor, alpha: float = 0.01, beta: float = 0.5
+) -> Tensor:
+    """`forward_backward_consistency` at chosen pixels only: ``index`` ``[P]`` images, ``pixels``
+    ``[P, 2]`` integer (u, v); flows ``[B, H, W, 2]``. Returns ``[P]`` bool."""
+    height, width = flow_fw.shape[1:3]
+    fw = flow_fw[index, pixels[:, 1], pixels[:, 0]]
+    uv = pixels.to(fw.dtype) + fw
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
+    return _consistent(fw, sample_bilinear(flow_bw, index, uv), alpha, beta) & inside

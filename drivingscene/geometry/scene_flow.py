@@ -47,3 +47,31 @@ def scene_flow_from_optical_flow(
     dst_world = transform_points(dst_cam_to_world, _unproject_at(dst_uv.flatten(1, 2), d_dst.flatten(1), intrinsics))
     scene_flow = (dst_world - src_world).view(num_views, height, width, 3)
     return torch.where(valid[..., None], scene_flow, torch.zeros_like(scene_flow)), valid
+
+
+def scene_flow_at_pixels(
+    depth_src: Tensor,  # [V, H, W]
+    depth_dst: Tensor,  # [V, H, W]
+    flow: Tensor,  # [V, H, W, 2]
+    intrinsics: Tensor,  # [V, 3, 3]
+    src_cam_to_world: Tensor,  # [V, 4, 4]
+    dst_cam_to_world: Tensor,  # [V, 4, 4]
+    index: Tensor,  # [P] view of each chosen pixel
+    pixels: Tensor,  # [P, 2] integer (u, v)
+) -> tuple[Tensor, Tensor]:
+    """`scene_flow_from_optical_flow` at chosen pixels only: ``[P, 3]`` and valid ``[P]``."""
+    _, height, width = depth_src.shape
+    u, v = pixels[:, 0], pixels[:, 1]
+    dst_uv = pixels.to(flow.dtype) + flow[index, v, u]
+    col, row = dst_uv[:, 0].round().long(), dst_uv[:, 1].round().long()
+    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    d_src = depth_src[index, v, u]
+    d_dst = depth_dst[index, row.clamp(0, height - 1), col.clamp(0, width - 1)]
+    valid = inside & (d_src > 0) & (d_dst > 0)
+    k = intrinsics[index]
+    src = _unproject_at(pixels.to(flow.dtype)[:, None], d_src[:, None], k)[:, 0]
+    dst = _unproject_at(dst_uv[:, None], d_dst[:, None], k)[:, 0]
+    src_world = (src_cam_to_world[index, :3, :3] @ src[:, :, None])[:, :, 0] + src_cam_to_world[index, :3, 3]
+    dst_world = (dst_cam_to_world[index, :3, :3] @ dst[:, :, None])[:, :, 0] + dst_cam_to_world[index, :3, 3]
+    scene_flow = dst_world - src_world
+    return torch.where(valid[:, None], scene_flow, torch.zeros_like(scene_flow)), valid

@@ -22,8 +22,8 @@ from drivingscene.data.tensors import PairTensors
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
-from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
-from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
+from drivingscene.geometry.flow import backward_warp, forward_backward_consistency_at, rigid_flow
+from drivingscene.geometry.scene_flow import scene_flow_at_pixels
 from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
 from drivingscene.models.model import DrivingSceneModel
@@ -155,18 +155,22 @@ def lift_scene_flow(
     """World (local-frame) displacement ``[2, V, H, W, 3]`` and dynamic mask ``[2, V, H, W]``.
 
     A pixel moves only where its residual exceeds the threshold, its flow is forward/backward
-    consistent and both depths are valid; every other pixel falls back to static.
+    consistent and both depths are valid; every other pixel falls back to static. Only the
+    candidate pixels (residual above the threshold, not sky) are lifted: a few percent of the image.
     """
     c2l = batch.cam_to_local
+    num_views, height, width = depth.shape[1:]
     flows, masks = [], []
     for k in (0, 1):
         o = 1 - k
-        sf, valid = scene_flow_from_optical_flow(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o])
-        consistent = forward_backward_consistency(total[k], total[o])
-        moving = residual[k].norm(dim=-1) > config.dynamic_threshold_px
-        dynamic = valid & consistent & moving & ~sky[k]
-        flows.append(torch.where(dynamic[..., None], sf, torch.zeros_like(sf)))
-        masks.append(dynamic)
+        moving = (residual[k].detach().square().sum(-1) > config.dynamic_threshold_px**2) & ~sky[k]
+        index, row, col = moving.nonzero(as_tuple=True)
+        pixels = torch.stack([col, row], -1)
+        sf, valid = scene_flow_at_pixels(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o], index, pixels)
+        dynamic = valid & forward_backward_consistency_at(total[k], total[o], index, pixels)
+        sf = torch.where(dynamic[:, None], sf, torch.zeros_like(sf))
+        flows.append(total.new_zeros(num_views, height, width, 3).index_put((index, row, col), sf))
+        masks.append(torch.zeros_like(moving).index_put((index, row, col), dynamic))
     return torch.stack(flows), torch.stack(masks)
 
 

@@ -13,7 +13,15 @@ from drivingscene.gaussians.assembly import surfel_frames
 from drivingscene.geometry.camera import pixel_grid
 from drivingscene.models import DrivingSceneModel, ModelConfig
 from drivingscene.models.depth import DepthConfig
-from drivingscene.models.pipeline import LiftConfig, assemble, predict_flow, predict_static, rigid_flows, sky_mask
+from drivingscene.models.pipeline import (
+    LiftConfig,
+    assemble,
+    lift_scene_flow,
+    predict_flow,
+    predict_static,
+    rigid_flows,
+    sky_mask,
+)
 from drivingscene.models.residual_flow import decoder_slots, local_cost_volume
 from tests.factories import make_pair, make_rig
 
@@ -147,3 +155,32 @@ def test_rigid_flow_of_points_behind_the_destination_camera_is_bounded():
     # Points that stay in front keep their exact flow: bounding only touches far destinations.
     near = rigid_flows(torch.full_like(depth, 200.0), batch)
     assert near.abs().max() < 8
+
+
+def test_sparse_lift_matches_the_dense_definition_and_passes_gradients():
+    from drivingscene.geometry.flow import forward_backward_consistency
+    from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
+
+    g = torch.Generator().manual_seed(3)
+    pair = make_pair(num_views=3, height=20, width=28)
+    batch = pair_to_tensors(pair)
+    depth = 3.0 + 20.0 * torch.rand(2, 3, 20, 28, generator=g)
+    rigid = torch.randn(2, 3, 20, 28, 2, generator=g)
+    residual = 3.0 * torch.randn(2, 3, 20, 28, 2, generator=g) * (torch.rand(2, 3, 20, 28, 1, generator=g) < 0.4)
+    residual[1] = -residual[0]  # some forward/backward-consistent motion
+    total = (rigid + residual).requires_grad_(True)
+    sky = torch.rand(2, 3, 20, 28, generator=g) < 0.1
+    config = LiftConfig(dynamic_threshold_px=1.0)
+    flows, masks = lift_scene_flow(depth, total, residual, sky, batch, config)
+    c2l = batch.cam_to_local
+    for k in (0, 1):
+        sf, valid = scene_flow_from_optical_flow(depth[k], depth[1 - k], total[k].detach(), batch.intrinsics, c2l[k], c2l[1 - k])
+        consistent = forward_backward_consistency(total[k].detach(), total[1 - k].detach())
+        dynamic = valid & consistent & (residual[k].norm(dim=-1) > 1.0) & ~sky[k]
+        assert 0 < dynamic.sum() < dynamic.numel()
+        assert torch.equal(masks[k], dynamic)
+        torch.testing.assert_close(
+            flows[k].detach(), torch.where(dynamic[..., None], sf, torch.zeros_like(sf)), atol=1e-4, rtol=1e-5
+        )
+    flows.square().sum().backward()
+    assert total.grad is not None and total.grad.abs().sum() > 0
