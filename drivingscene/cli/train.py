@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="run folder: checkpoints, log.jsonl, model.safetensors")
     p.add_argument("--init", type=Path, default=None, metavar="WEIGHTS", help="start from these weights (stage 2: stage 1's)")
     p.add_argument("--steps", type=positive_int, default=None)
-    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-4, the paper's)")
+    p.add_argument("--flow-lr", type=float, default=None, help="learning rate of R, the residual flow network (default: --lr)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads per process")
     p.add_argument("--batch-pairs", type=positive_int, default=None, help="frame pairs per step and process (default 1)")
@@ -76,8 +77,9 @@ def run(args: argparse.Namespace) -> int:
             base = TrainConfig.from_dict(json.loads(args.config.read_text()))
         except (OSError, ValueError, TypeError) as e:
             raise InputError(f"{args.config}: --config: expected a training config JSON: {e}") from None
-    if args.lr is not None and not args.lr > 0:
-        raise InputError(f"--lr: expected a positive learning rate, found {args.lr}")
+    for name, value in (("--lr", args.lr), ("--flow-lr", args.flow_lr)):
+        if value is not None and not value > 0:
+            raise InputError(f"{name}: expected a positive learning rate, found {value}")
     config = base.with_overrides(
         stage=args.stage,
         data=str(args.data),
@@ -86,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         init=str(args.init) if args.init else None,
         steps=args.steps,
         lr=args.lr,
+        flow_lr=args.flow_lr,
         seed=args.seed,
         threads=args.threads,
         batch_pairs=args.batch_pairs,

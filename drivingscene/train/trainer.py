@@ -49,6 +49,16 @@ def _trainable(model: DrivingSceneModel, stage: str) -> list[torch.nn.Parameter]
     return [p for p in model.parameters() if p.requires_grad]
 
 
+def _param_groups(model: DrivingSceneModel, params: list[torch.nn.Parameter], config: TrainConfig) -> list[dict]:
+    """Adam groups: R at ``flow_lr`` (when set), everything else at ``lr``."""
+    flow = {id(p) for p in model.flow_net.parameters()}
+    groups = [
+        {"params": [p for p in params if id(p) not in flow], "lr": config.lr},
+        {"params": [p for p in params if id(p) in flow], "lr": config.flow_lr or config.lr},
+    ]
+    return [g for g in groups if g["params"]]
+
+
 def _load_init(model: DrivingSceneModel, path: str) -> None:
     from safetensors.torch import load_file
 
@@ -110,7 +120,7 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
     runner = step_module
     if world > 1:
         runner = torch.nn.parallel.DistributedDataParallel(step_module, find_unused_parameters=True)
-    optimizer = torch.optim.Adam(params, lr=config.lr)
+    optimizer = torch.optim.Adam(_param_groups(model, params, config))
     start = restore(model, optimizer, *ckpt) if ckpt is not None else 0
     data = PairSequence(files, config.seed, rank, world)
     val_files = list_pairs(config.val_data)[: config.val_pairs] if config.val_data and rank == 0 else []

@@ -153,3 +153,19 @@ def test_training_report_wall_time_survives_a_kill_and_resume():
     # 0-10: 10 x 2 s (old run); 10-20: retrained by the resumed run, 10 x 1.5 s (its step-20
     # record replaces the old one); 20-40: 30 s of timestamps; 40-50: the pause counts as 10 x 1.5 s.
     assert wall_hours(recs) * 3600 == pytest.approx(20 + 15 + 30 + 15)
+
+
+def test_flow_lr_applies_to_the_residual_flow_network_only():
+    from drivingscene.models.model import DrivingSceneModel
+    from drivingscene.train.trainer import _param_groups, _trainable
+
+    model = DrivingSceneModel(TINY_MODEL)
+    config = TrainConfig(stage="joint", flow_lr=5e-4, lr=1e-4)
+    groups = _param_groups(model, _trainable(model, "joint"), config)
+    flow = {id(p) for p in model.flow_net.parameters()}
+    assert [g["lr"] for g in groups] == [1e-4, 5e-4]
+    assert {id(p) for p in groups[1]["params"]} == flow
+    assert not flow & {id(p) for p in groups[0]["params"]}
+    static = _param_groups(model, _trainable(model, "static"), config)  # R frozen: one group, lr
+    assert [g["lr"] for g in static] == [1e-4] and len(static[0]["params"]) == len(_trainable(model, "static"))
+    assert [g["lr"] for g in _param_groups(model, _trainable(model, "dynamic"), TrainConfig(stage="dynamic"))] == [1e-4]
