@@ -24,12 +24,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables")
 
 
+def _read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+
+
 def _read_run(folder: Path) -> tuple[dict, list[dict]]:
     config, log = folder / "config.json", folder / "log.jsonl"
     if not config.exists() or not log.exists():
         raise InputError(f"{folder}: expected config.json and log.jsonl of a training run")
-    records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
-    return json.loads(config.read_text()), records
+    return json.loads(config.read_text()), _read_jsonl(log)
+
+
+def machines(folder: Path) -> list[str]:
+    """Distinct machines the run was trained on (``sessions.jsonl``, one line per start/resume)."""
+    seen = []
+    for s in _read_jsonl(folder / "sessions.jsonl"):
+        text = f"{s['cpu']}, {s['cores']} cores, torch {s['torch']}, {s['processes']} process(es) x {s['threads']} thread(s)"
+        if text not in seen:
+            seen.append(text)
+    return seen
 
 
 def _smooth(values: list[float], window: int = 20) -> list[float]:
@@ -92,14 +105,18 @@ def wall_hours(recs: list[dict]) -> float:
 
 def _row(name: str, config: dict, recs: list[dict]) -> str:
     steps = recs[-1]["step"] if recs else 0
-    return f"| {name} | {config['stage']} | {steps} | {config['lr']} | {wall_hours(recs):.1f} h | {config['data']} |"
+    flow_lr = "frozen" if config["stage"] == "static" else config.get("flow_lr") or config["lr"]
+    dp_lr = "frozen" if config["stage"] == "dynamic" else config["lr"]
+    return f"| {name} | {config['stage']} | {steps} | {dp_lr} | {flow_lr} | {wall_hours(recs):.1f} h | {config['data']} |"
 
 
 def run(args: argparse.Namespace) -> int:
     runs = [(folder.name, *_read_run(folder)) for folder in args.runs]
     plot_curves(runs, args.figure)
-    lines = ["| run | stage | steps | lr | wall time | data |", "|---|---|---|---|---|---|"]
+    lines = ["| run | stage | steps | lr D, P | lr R | wall time | data |", "|---|---|---|---|---|---|---|"]
     lines += [_row(name, config, recs) for name, config, recs in runs]
+    lines += ["", "Trained on (per run, from its `sessions.jsonl`):", ""]
+    lines += [f"- {folder.name}: " + ("; ".join(machines(folder)) or "not recorded") for folder in args.runs]
     lines += ["", "Validation (mean over the validation pairs, recorded during training):", ""]
     lines += ["| run | step | " + " | ".join(VAL_KEYS) + " |", "|---|---|" + "---|" * len(VAL_KEYS)]
     for name, _, recs in runs:

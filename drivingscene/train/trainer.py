@@ -122,6 +122,8 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
         runner = torch.nn.parallel.DistributedDataParallel(step_module, find_unused_parameters=True)
     optimizer = torch.optim.Adam(_param_groups(model, params, config))
     start = restore(model, optimizer, *ckpt) if ckpt is not None else 0
+    if rank == 0:
+        _record_session(out, start, world, config)
     data = PairSequence(files, config.seed, rank, world)
     val_files = list_pairs(config.val_data)[: config.val_pairs] if config.val_data and rank == 0 else []
     info = {"stage": config.stage, "lpips": perceptual.name, "world": world}
@@ -161,6 +163,23 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
         dist.barrier()
         dist.destroy_process_group()
     return out / "model.safetensors"
+
+
+def _record_session(out: Path, start: int, world: int, config: TrainConfig) -> None:
+    """One line per start or resume in ``OUT/sessions.jsonl``: when, from which step, on what."""
+    from drivingscene.bench.machine import cpu_model, usable_cores
+
+    record = {
+        "time": round(time.time(), 1),
+        "start_step": start,
+        "cpu": cpu_model(),
+        "cores": usable_cores(),
+        "torch": torch.__version__,
+        "threads": config.threads,
+        "processes": world,
+    }
+    with open(out / "sessions.jsonl", "a") as f:
+        f.write(json.dumps(record) + "\n")
 
 
 def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info, val_files, bar) -> None:

@@ -169,3 +169,23 @@ def test_flow_lr_applies_to_the_residual_flow_network_only():
     static = _param_groups(model, _trainable(model, "static"), config)  # R frozen: one group, lr
     assert [g["lr"] for g in static] == [1e-4] and len(static[0]["params"]) == len(_trainable(model, "static"))
     assert [g["lr"] for g in _param_groups(model, _trainable(model, "dynamic"), TrainConfig(stage="dynamic"))] == [1e-4]
+
+
+def test_training_report_from_runs(data_dir, tmp_path):
+    from drivingscene.cli import main
+
+    static = tmp_path / "static"
+    train(_config(data_dir, static, stage="static", steps=2), show_progress=False)
+    train(_config(data_dir, static, stage="static", steps=3), resume=True, show_progress=False)
+    dynamic = tmp_path / "dynamic"
+    train(_config(data_dir, dynamic, stage="dynamic", steps=2, flow_lr=5e-4), show_progress=False)
+    sessions = [json.loads(line) for line in (static / "sessions.jsonl").read_text().splitlines()]
+    assert [s["start_step"] for s in sessions] == [0, 2] and sessions[0]["threads"] == 1
+    figure, out = tmp_path / "curves.png", tmp_path / "training.md"
+    args = ["bench", "training", str(static), str(dynamic), "--figure", str(figure), "--out", str(out)]
+    assert main(args) == 0
+    text = out.read_text()
+    assert "| static | static | 3 | 0.0001 | frozen |" in text
+    assert "| dynamic | dynamic | 2 | frozen | 0.0005 |" in text
+    assert "1 process(es) x 1 thread(s)" in text
+    assert figure.stat().st_size > 1000
