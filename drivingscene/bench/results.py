@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -39,6 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/results.md)")
     p.add_argument("--json", type=Path, default=None, help="also write per-pair scores as JSON")
+    p.add_argument("--image", type=Path, default=None, help="write a qualitative figure of one pair (e.g. docs/images/results.png)")
+    p.add_argument("--image-pair", type=int, default=0, metavar="I", help="which of the scored pairs the figure shows (default 0)")
 
 
 def _methods(args):
@@ -73,7 +76,7 @@ def _table(title: str, header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def report(scores: dict[str, list[dict]], seconds: dict[str, float], lpips_name: str, args, count: int) -> str:
+def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips_name: str, args, count: int) -> str:
     nvs_head = ["method"] + [h.format(lpips=lpips_name) for _, h, _ in NVS]
     nvs_all = [[m] + [_fmt(_mean(rows, k), f) for k, _, f in NVS] for m, rows in scores.items()]
     nvs_dyn = [[m] + [_fmt(_mean(rows, f"{k}_dyn"), f) for k, _, f in NVS] for m, rows in scores.items()]
@@ -91,7 +94,7 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, float], lpips_name:
         for m, rows in scores.items()
     ]
     speed = [
-        [m, f"{seconds[m]:.2f}", f"{_mean(rows, 'gaussians') / 1e3:.0f}k", f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k"]
+        [m, f"{statistics.median(seconds[m]):.2f}", f"{_mean(rows, 'gaussians') / 1e3:.0f}k", f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k"]
         for m, rows in scores.items()
     ]
     cmd = f"drivingscene bench results --data {args.data} --count {args.count}" + (
@@ -111,9 +114,60 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, float], lpips_name:
             ["method", "dynamic: rigid only", "dynamic: rigid + residual", "static: rigid + residual"],
             flow_rows,
         ),
-        _table("Cost", ["method", "seconds per pair (this machine)", "Gaussians", "dynamic Gaussians"], speed),
+        _table("Cost", ["method", "seconds per pair (median, this machine)", "Gaussians", "dynamic Gaussians"], speed),
     ]
     return "\n".join(parts)
+
+
+def figure(recons: dict, pair, path: Path) -> Path:
+    """The camera with the most moving pixels at the first intermediate frame: the real frame and
+    every method's render of it (PSNR on the moving pixels in the label); then ground-truth and
+    predicted depth at keyframe 0, and the ground-truth, rigid and total flow 0 -> 1 (one colour scale)."""
+    import numpy as np
+
+    from drivingscene.render.scene import render_eval_frames
+    from drivingscene.viz import contact_sheet, depth_to_rgb, flow_to_rgb, save_png
+
+    dyn = pair.eval_dynamic[0] if pair.eval_dynamic is not None else np.zeros(pair.eval_images.shape[1:4], bool)
+    v = int(dyn.reshape(dyn.shape[0], -1).sum(1).argmax())
+    target = pair.eval_images[0, v]
+    row, names = [target], [f"{pair.camera_names[v]} at t = 0.5 (real)"]
+    for name, recon in recons.items():
+        img = (render_eval_frames(recon, pair)[0, v].numpy() * 255).round().astype(np.uint8)
+        err = (img.astype(np.float64) - target) / 255.0
+        mse = float((err[dyn[v]] ** 2).mean()) if dyn[v].any() else float("nan")
+        row.append(img)
+        names.append(f"{name.split(' (')[0]}: {-10 * math.log10(max(mse, 1e-10)):.1f} dB moving")
+    model = next(r for r in recons.values() if r.residual_flow is not None)
+    gt_depth, depth = pair.gt_depth[0, v], model.depth[0, v]
+    valid = gt_depth[gt_depth > 0]
+    lo, hi = (float(np.percentile(valid, 2)), float(np.percentile(valid, 98))) if valid.size else (None, None)
+    second = [depth_to_rgb(gt_depth, vmin=lo, vmax=hi), depth_to_rgb(depth, vmin=lo, vmax=hi)]
+    second_names = ["depth 0: ground truth", "depth 0: DrivingScene"]
+    if pair.gt_flow is not None:
+        # The part of the motion that ego motion does not explain: ground truth (flow minus the
+        # rigid flow of the true depth) against R's residual, on one scale set by the moving pixels.
+        non_rigid = pair.gt_flow[0, v] - _rigid_from_gt_depth(pair)[0, v]
+        moving = np.linalg.norm(non_rigid, axis=-1)[pair.gt_dynamic[0, v]] if pair.gt_dynamic is not None else []
+        rim = float(np.percentile(moving, 95)) if len(moving) else None
+        height, width = gt_depth.shape
+        dest = np.stack(np.meshgrid(np.arange(width), np.arange(height)), -1) + pair.gt_flow[0, v]
+        seen = (gt_depth > 0) & (dest >= -0.5).all(-1) & (dest[..., 0] <= width - 0.5) & (dest[..., 1] <= height - 0.5)
+        second += [flow_to_rgb(np.where(seen[..., None], non_rigid, 0), rim), flow_to_rgb(model.residual_flow[0, v], rim)]
+        second_names += ["non-rigid flow 0->1: ground truth", "residual flow: DrivingScene"]
+    return save_png(path, contact_sheet([row, second], [names, second_names]))
+
+
+def _rigid_from_gt_depth(pair):
+    """Rigid flow ``[2, V, H, W, 2]`` of the ground-truth depth (sky: far away)."""
+    import numpy as np
+    import torch
+
+    from drivingscene.data.tensors import pair_to_tensors
+    from drivingscene.models.pipeline import rigid_flows
+
+    depth = torch.from_numpy(np.where(pair.gt_depth > 0, pair.gt_depth, 1e4)).float()
+    return rigid_flows(depth, pair_to_tensors(pair, with_gt=False, with_eval=False)).numpy()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -126,14 +180,17 @@ def run(args: argparse.Namespace) -> int:
     perceptual = load_perceptual(args.lpips)
     methods = _methods(args)
     scores: dict[str, list[dict]] = {name: [] for name, _ in methods}
-    seconds = {name: 0.0 for name, _ in methods}
+    seconds: dict[str, list[float]] = {name: [] for name, _ in methods}
     for i, path in enumerate(files):
         pair = load_frame_pair(path)
+        recons = {}
         for name, method in methods:
             tic = time.perf_counter()
-            recon = method(pair)
-            seconds[name] += (time.perf_counter() - tic) / len(files)
+            recon = recons[name] = method(pair)
+            seconds[name].append(time.perf_counter() - tic)
             scores[name].append({"file": path.name, **score_reconstruction(recon, pair, perceptual)})
+        if args.image and i == args.image_pair:
+            figure(recons, pair, args.image)
         print(
             f"[{i + 1}/{len(files)}] {path.name}: "
             + ", ".join(f"{n.split(' ')[0]} {scores[n][-1].get('psnr', math.nan):.2f} dB" for n, _ in methods),
