@@ -19,6 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-amp", action="store_true")
+    p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
 
 
@@ -55,17 +56,25 @@ def measure(model, size: str, runs: int, amp: bool, threads: int) -> dict:
     )
 
 
+def _gpu_name(device) -> str:
+    import torch
+
+    return "" if device.type != "cuda" else f", GPU {torch.cuda.get_device_name(device)}"
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from drivingscene.methods.feedforward import load_model
+    from drivingscene.methods.feedforward import load_model, resolve_device
 
+    device = resolve_device(args.device)
     torch.set_num_threads(args.threads)
-    model = load_model(args.weights)
+    model = load_model(args.weights, device=device)
     rows = [measure(model, size, args.runs, not args.no_amp, args.threads) for size in args.sizes]
     lines = [
-        f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}` on "
-        f"{machine_description()}; bf16 autocast {'off' if args.no_amp else 'on'}; median of {args.runs} runs after a warm-up.",
+        f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}"
+        f"{'' if device.type == 'cpu' else ' --device ' + args.device}` on {machine_description()}"
+        f"{_gpu_name(device)}; bf16 autocast {'off' if args.no_amp else 'on'}; median of {args.runs} runs after a warm-up.",
         "",
         "| size (H×W) | total s (median) | best s | networks D+P s | flow (rigid + R + lift) s | assembly + sky s | Gaussians | peak RSS increase |",
         "|---|---|---|---|---|---|---|---|",

@@ -17,6 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--static-only", action="store_true", help="no residual flow (every Gaussian static)")
     p.add_argument("--threads", type=positive_int, default=None)
     p.add_argument("--no-amp", action="store_true", help="float32 networks (default: bf16 autocast on CPU)")
+    p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_reconstruct)
 
@@ -85,11 +86,12 @@ def _report(recon, path: Path) -> None:
 def run_reconstruct(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.gaussians.recon import save_reconstruction
-    from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+    from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct, resolve_device
 
     check_output(args.out, args.force, "-o")
+    device = resolve_device(args.device)
     pair = load_frame_pair(args.scene)
-    model = load_model(args.weights)
+    model = load_model(args.weights, device=device)
     options = InferenceOptions(use_residual=not args.static_only, amp=not args.no_amp, threads=args.threads)
     recon = reconstruct(model, pair, options)
     _report(recon, save_reconstruction(recon, args.out))

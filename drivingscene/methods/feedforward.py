@@ -38,6 +38,24 @@ class InferenceOptions:
     threads: int | None = None
 
 
+def resolve_device(name: str) -> torch.device:
+    """``cpu``, ``cuda`` or ``cuda:N``; a one-line error when the GPU is not there."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise InputError(f"--device: expected cpu, cuda or cuda:N, found {name!r}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"--device {name}: torch {torch.__version__} sees no CUDA GPU; use --device cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise InputError(f"--device: expected cpu, cuda or cuda:N, found {name!r}")
+    return device
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def load_model(path: str | Path | None = None, device: str = "cpu") -> DrivingSceneModel:
     """Model from ``NAME.safetensors`` + ``NAME.json`` (default: the shipped weights)."""
     path = Path(path) if path else asset_path(DEFAULT_WEIGHTS)
@@ -73,6 +91,7 @@ def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOpt
     amp = torch.autocast(device.type, dtype=torch.bfloat16, enabled=options.amp)
     with amp:
         static = predict_static(model, batch)
+    _sync(device)
     timings["static_s"] = time.perf_counter() - start
     depth = static.depth.float()
     sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
@@ -82,12 +101,14 @@ def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOpt
     scene_flow = None
     if flow is not None:
         scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, options.lift)
+    _sync(device)
     timings["flow_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     gaussians = assemble(static, batch, sky, scene_flow, local_to_world=batch.local_to_world)
     sky_sh = fit_sky_from_pixels(
         batch.images, sky, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics
     )
+    _sync(device)
     timings["assembly_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - start
     if rigid is None:

@@ -67,3 +67,19 @@ def test_unknown_command_is_usage_error(capsys):
 def test_console_script_runs():
     out = subprocess.run([sys.executable, "-m", "drivingscene", "--version"], capture_output=True, text=True, check=True)
     assert out.stdout.startswith("drivingscene ")
+
+
+@pytest.mark.parametrize(
+    ("device", "expected"),
+    [("tpu", "--device: expected cpu, cuda or cuda:N, found 'tpu'"), ("cuda", "sees no CUDA GPU; use --device cpu")],
+)
+def test_reconstruct_device_errors_are_one_line(tmp_path, small_pair, capsys, device, expected):
+    import torch
+
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    scene = save_frame_pair(small_pair, tmp_path / "scene.npz")
+    assert main(["reconstruct", str(scene), "-o", str(tmp_path / "r.npz"), "--device", device]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expected in err
+    assert not (tmp_path / "r.npz").exists()
