@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 from drivingscene.cli.common import positive_int
@@ -20,6 +21,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=positive_int, default=None)
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-4, the paper's)")
     p.add_argument("--flow-lr", type=float, default=None, help="learning rate of R, the residual flow network (default: --lr)")
+    p.add_argument(
+        "--flow-supervision",
+        type=float,
+        default=None,
+        metavar="W",
+        help="add W x L1 flow error against the pairs' ground-truth flow (synthetic pre-training of R; not in the paper)",
+    )
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads per process")
     p.add_argument("--batch-pairs", type=positive_int, default=None, help="frame pairs per step and process (default 1)")
@@ -72,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.train.trainer import train
 
     base = TrainConfig()
+    if args.resume and args.config is None and (args.out / "config.json").exists():
+        args.config = args.out / "config.json"  # continue with the run's own settings unless overridden
     if args.config is not None:
         try:
             base = TrainConfig.from_dict(json.loads(args.config.read_text()))
@@ -80,6 +90,10 @@ def run(args: argparse.Namespace) -> int:
     for name, value in (("--lr", args.lr), ("--flow-lr", args.flow_lr)):
         if value is not None and not value > 0:
             raise InputError(f"{name}: expected a positive learning rate, found {value}")
+    if args.flow_supervision is not None:
+        if not args.flow_supervision >= 0:
+            raise InputError(f"--flow-supervision: expected a weight >= 0, found {args.flow_supervision}")
+        base = replace(base, weights=replace(base.weights, flow_sup=args.flow_supervision))
     config = base.with_overrides(
         stage=args.stage,
         data=str(args.data),

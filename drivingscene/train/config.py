@@ -23,6 +23,9 @@ class LossWeights:
     render_lpips: float = 0.05  # inside L_render: L2 + 0.05 LPIPS
     warp_ssim: float = 0.1  # inside L_warp: L1 + 0.1 SSIM + 0.05 LPIPS
     warp_lpips: float = 0.05
+    # Not in the paper (0 = its recipe): L1 of the total flow against a synthetic pair's exact
+    # ground-truth flow, for pre-training R on the procedural benchmark (``--flow-supervision``).
+    flow_sup: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 Stage 1 (static prior):  0.1 L_loc + 0.001 L_smooth + 0.01 L_render
 Stage 2 (dynamics):      0.02 L_warp + 1e-5 L_consist + 0.01 L_render
+                         (+ optional L_flow_sup on synthetic ground truth, not in the paper)
 (weights in ``drivingscene.train.config.LossWeights``).
 """
 
@@ -119,3 +120,16 @@ def consistency_loss(flow_fw: Tensor, flow_bw: Tensor) -> Tensor:
     bw_at_fw, inside = backward_warp(flow_bw.permute(0, 3, 1, 2), flow_fw)
     diff = (flow_fw + bw_at_fw.permute(0, 2, 3, 1)).abs().sum(-1)
     return (diff * inside).sum() / inside.sum().clamp(min=1)
+
+
+def supervised_flow_loss(flow: Tensor, gt_flow: Tensor, dynamic: Tensor, valid: Tensor) -> Tensor:
+    """L_flow_sup: L1 end-point error of ``flow`` against ``gt_flow`` (both ``[B, H, W, 2]``,
+    pixels), divided by the image width, where ``valid``; the mean over moving pixels
+    (``dynamic``) and the mean over the rest count half each, so that the few percent of pixels on
+    moving objects are not drowned by the static world. Not in the paper: for synthetic pairs."""
+    err = (flow - gt_flow).abs().sum(-1) / flow.shape[-2]
+    loss = flow.new_zeros(())
+    for part in (valid & dynamic, valid & ~dynamic):
+        if part.any():
+            loss = loss + 0.5 * err[part].mean()
+    return loss

@@ -16,6 +16,8 @@ import torch
 from torch import Tensor, nn
 
 from drivingscene.data.tensors import PairTensors
+from drivingscene.errors import InputError
+from drivingscene.geometry.camera import pixel_grid
 from drivingscene.geometry.flow import backward_warp, rigid_flow
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.oracle import fit_sky_from_pixels
@@ -31,7 +33,14 @@ from drivingscene.models.pipeline import (
 )
 from drivingscene.render.scene import render_gaussians
 from drivingscene.train.config import TrainConfig
-from drivingscene.train.losses import consistency_loss, render_loss, reprojection_loss, smoothness_loss, warp_loss
+from drivingscene.train.losses import (
+    consistency_loss,
+    render_loss,
+    reprojection_loss,
+    smoothness_loss,
+    supervised_flow_loss,
+    warp_loss,
+)
 
 # Lift every consistent pixel while training so L_render reaches R everywhere; inference gates
 # small residuals to static (LiftConfig default).
@@ -97,7 +106,14 @@ class TrainStep(nn.Module):
         if stage != "static":
             terms.update(self.dynamic_terms(static, batch, step))
         w = self.config.weights
-        weight = {"loc": w.loc, "smooth": w.smooth, "render": w.render, "warp": w.warp, "consist": w.consist}
+        weight = {
+            "loc": w.loc,
+            "smooth": w.smooth,
+            "render": w.render,
+            "warp": w.warp,
+            "consist": w.consist,
+            "flow_sup": w.flow_sup,
+        }
         loss = sum(weight[k] * v for k, v in terms.items() if k in weight)
         return loss, terms
 
@@ -159,22 +175,46 @@ class TrainStep(nn.Module):
         sources = batch.images.flip(0).flatten(0, 1)
         w = self.config.weights
         levels = len(flow.residuals)
-        warp = 0.0
+        supervise = w.flow_sup > 0 and batch.gt_flow is not None
+        if w.flow_sup > 0 and not supervise:
+            raise InputError("--flow-supervision: the training pairs carry no gt_flow (synthetic pairs do)")
+        if supervise:
+            gt_flow, gt_valid, gt_dynamic = _flow_targets(batch)
+        warp = sup = 0.0
         for level, residual in enumerate(flow.residuals):
             total = (flow.rigid + residual).flatten(0, 1)
             warped, inside = backward_warp(sources, total)
             finest = level == levels - 1
             lpips = self.perceptual if finest else None
-            warp = warp + warp_loss(warped, targets, inside, lpips, w.warp_ssim, w.warp_lpips) / 2 ** (levels - 1 - level)
+            scale = 2 ** (levels - 1 - level)
+            warp = warp + warp_loss(warped, targets, inside, lpips, w.warp_ssim, w.warp_lpips) / scale
+            if supervise:
+                sup = sup + supervised_flow_loss(total, gt_flow, gt_dynamic, gt_valid) / scale
         total = flow.total
         consist = consistency_loss(total[0], total[1]) + consistency_loss(total[1], total[0])
         terms = {"warp": warp, "consist": consist}
+        if supervise:
+            terms["flow_sup"] = sup
         if step % self.config.render_every == 0:
             sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
             scene_flow, _ = lift_scene_flow(depth, total, flow.residual, sky, batch, TRAIN_LIFT)
             terms["render"] = self.render_term(static, batch, step, scene_flow)
         terms["residual_px"] = flow.residual.detach().norm(dim=-1).mean()
         return terms
+
+
+def _flow_targets(batch: PairTensors) -> tuple[Tensor, Tensor, Tensor]:
+    """Ground-truth flow ``[2V, H, W, 2]``, where it is usable (a surface seen at both ends, landing
+    inside the other image) and the moving-object mask, for ``supervised_flow_loss``."""
+    gt = batch.gt_flow.flatten(0, 1).float()
+    height, width = gt.shape[1:3]
+    dest = pixel_grid(height, width, dtype=gt.dtype) + gt
+    valid = torch.isfinite(gt).all(-1) & (dest[..., 0] >= 0) & (dest[..., 0] <= width - 1)
+    valid &= (dest[..., 1] >= 0) & (dest[..., 1] <= height - 1)
+    if batch.gt_depth is not None:
+        valid &= batch.gt_depth.flatten(0, 1) > 0
+    dynamic = batch.gt_dynamic.flatten(0, 1) if batch.gt_dynamic is not None else torch.zeros_like(valid)
+    return torch.nan_to_num(gt), valid, dynamic
 
 
 def is_finite(loss: Tensor) -> bool:

@@ -10,6 +10,7 @@ from drivingscene.train.losses import (
     render_loss,
     reprojection_loss,
     smoothness_loss,
+    supervised_flow_loss,
     warp_loss,
 )
 
@@ -116,3 +117,20 @@ def test_box_ssim_matches_a_float64_window_loop():
                 ref = (2 * ma * mb + c1) * (2 * cov + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2))
                 torch.testing.assert_close(got[0, c, i, j], ref)
     torch.testing.assert_close(ssim_box(x, x), torch.ones_like(x))
+
+
+def test_supervised_flow_loss_balances_moving_and_static_pixels():
+    gt = torch.zeros(1, 4, 10, 2)
+    flow = gt.clone()
+    dynamic = torch.zeros(1, 4, 10, dtype=torch.bool)
+    dynamic[0, 0, 0] = True  # one moving pixel among 40
+    valid = torch.ones_like(dynamic)
+    assert supervised_flow_loss(flow, gt, dynamic, valid) == 0
+    flow[0, 0, 0] = torch.tensor([3.0, 4.0])  # L1 7 px on the moving pixel only
+    # half the weight on the moving pixels' mean, whatever their share: 0.5 * 7 / width
+    assert torch.isclose(supervised_flow_loss(flow, gt, dynamic, valid), torch.tensor(0.5 * 7 / 10))
+    valid[0, 0, 0] = False  # an unusable ground-truth pixel does not count
+    assert supervised_flow_loss(flow, gt, dynamic, valid) == 0
+    flow.requires_grad_(True)
+    supervised_flow_loss(flow + 1, gt, dynamic, valid).backward()
+    assert flow.grad[0, 0, 0].abs().sum() == 0 and flow.grad[0, 1, 1].abs().sum() > 0

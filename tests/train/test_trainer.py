@@ -189,3 +189,23 @@ def test_training_report_from_runs(data_dir, tmp_path):
     assert "| dynamic | dynamic | 2 | frozen | 0.0005 |" in text
     assert "1 process(es) x 1 thread(s)" in text
     assert figure.stat().st_size > 1000
+
+
+def test_flow_supervision_term_and_resume_keeps_the_runs_settings(data_dir, tmp_path, capsys):
+    from drivingscene.cli import main
+
+    out = tmp_path / "sup"
+    args = ["train", "--stage", "dynamic", "--data", str(data_dir), "--out", str(out), "--steps", "2", "--threads", "1"]
+    args += ["--lpips", "stlpips", "--ckpt-every", "2", "--no-progress"]
+    tiny = tmp_path / "tiny.json"
+    tiny.write_text(json.dumps(TrainConfig(model=TINY_MODEL, log_every=1).to_dict()))
+    assert main([*args, "--config", str(tiny), "--flow-supervision", "0.1", "--flow-lr", "5e-4"]) == 0
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert all(r["flow_sup"] > 0 for r in records)
+    # --resume with no settings continues with the run's own (supervision, R's learning rate)
+    assert main(["train", "--stage", "dynamic", "--data", str(data_dir), "--out", str(out), "--steps", "3", "--resume", "--no-progress"]) == 0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["weights"]["flow_sup"] == 0.1 and saved["flow_lr"] == 5e-4 and saved["steps"] == 3
+    assert "flow_sup" in json.loads((out / "log.jsonl").read_text().splitlines()[-1])
+    assert main([*args[:-1], "--out", str(tmp_path / "neg"), "--flow-supervision", "-1"]) == 2
+    assert "--flow-supervision: expected a weight >= 0" in capsys.readouterr().err
