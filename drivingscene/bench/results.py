@@ -21,8 +21,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from drivingscene.bench.machine import machine_description
+from drivingscene.errors import InputError
 
 NVS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "{lpips}", "{:.3f}")]
+FULL, STATIC = "DrivingScene (two-stage)", "static-only (no residual flow)"
 DEPTH = [
     ("abs_rel", "AbsRel", "{:.3f}"),
     ("sq_rel", "SqRel", "{:.3f}"),
@@ -36,6 +38,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--count", type=int, default=20, help="pairs to score (default 20)")
     p.add_argument("--weights", type=Path, default=None, help="two-stage model (default: the shipped weights)")
     p.add_argument("--joint-weights", type=Path, default=None, help="single-stage (joint) model for the ablation")
+    p.add_argument(
+        "--extra",
+        action="append",
+        default=[],
+        metavar="NAME=WEIGHTS",
+        help="another trained model to score beside the others (repeatable), e.g. a stage 2 trained another way",
+    )
     p.add_argument("--no-oracle", action="store_true")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/results.md)")
@@ -50,15 +59,28 @@ def _methods(args):
 
     model = load_model(args.weights)
     methods = [
-        ("DrivingScene (two-stage)", lambda pair: reconstruct(model, pair)),
-        ("static-only (no residual flow)", lambda pair: reconstruct(model, pair, InferenceOptions(use_residual=False))),
+        (FULL, lambda pair: reconstruct(model, pair)),
+        (STATIC, lambda pair: reconstruct(model, pair, InferenceOptions(use_residual=False))),
     ]
     if args.joint_weights:
         joint = load_model(args.joint_weights)
         methods.append(("single-stage (joint training)", lambda pair: reconstruct(joint, pair)))
+    for name, path in _extras(args.extra):
+        extra = load_model(path)
+        methods.append((name, lambda pair, m=extra: reconstruct(m, pair)))
     if not args.no_oracle:
         methods.append(("oracle (GT depth + scene flow)", oracle_reconstruction))
     return methods
+
+
+def _extras(items: list[str]) -> list[tuple[str, str]]:
+    out = []
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise InputError(f"--extra: expected NAME=WEIGHTS, found {item!r}")
+        out.append((name, path))
+    return out
 
 
 def _mean(rows: list[dict], key: str) -> float:
@@ -74,6 +96,33 @@ def _table(title: str, header: list[str], rows: list[list[str]]) -> str:
     lines = [f"### {title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
+
+
+def _paired(a: list[dict], b: list[dict], key: str) -> tuple[float, int, int]:
+    """Mean of a - b over pairs where both have ``key``, how many pairs a is better (higher), and how many pairs."""
+    diffs = [x[key] - y[key] for x, y in zip(a, b) if key in x and key in y and not (math.isnan(x[key]) or math.isnan(y[key]))]
+    return (sum(diffs) / len(diffs) if diffs else math.nan), sum(d > 0 for d in diffs), len(diffs)
+
+
+def checks(scores: dict[str, list[dict]]) -> list[str]:
+    """The two claims the model must hold, tested pair by pair on the same inputs."""
+    full, static = scores.get(FULL), scores.get(STATIC)
+    if full is None or static is None:
+        return []
+    lines = []
+    mean, wins, n = _paired(full, static, "psnr_dyn")
+    verdict = "holds" if mean > 0 else "does NOT hold"
+    lines.append(
+        f"- Full model vs static-only on dynamic pixels: PSNR {mean:+.2f} dB on average, higher in {wins} of {n} pairs — **{verdict}**."
+    )
+    lower = [{"d": r["epe_dyn_rigid"] - r["epe_dyn_total"]} for r in full if "epe_dyn_total" in r]
+    mean, wins, n = _paired(lower, [{"d": 0.0}] * len(lower), "d")
+    verdict = "holds" if mean > 0 else "does NOT hold"
+    lines.append(
+        f"- The residual lowers the dynamic-pixel flow error: {mean:+.2f} px on average (rigid only minus rigid + residual), "
+        f"lower in {wins} of {n} pairs — **{verdict}**."
+    )
+    return lines
 
 
 def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips_name: str, args, count: int) -> str:
@@ -97,15 +146,17 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
         [m, f"{statistics.median(seconds[m]):.2f}", f"{_mean(rows, 'gaussians') / 1e3:.0f}k", f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k"]
         for m, rows in scores.items()
     ]
-    cmd = f"drivingscene bench results --data {args.data} --count {args.count}" + (
-        f" --joint-weights {args.joint_weights}" if args.joint_weights else ""
-    )
+    cmd = f"drivingscene bench results --data {args.data} --count {args.count}"
+    cmd += f" --weights {args.weights}" if args.weights else ""
+    cmd += f" --joint-weights {args.joint_weights}" if args.joint_weights else ""
+    cmd += "".join(f" --extra '{e}'" for e in args.extra)
     parts = [
         "# Results\n",
         f"Regenerate with `{cmd} --out docs/results.md`. {count} test-split pairs never seen in training; "
         f"intermediate frames at the midpoint between keyframes. Perceptual metric: **{lpips_name}** "
         "(not the original LPIPS unless it says so). Measured on: "
         f"{machine_description()}, {datetime.now(timezone.utc):%Y-%m-%d}.\n",
+        "### Checks (pair by pair, same inputs)\n\n" + "\n".join(checks(scores)) + "\n",
         _table("Intermediate-frame novel views, all pixels", nvs_head, nvs_all),
         _table("Intermediate-frame novel views, dynamic pixels", nvs_head, nvs_dyn),
         _table("Depth at the keyframes (0.1–80 m)", ["method", "scaling"] + [h for _, h, _ in DEPTH], depth_rows),
@@ -176,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.eval.reconstruction import score_reconstruction
     from drivingscene.train.data import list_pairs
 
+    _extras(args.extra)  # argument errors before any work
     files = list_pairs(args.data)[: args.count]
     perceptual = load_perceptual(args.lpips)
     methods = _methods(args)

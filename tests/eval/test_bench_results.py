@@ -35,17 +35,37 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     save_frame_pair(synth_pair, data / "pair_200000.npz")
     md, js, png = tmp_path / "results.md", tmp_path / "scores.json", tmp_path / "results.png"
     args = ["bench", "results", "--data", str(data), "--count", "1", "--weights", str(tiny_weights)]
-    args += ["--joint-weights", str(tiny_weights), "--lpips", "stlpips", "--out", str(md), "--json", str(js), "--image", str(png)]
+    args += ["--joint-weights", str(tiny_weights), "--extra", f"another={tiny_weights}", "--lpips", "stlpips", "--out", str(md), "--json", str(js), "--image", str(png)]
     assert main(args) == 0
     text = md.read_text()
-    methods = ["DrivingScene (two-stage)", "static-only", "single-stage (joint training)", "oracle (GT depth + scene flow)"]
+    methods = ["DrivingScene (two-stage)", "static-only", "single-stage (joint training)", "another", "oracle (GT depth + scene flow)"]
     for heading in ("all pixels", "dynamic pixels", "Depth at the keyframes", "end-point error", "ST-LPIPS"):
         assert heading in text
     assert all(m in text for m in methods)
     scores = json.loads(js.read_text())
-    assert len(scores) == 4 and all(len(rows) == 1 for rows in scores.values())
+    assert "Full model vs static-only on dynamic pixels" in text and "lowers the dynamic-pixel flow error" in text
+    assert len(scores) == 5 and all(len(rows) == 1 for rows in scores.values())
     oracle = scores["oracle (GT depth + scene flow)"][0]
     assert oracle["depth_abs_rel"] < 1e-6 and oracle["psnr_dyn"] > scores["static-only (no residual flow)"][0]["psnr_dyn"]
     image = cv2.imread(str(png))
     height, width = synth_pair.image_size
-    assert image.shape[0] > 2 * height and image.shape[1] > 5 * width  # 2 rows; 5 columns (frame + 4 methods)
+    assert image.shape[0] > 2 * height and image.shape[1] > 6 * width  # 2 rows; 6 columns (frame + 5 methods)
+
+
+def test_checks_compare_pair_by_pair():
+    from drivingscene.bench.results import FULL, STATIC, checks
+
+    full = [{"psnr_dyn": 20.0, "epe_dyn_rigid": 10.0, "epe_dyn_total": 8.0}, {"psnr_dyn": 18.0, "epe_dyn_rigid": 5.0, "epe_dyn_total": 6.0}]
+    static = [{"psnr_dyn": 19.0}, {"psnr_dyn": 18.5}]
+    lines = checks({FULL: full, STATIC: static})
+    assert "PSNR +0.25 dB on average, higher in 1 of 2 pairs — **holds**" in lines[0]
+    assert "+0.50 px on average" in lines[1] and "lower in 1 of 2 pairs — **holds**" in lines[1]
+    worse = checks({FULL: [{"psnr_dyn": 17.0, "epe_dyn_rigid": 5.0, "epe_dyn_total": 7.0}], STATIC: [{"psnr_dyn": 18.0}]})
+    assert all("does NOT hold" in line for line in worse)
+
+
+def test_extra_needs_name_and_weights(tmp_path, capsys):
+    data = tmp_path / "d"
+    data.mkdir()
+    assert main(["bench", "results", "--data", str(data), "--extra", "noequals"]) == 2
+    assert "--extra: expected NAME=WEIGHTS" in capsys.readouterr().err
