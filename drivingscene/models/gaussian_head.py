@@ -87,7 +87,9 @@ class GaussianHead(nn.Module):
 
         Geometry stays float32 even inside a bf16 autocast region (the surfel covariances need it)."""
         with torch.autocast(raw.device.type, enabled=False):
-            return self._activate(raw.float(), images.float(), depth.float(), intrinsics.float())
+            # raw is often a channels-last view of an NCHW tensor: per-pixel math on its strided
+            # last dimension is several times slower than one contiguous copy.
+            return self._activate(raw.float().contiguous(), images.float(), depth.float(), intrinsics.float())
 
     def _activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:
         k = num_sh_coeffs(self.config.sh_degree)

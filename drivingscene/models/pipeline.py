@@ -97,7 +97,9 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPredic
         small = _resize(images, net_size, "area").contiguous(memory_format=torch.channels_last)
         depth_out, raw = model.static_raw(small, _scaled_intrinsics(intrinsics, size, net_size))
         depth = 1.0 / _resize(1.0 / depth_out.depth.float()[:, None], size, "bilinear")[:, 0]
-        raw = _resize(raw.permute(0, 3, 1, 2), size, "bilinear").permute(0, 2, 3, 1)
+        # channels-last in, channels-last out: the upsampled [B, H, W, C] view is then contiguous
+        raw = raw.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
+        raw = _resize(raw, size, "bilinear").permute(0, 2, 3, 1)
         params = model.gaussian_head.activate(raw, images, depth, intrinsics)
     return StaticPrediction(depth=depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
 
