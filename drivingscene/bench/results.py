@@ -25,6 +25,8 @@ from drivingscene.errors import InputError
 
 NVS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "{lpips}", "{:.3f}")]
 FULL, STATIC = "DrivingScene (two-stage)", "static-only (no residual flow)"
+GT_FLOW = "diagnostic: DrivingScene depth + GT flow"
+ORACLE_STATIC = "diagnostic: oracle without scene flow"
 DEPTH = [
     ("abs_rel", "AbsRel", "{:.3f}"),
     ("sq_rel", "SqRel", "{:.3f}"),
@@ -44,6 +46,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=[],
         metavar="NAME=WEIGHTS",
         help="another trained model to score beside the others (repeatable), e.g. a stage 2 trained another way",
+    )
+    p.add_argument(
+        "--diagnostics",
+        action="store_true",
+        help="also score the model's depth with ground-truth flow, and the oracle without scene flow "
+        "(what better flow, and what better depth, would be worth)",
     )
     p.add_argument("--no-oracle", action="store_true")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
@@ -68,9 +76,34 @@ def _methods(args):
     for name, path in _extras(args.extra):
         extra = load_model(path)
         methods.append((name, lambda pair, m=extra: reconstruct(m, pair)))
+    if args.diagnostics:
+        methods.append((GT_FLOW, lambda pair: _with_gt_flow(model, pair)))
     if not args.no_oracle:
         methods.append(("oracle (GT depth + scene flow)", oracle_reconstruction))
+        if args.diagnostics:
+            methods.append((ORACLE_STATIC, lambda pair: oracle_reconstruction(pair, use_scene_flow=False)))
     return methods
+
+
+def _with_gt_flow(model, pair):
+    """The model's reconstruction with its total flow replaced by the ground truth (bounded as the
+    model's is): what a perfect R would give with this depth."""
+    import torch
+
+    from drivingscene.methods import feedforward
+    from drivingscene.models.pipeline import FlowPrediction, bound_flow
+
+    if pair.gt_flow is None:
+        raise InputError("--diagnostics: expected test pairs with gt_flow, found a pair without")
+    gt = bound_flow(torch.from_numpy(pair.gt_flow).float())
+
+    def predict(model_, batch, depth):
+        flow = feedforward.predict_flow(model_, batch, depth)
+        return FlowPrediction(rigid=flow.rigid, residuals=[gt - flow.rigid], warped_sources=flow.warped_sources)
+
+    recon = feedforward.reconstruct(model, pair, flow_predictor=predict)
+    recon.meta["method"] = "drivingscene-gt-flow"
+    return recon
 
 
 def _extras(items: list[str]) -> list[tuple[str, str]]:
@@ -132,7 +165,8 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
     depth_rows = []
     for m, rows in scores.items():
         for prefix, label in (("depth", "metric"), ("depth_ms", "median-scaled")):
-            depth_rows.append([m, label] + [_fmt(_mean(rows, f"{prefix}_{k}"), f) for k, _, f in DEPTH])
+            split = [_fmt(_mean(rows, f"depth_abs_rel_{part}"), "{:.3f}") if label == "metric" else "" for part in ("dyn", "static")]
+            depth_rows.append([m, label] + [_fmt(_mean(rows, f"{prefix}_{k}"), f) for k, _, f in DEPTH] + split)
     flow_rows = [
         [
             m,
@@ -150,6 +184,7 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
     cmd += f" --weights {args.weights}" if args.weights else ""
     cmd += f" --joint-weights {args.joint_weights}" if args.joint_weights else ""
     cmd += "".join(f" --extra '{e}'" for e in args.extra)
+    cmd += " --diagnostics" if args.diagnostics else ""
     parts = [
         "# Results\n",
         f"Regenerate with `{cmd} --out docs/results.md`. {count} test-split pairs never seen in training; "
@@ -159,7 +194,11 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
         "### Checks (pair by pair, same inputs)\n\n" + "\n".join(checks(scores)) + "\n",
         _table("Intermediate-frame novel views, all pixels", nvs_head, nvs_all),
         _table("Intermediate-frame novel views, dynamic pixels", nvs_head, nvs_dyn),
-        _table("Depth at the keyframes (0.1–80 m)", ["method", "scaling"] + [h for _, h, _ in DEPTH], depth_rows),
+        _table(
+            "Depth at the keyframes (0.1–80 m)",
+            ["method", "scaling"] + [h for _, h, _ in DEPTH] + ["AbsRel, moving objects", "AbsRel, the rest"],
+            depth_rows,
+        ),
         _table(
             "Optical flow end-point error (pixels, both keyframes and directions)",
             ["method", "dynamic: rigid only", "dynamic: rigid + residual", "static: rigid + residual"],
@@ -242,7 +281,7 @@ def run(args: argparse.Namespace) -> int:
             seconds[name].append(time.perf_counter() - tic)
             scores[name].append({"file": path.name, **score_reconstruction(recon, pair, perceptual)})
         if args.image and i == args.image_pair:
-            figure(recons, pair, args.image)
+            figure({k: v for k, v in recons.items() if not k.startswith("diagnostic")}, pair, args.image)
         print(
             f"[{i + 1}/{len(files)}] {path.name}: "
             + ", ".join(f"{n.split(' ')[0]} {scores[n][-1].get('psnr', math.nan):.2f} dB" for n, _ in methods),

@@ -61,6 +61,13 @@ def score_depth(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
         m = depth_metrics(pred, gt, median_scaling=scaled)
         for name in ("abs_rel", "sq_rel", "rmse", "a1"):
             out[f"{prefix}_{name}"] = _nanmean(getattr(m, name))
+    if pair.gt_dynamic is not None:
+        # Metric AbsRel on moving objects and on the rest: self-supervised depth is worst where the
+        # photometric loss's static-world assumption fails, and lifting flow to 3D needs that depth.
+        dyn = torch.from_numpy(pair.gt_dynamic).flatten(0, 1)
+        for name, part in (("dyn", dyn), ("static", ~dyn)):
+            m = depth_metrics(pred, gt, mask=part)
+            out[f"depth_abs_rel_{name}"] = _nanmean(m.abs_rel)
     return out
 
 

@@ -80,8 +80,12 @@ def load_model(path: str | Path | None = None, device: str = "cpu") -> DrivingSc
 
 
 @torch.no_grad()
-def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOptions = InferenceOptions()) -> Reconstruction:
-    """Dynamic Gaussians of both keyframes (world frame) and per-camera maps, with timings in ``meta``."""
+def reconstruct(
+    model: DrivingSceneModel, pair: FramePair, options: InferenceOptions = InferenceOptions(), flow_predictor=None
+) -> Reconstruction:
+    """Dynamic Gaussians of both keyframes (world frame) and per-camera maps, with timings in ``meta``.
+
+    ``flow_predictor(model, batch, depth) -> FlowPrediction`` replaces R (diagnostics: ground-truth flow)."""
     if options.threads:
         torch.set_num_threads(options.threads)
     device = next(model.parameters()).device
@@ -96,7 +100,7 @@ def reconstruct(model: DrivingSceneModel, pair: FramePair, options: InferenceOpt
     depth = static.depth.float()
     sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
     t0 = time.perf_counter()
-    flow = predict_flow(model, batch, depth) if options.use_residual else None
+    flow = (flow_predictor or predict_flow)(model, batch, depth) if options.use_residual else None
     rigid = flow.rigid if flow is not None else None
     scene_flow = None
     if flow is not None:
