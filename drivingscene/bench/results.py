@@ -56,6 +56,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-oracle", action="store_true")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/results.md)")
+    p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/results-notes.md)")
     p.add_argument("--json", type=Path, default=None, help="also write per-pair scores as JSON")
     p.add_argument("--image", type=Path, default=None, help="write a qualitative figure of one pair (e.g. docs/images/results.png)")
     p.add_argument("--image-pair", type=int, default=0, metavar="I", help="which of the scored pairs the figure shows (default 0)")
@@ -185,6 +186,7 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
     cmd += f" --joint-weights {args.joint_weights}" if args.joint_weights else ""
     cmd += "".join(f" --extra '{e}'" for e in args.extra)
     cmd += " --diagnostics" if args.diagnostics else ""
+    cmd += f" --notes {args.notes}" if args.notes else ""
     parts = [
         "# Results\n",
         f"Regenerate with `{cmd} --out docs/results.md`. {count} test-split pairs never seen in training; "
@@ -267,6 +269,12 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.train.data import list_pairs
 
     _extras(args.extra)  # argument errors before any work
+    notes = ""
+    if args.notes:
+        try:
+            notes = args.notes.read_text()
+        except OSError as e:
+            raise InputError(f"{args.notes}: --notes: expected a readable markdown file, found {e.strerror}") from None
     files = list_pairs(args.data)[: args.count]
     perceptual = load_perceptual(args.lpips)
     methods = _methods(args)
@@ -288,6 +296,8 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
     text = report(scores, seconds, perceptual.name, args, len(files))
+    if notes:
+        text += "\n" + notes
     print(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

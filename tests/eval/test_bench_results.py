@@ -36,8 +36,11 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     md, js, png = tmp_path / "results.md", tmp_path / "scores.json", tmp_path / "results.png"
     args = ["bench", "results", "--data", str(data), "--count", "1", "--weights", str(tiny_weights)]
     args += ["--joint-weights", str(tiny_weights), "--extra", f"another={tiny_weights}", "--diagnostics", "--lpips", "stlpips", "--out", str(md), "--json", str(js), "--image", str(png)]
-    assert main(args) == 0
+    notes = tmp_path / "notes.md"
+    notes.write_text("## Why it looks like this\n")
+    assert main([*args, "--notes", str(notes)]) == 0
     text = md.read_text()
+    assert text.endswith("## Why it looks like this\n")
     methods = ["DrivingScene (two-stage)", "static-only", "single-stage (joint training)", "another", "oracle (GT depth + scene flow)"]
     methods += ["diagnostic: DrivingScene depth + GT flow", "diagnostic: oracle without scene flow"]
     for heading in ("all pixels", "dynamic pixels", "Depth at the keyframes", "end-point error", "ST-LPIPS"):
@@ -75,3 +78,8 @@ def test_extra_needs_name_and_weights(tmp_path, capsys):
     data.mkdir()
     assert main(["bench", "results", "--data", str(data), "--extra", "noequals"]) == 2
     assert "--extra: expected NAME=WEIGHTS" in capsys.readouterr().err
+
+
+def test_missing_notes_file_fails_before_any_work(tmp_path, capsys):
+    assert main(["bench", "results", "--data", str(tmp_path), "--notes", str(tmp_path / "nope.md")]) == 2
+    assert "nope.md: --notes: expected a readable markdown file" in capsys.readouterr().err
