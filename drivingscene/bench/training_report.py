@@ -13,7 +13,7 @@ from pathlib import Path
 
 from drivingscene.errors import InputError
 
-TERMS = ("loc", "smooth", "render", "warp", "consist")
+TERMS = ("loc", "smooth", "render", "warp", "consist", "flow_sup")
 VAL_KEYS = ("psnr", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
 
 
@@ -107,13 +107,14 @@ def _row(name: str, config: dict, recs: list[dict]) -> str:
     steps = recs[-1]["step"] if recs else 0
     flow_lr = "frozen" if config["stage"] == "static" else config.get("flow_lr") or config["lr"]
     dp_lr = "frozen" if config["stage"] == "dynamic" else config["lr"]
-    return f"| {name} | {config['stage']} | {steps} | {dp_lr} | {flow_lr} | {wall_hours(recs):.1f} h | {config['data']} |"
+    sup = config.get("weights", {}).get("flow_sup", 0.0) if config["stage"] != "static" else "–"
+    return f"| {name} | {config['stage']} | {steps} | {dp_lr} | {flow_lr} | {sup} | {wall_hours(recs):.1f} h | {config['data']} |"
 
 
 def run(args: argparse.Namespace) -> int:
     runs = [(folder.name, *_read_run(folder)) for folder in args.runs]
     plot_curves(runs, args.figure)
-    lines = ["| run | stage | steps | lr D, P | lr R | wall time | data |", "|---|---|---|---|---|---|---|"]
+    lines = ["| run | stage | steps | lr D, P | lr R | flow supervision | wall time | data |", "|---|---|---|---|---|---|---|---|"]
     lines += [_row(name, config, recs) for name, config, recs in runs]
     lines += ["", "Trained on (per run, from its `sessions.jsonl`):", ""]
     lines += [f"- {folder.name}: " + ("; ".join(machines(folder)) or "not recorded") for folder in args.runs]
