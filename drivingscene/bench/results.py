@@ -138,23 +138,36 @@ def _paired(a: list[dict], b: list[dict], key: str) -> tuple[float, int, int]:
     return (sum(diffs) / len(diffs) if diffs else math.nan), sum(d > 0 for d in diffs), len(diffs)
 
 
+def sign_test(wins: int, n: int) -> float:
+    """One-sided sign test: the chance of at least ``wins`` successes in ``n`` fair coin flips."""
+    return sum(math.comb(n, k) for k in range(wins, n + 1)) / 2**n if n else 1.0
+
+
+def _verdict(mean: float, wins: int, n: int) -> str:
+    p = sign_test(wins, n)
+    if mean > 0 and p < 0.05:
+        return f"**holds** (sign test p = {p:.3f})"
+    if mean > 0:
+        return f"**not shown**: better on average, but no more often than chance (sign test p = {p:.2f})"
+    return f"**does NOT hold** (sign test p = {p:.2f})"
+
+
 def checks(scores: dict[str, list[dict]]) -> list[str]:
     """The two claims the model must hold, tested pair by pair on the same inputs."""
     full, static = scores.get(FULL), scores.get(STATIC)
     if full is None or static is None:
         return []
-    lines = []
     mean, wins, n = _paired(full, static, "psnr_dyn")
-    verdict = "holds" if mean > 0 else "does NOT hold"
-    lines.append(
-        f"- Full model vs static-only on dynamic pixels: PSNR {mean:+.2f} dB on average, higher in {wins} of {n} pairs — **{verdict}**."
-    )
+    lines = [
+        f"- Full model vs static-only on dynamic pixels: PSNR {mean:+.2f} dB on average, higher in {wins} of {n} pairs — "
+        + _verdict(mean, wins, n)
+        + "."
+    ]
     lower = [{"d": r["epe_dyn_rigid"] - r["epe_dyn_total"]} for r in full if "epe_dyn_total" in r]
     mean, wins, n = _paired(lower, [{"d": 0.0}] * len(lower), "d")
-    verdict = "holds" if mean > 0 else "does NOT hold"
     lines.append(
         f"- The residual lowers the dynamic-pixel flow error: {mean:+.2f} px on average (rigid only minus rigid + residual), "
-        f"lower in {wins} of {n} pairs — **{verdict}**."
+        f"lower in {wins} of {n} pairs — " + _verdict(mean, wins, n) + "."
     )
     return lines
 

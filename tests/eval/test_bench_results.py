@@ -61,16 +61,19 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     assert image.shape[0] > 2 * height and 8 * width > image.shape[1] > 6 * width  # 2 rows; frame + 5 methods (no diagnostics)
 
 
-def test_checks_compare_pair_by_pair():
-    from drivingscene.bench.results import FULL, STATIC, checks
+def test_checks_compare_pair_by_pair_with_a_sign_test():
+    from drivingscene.bench.results import FULL, STATIC, checks, sign_test
 
-    full = [{"psnr_dyn": 20.0, "epe_dyn_rigid": 10.0, "epe_dyn_total": 8.0}, {"psnr_dyn": 18.0, "epe_dyn_rigid": 5.0, "epe_dyn_total": 6.0}]
-    static = [{"psnr_dyn": 19.0}, {"psnr_dyn": 18.5}]
-    lines = checks({FULL: full, STATIC: static})
-    assert "PSNR +0.25 dB on average, higher in 1 of 2 pairs — **holds**" in lines[0]
-    assert "+0.50 px on average" in lines[1] and "lower in 1 of 2 pairs — **holds**" in lines[1]
-    worse = checks({FULL: [{"psnr_dyn": 17.0, "epe_dyn_rigid": 5.0, "epe_dyn_total": 7.0}], STATIC: [{"psnr_dyn": 18.0}]})
-    assert all("does NOT hold" in line for line in worse)
+    assert sign_test(6, 6) == 1 / 64 and sign_test(0, 6) == 1.0 and sign_test(10, 20) > 0.5
+    full = [{"psnr_dyn": 20.0, "epe_dyn_rigid": 10.0, "epe_dyn_total": 8.0}] * 6
+    lines = checks({FULL: full, STATIC: [{"psnr_dyn": 19.0}] * 6})
+    assert "PSNR +1.00 dB on average, higher in 6 of 6 pairs — **holds** (sign test p = 0.016)" in lines[0]
+    assert "+2.00 px on average" in lines[1] and "lower in 6 of 6 pairs — **holds**" in lines[1]
+    # better on average thanks to one pair: not shown
+    mixed = [{"psnr_dyn": 25.0, "epe_dyn_rigid": 5.0, "epe_dyn_total": 4.0}] + [{"psnr_dyn": 18.9, "epe_dyn_rigid": 5.0, "epe_dyn_total": 6.0}] * 3
+    lines = checks({FULL: mixed, STATIC: [{"psnr_dyn": 19.0}] * 4})
+    assert "**not shown**" in lines[0] and "higher in 1 of 4 pairs" in lines[0]
+    assert "**does NOT hold**" in lines[1]
 
 
 def test_extra_needs_name_and_weights(tmp_path, capsys):
