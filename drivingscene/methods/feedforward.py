@@ -104,7 +104,8 @@ def reconstruct(
     rigid = flow.rigid if flow is not None else None
     scene_flow = None
     if flow is not None:
-        scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, options.lift)
+        net_width = model.config.input_size[1] if model.config.input_size else None
+        scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, options.lift, net_width)
     _sync(device)
     timings["flow_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()

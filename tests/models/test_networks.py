@@ -184,3 +184,7 @@ def test_sparse_lift_matches_the_dense_definition_and_passes_gradients():
         )
     flows.square().sum().backward()
     assert total.grad is not None and total.grad.abs().sum() > 0
+    # The threshold is in pixels of the networks' input: networks at half this width -> 2 px here.
+    _, half = lift_scene_flow(depth, total.detach(), residual, sky, batch, config, net_width=14)
+    _, two_px = lift_scene_flow(depth, total.detach(), residual, sky, batch, LiftConfig(dynamic_threshold_px=2.0))
+    assert torch.equal(half, two_px) and half.sum() < masks.sum()
