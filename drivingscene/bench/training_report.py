@@ -63,15 +63,15 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
 
     terms = [t for t in TERMS if any(t in r for _, _, recs in runs for r in recs)]
     fig, axes = plt.subplots(1, len(terms) + 1, figsize=(3.2 * (len(terms) + 1), 3.0))
-    for name, _, recs in runs:
+    for i, (name, _, recs) in enumerate(runs):
+        color = f"C{i}"  # one colour per run in every panel
         steps = [r["step"] for r in recs]
         for ax, term in zip(axes, terms):
             values = [r.get(term, math.nan) for r in recs]
             if not all(math.isnan(v) for v in values):
-                ax.plot(steps, _smooth(values), label=name, linewidth=1.2)
+                ax.plot(steps, _smooth(values), label=name, linewidth=1.2, color=color)
         val = [(r["step"], r["val"].get("psnr", math.nan)) for r in recs if "val" in r]
-        if val:
-            axes[-1].plot(*zip(*val), marker="o", label=name, linewidth=1.2)
+        axes[-1].plot(*(zip(*val) if val else ([], [])), marker="o", label=name, linewidth=1.2, color=color)
     for ax, term in zip(axes, terms):
         ax.set_title(f"L_{term}")
         ax.set_xlabel("step")
@@ -79,7 +79,7 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
     axes[-1].set_title("validation PSNR (dB)")
     axes[-1].set_xlabel("step")
     axes[-1].grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
+    axes[-1].legend(fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -123,6 +123,8 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
     optimizer = torch.optim.Adam(_param_groups(model, params, config))
     start = restore(model, optimizer, *ckpt) if ckpt is not None else 0
     if rank == 0:
+        if start:
+            _truncate_log(out / "log.jsonl", start)
         _record_session(out, start, world, config)
     data = PairSequence(files, config.seed, rank, world)
     val_files = list_pairs(config.val_data)[: config.val_pairs] if config.val_data and rank == 0 else []
@@ -163,6 +165,17 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
         dist.barrier()
         dist.destroy_process_group()
     return out / "model.safetensors"
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """Drop log records after ``step`` (the checkpoint a resume starts from): those steps are
+    trained again, and the log must describe the weights the run ends with."""
+    if not path.exists():
+        return
+    lines = path.read_text().splitlines()
+    kept = [line for line in lines if line.strip() and json.loads(line)["step"] <= step]
+    if len(kept) != len(lines):
+        atomic_write(path, lambda f: f.write("".join(line + "\n" for line in kept).encode()))
 
 
 def _record_session(out: Path, start: int, world: int, config: TrainConfig) -> None:

@@ -80,6 +80,16 @@ def test_resume_after_interruption_matches_an_uninterrupted_run(data_dir, tmp_pa
         torch.testing.assert_close(b[key], a[key], rtol=1e-5, atol=1e-6, msg=key)
 
 
+def test_resume_drops_log_records_after_the_checkpoint(data_dir, tmp_path):
+    out = tmp_path / "run"
+    train(_config(data_dir, out, steps=2), show_progress=False)
+    with open(out / "log.jsonl", "a") as f:  # a killed run logged step 3 but never checkpointed it
+        f.write(json.dumps({"step": 3, "loss": 9.0, "seconds": 1.0}) + "\n")
+    train(_config(data_dir, out, steps=4), resume=True, show_progress=False)
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [1, 2, 3, 4] and records[2]["loss"] != 9.0
+
+
 def test_refuses_to_overwrite_or_resume_nothing(data_dir, tmp_path):
     from drivingscene.errors import InputError
 
