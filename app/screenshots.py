@@ -62,7 +62,7 @@ def _look_at_moving_objects(viewer) -> None:
     nav.distance = 0.9 * float(np.linalg.norm((target - ego)[:2])) + 6.0
 
 
-def main(out: Path, scene: Path, method: str = "oracle") -> None:
+def main(out: Path, scene: Path, method: str = "auto") -> None:
     out.mkdir(parents=True, exist_ok=True)
     win = ViewerWindow(1600, 900, method=method)
     v = win.viewer

@@ -56,10 +56,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-oracle", action="store_true")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/results.md)")
-    p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/results-notes.md)")
+    p.add_argument(
+        "--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/results-notes.md)"
+    )
     p.add_argument("--json", type=Path, default=None, help="also write per-pair scores as JSON")
-    p.add_argument("--image", type=Path, default=None, help="write a qualitative figure of one pair (e.g. docs/images/results.png)")
-    p.add_argument("--image-pair", type=int, default=0, metavar="I", help="which of the scored pairs the figure shows (default 0)")
+    p.add_argument(
+        "--image", type=Path, default=None, help="write a qualitative figure of one pair (e.g. docs/images/results.png)"
+    )
+    p.add_argument(
+        "--image-pair", type=int, default=0, metavar="I", help="which of the scored pairs the figure shows (default 0)"
+    )
 
 
 def _methods(args):
@@ -179,7 +185,9 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
     depth_rows = []
     for m, rows in scores.items():
         for prefix, label in (("depth", "metric"), ("depth_ms", "median-scaled")):
-            split = [_fmt(_mean(rows, f"depth_abs_rel_{part}"), "{:.3f}") if label == "metric" else "" for part in ("dyn", "static")]
+            split = [
+                _fmt(_mean(rows, f"depth_abs_rel_{part}"), "{:.3f}") if label == "metric" else "" for part in ("dyn", "static")
+            ]
             depth_rows.append([m, label] + [_fmt(_mean(rows, f"{prefix}_{k}"), f) for k, _, f in DEPTH] + split)
     flow_rows = [
         [
@@ -191,7 +199,12 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
         for m, rows in scores.items()
     ]
     speed = [
-        [m, f"{statistics.median(seconds[m]):.2f}", f"{_mean(rows, 'gaussians') / 1e3:.0f}k", f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k"]
+        [
+            m,
+            f"{statistics.median(seconds[m]):.2f}",
+            f"{_mean(rows, 'gaussians') / 1e3:.0f}k",
+            f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k",
+        ]
         for m, rows in scores.items()
     ]
     cmd = f"drivingscene bench results --data {args.data} --count {args.count}"

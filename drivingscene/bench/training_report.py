@@ -114,7 +114,10 @@ def _row(name: str, config: dict, recs: list[dict]) -> str:
 def run(args: argparse.Namespace) -> int:
     runs = [(folder.name, *_read_run(folder)) for folder in args.runs]
     plot_curves(runs, args.figure)
-    lines = ["| run | stage | steps | lr D, P | lr R | flow supervision | wall time | data |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| run | stage | steps | lr D, P | lr R | flow supervision | wall time | data |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     lines += [_row(name, config, recs) for name, config, recs in runs]
     lines += ["", "Trained on (per run, from its `sessions.jsonl`):", ""]
     lines += [f"- {folder.name}: " + ("; ".join(machines(folder)) or "not recorded") for folder in args.runs]

@@ -35,13 +35,33 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     save_frame_pair(synth_pair, data / "pair_200000.npz")
     md, js, png = tmp_path / "results.md", tmp_path / "scores.json", tmp_path / "results.png"
     args = ["bench", "results", "--data", str(data), "--count", "1", "--weights", str(tiny_weights)]
-    args += ["--joint-weights", str(tiny_weights), "--extra", f"another={tiny_weights}", "--diagnostics", "--lpips", "stlpips", "--out", str(md), "--json", str(js), "--image", str(png)]
+    args += [
+        "--joint-weights",
+        str(tiny_weights),
+        "--extra",
+        f"another={tiny_weights}",
+        "--diagnostics",
+        "--lpips",
+        "stlpips",
+        "--out",
+        str(md),
+        "--json",
+        str(js),
+        "--image",
+        str(png),
+    ]
     notes = tmp_path / "notes.md"
     notes.write_text("## Why it looks like this\n")
     assert main([*args, "--notes", str(notes)]) == 0
     text = md.read_text()
     assert text.endswith("## Why it looks like this\n")
-    methods = ["DrivingScene (two-stage)", "static-only", "single-stage (joint training)", "another", "oracle (GT depth + scene flow)"]
+    methods = [
+        "DrivingScene (two-stage)",
+        "static-only",
+        "single-stage (joint training)",
+        "another",
+        "oracle (GT depth + scene flow)",
+    ]
     methods += ["diagnostic: DrivingScene depth + GT flow", "diagnostic: oracle without scene flow"]
     for heading in ("all pixels", "dynamic pixels", "Depth at the keyframes", "end-point error", "ST-LPIPS"):
         assert heading in text
@@ -70,7 +90,9 @@ def test_checks_compare_pair_by_pair_with_a_sign_test():
     assert "PSNR +1.00 dB on average, higher in 6 of 6 pairs — **holds** (sign test p = 0.016)" in lines[0]
     assert "+2.00 px on average" in lines[1] and "lower in 6 of 6 pairs — **holds**" in lines[1]
     # better on average thanks to one pair: not shown
-    mixed = [{"psnr_dyn": 25.0, "epe_dyn_rigid": 5.0, "epe_dyn_total": 4.0}] + [{"psnr_dyn": 18.9, "epe_dyn_rigid": 5.0, "epe_dyn_total": 6.0}] * 3
+    mixed = [{"psnr_dyn": 25.0, "epe_dyn_rigid": 5.0, "epe_dyn_total": 4.0}] + [
+        {"psnr_dyn": 18.9, "epe_dyn_rigid": 5.0, "epe_dyn_total": 6.0}
+    ] * 3
     lines = checks({FULL: mixed, STATIC: [{"psnr_dyn": 19.0}] * 4})
     assert "**not shown**" in lines[0] and "higher in 1 of 4 pairs" in lines[0]
     assert "**does NOT hold**" in lines[1]

@@ -213,7 +213,24 @@ def test_flow_supervision_term_and_resume_keeps_the_runs_settings(data_dir, tmp_
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert all(r["flow_sup"] > 0 for r in records)
     # --resume with no settings continues with the run's own (supervision, R's learning rate)
-    assert main(["train", "--stage", "dynamic", "--data", str(data_dir), "--out", str(out), "--steps", "3", "--resume", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--stage",
+                "dynamic",
+                "--data",
+                str(data_dir),
+                "--out",
+                str(out),
+                "--steps",
+                "3",
+                "--resume",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     saved = json.loads((out / "config.json").read_text())
     assert saved["weights"]["flow_sup"] == 0.1 and saved["flow_lr"] == 5e-4 and saved["steps"] == 3
     assert "flow_sup" in json.loads((out / "log.jsonl").read_text().splitlines()[-1])
