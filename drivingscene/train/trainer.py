@@ -121,6 +121,9 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
     if world > 1:
         runner = torch.nn.parallel.DistributedDataParallel(step_module, find_unused_parameters=True)
     optimizer = torch.optim.Adam(_param_groups(model, params, config))
+    # Seed again: building the perceptual metric draws random numbers only the first time in a
+    # process (it is cached), and the loop's draws must not depend on that (exact resume).
+    torch.manual_seed(config.seed + rank)
     start = restore(model, optimizer, *ckpt) if ckpt is not None else 0
     if rank == 0:
         if start:
