@@ -13,7 +13,7 @@ from pathlib import Path
 
 from drivingscene.errors import InputError
 
-TERMS = ("loc", "smooth", "render", "warp", "consist", "flow_sup")
+TERMS = ("loc", "smooth", "render", "warp", "consist", "flow_sup", "depth_sup")
 VAL_KEYS = ("psnr", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
 
 

@@ -28,6 +28,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="W",
         help="add W x L1 flow error against the pairs' ground-truth flow (synthetic pre-training of R; not in the paper)",
     )
+    p.add_argument(
+        "--depth-supervision",
+        type=float,
+        default=None,
+        metavar="W",
+        help="add W x L1 log-depth error against the pairs' ground-truth depth (synthetic pre-training of D; not in the paper)",
+    )
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads per process")
     p.add_argument("--batch-pairs", type=positive_int, default=None, help="frame pairs per step and process (default 1)")
@@ -94,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
         if not args.flow_supervision >= 0:
             raise InputError(f"--flow-supervision: expected a weight >= 0, found {args.flow_supervision}")
         base = replace(base, weights=replace(base.weights, flow_sup=args.flow_supervision))
+    if args.depth_supervision is not None:
+        if not args.depth_supervision >= 0:
+            raise InputError(f"--depth-supervision: expected a weight >= 0, found {args.depth_supervision}")
+        base = replace(base, weights=replace(base.weights, depth_sup=args.depth_supervision))
     config = base.with_overrides(
         stage=args.stage,
         data=str(args.data),

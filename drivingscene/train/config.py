@@ -26,6 +26,9 @@ class LossWeights:
     # Not in the paper (0 = its recipe): L1 of the total flow against a synthetic pair's exact
     # ground-truth flow, for pre-training R on the procedural benchmark (``--flow-supervision``).
     flow_sup: float = 0.0
+    # Not in the paper (0 = its recipe): L1 of log depth against a synthetic pair's exact depth
+    # (``--depth-supervision``), for the depth of moving objects that L_loc cannot teach.
+    depth_sup: float = 0.0
 
 
 @dataclass(frozen=True)

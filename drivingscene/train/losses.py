@@ -133,3 +133,15 @@ def supervised_flow_loss(flow: Tensor, gt_flow: Tensor, dynamic: Tensor, valid: 
         if part.any():
             loss = loss + 0.5 * err[part].mean()
     return loss
+
+
+def supervised_depth_loss(depth: Tensor, gt_depth: Tensor, dynamic: Tensor, max_depth: float = 80.0) -> Tensor:
+    """L_depth_sup: mean |log depth - log gt| where ``0 < gt <= max_depth``, the moving pixels
+    (``dynamic``) and the rest counting half each. Not in the paper: for synthetic pairs."""
+    valid = (gt_depth > 0) & (gt_depth <= max_depth) & torch.isfinite(gt_depth)
+    err = (torch.log(depth.clamp(min=1e-3)) - torch.log(gt_depth.clamp(min=1e-3))).abs()
+    loss = depth.new_zeros(())
+    for part in (valid & dynamic, valid & ~dynamic):
+        if part.any():
+            loss = loss + 0.5 * err[part].mean()
+    return loss

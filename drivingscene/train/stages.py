@@ -38,6 +38,7 @@ from drivingscene.train.losses import (
     render_loss,
     reprojection_loss,
     smoothness_loss,
+    supervised_depth_loss,
     supervised_flow_loss,
     warp_loss,
 )
@@ -113,6 +114,7 @@ class TrainStep(nn.Module):
             "warp": w.warp,
             "consist": w.consist,
             "flow_sup": w.flow_sup,
+            "depth_sup": w.depth_sup,
         }
         loss = sum(weight[k] * v for k, v in terms.items() if k in weight)
         return loss, terms
@@ -124,6 +126,14 @@ class TrainStep(nn.Module):
         loc = sum(self.location_loss(d.unflatten(0, (2, batch.num_views)), batch, targets) for d in out_depths) / len(out_depths)
         smooth = sum(smoothness_loss(disp.float(), targets) / (2**s) for s, disp in enumerate(static.depth_output.disparities))
         terms = {"loc": loc, "smooth": smooth}
+        if self.config.weights.depth_sup > 0:
+            if batch.gt_depth is None:
+                raise InputError("--depth-supervision: the training pairs carry no gt_depth (synthetic pairs do)")
+            gt, dyn = batch.gt_depth.float(), batch.gt_dynamic
+            dyn = torch.zeros_like(gt, dtype=torch.bool) if dyn is None else dyn
+            terms["depth_sup"] = sum(
+                supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), gt, dyn) for d in out_depths
+            ) / len(out_depths)
         if step % self.config.render_every == 0:
             terms["render"] = self.render_term(static, batch, step, scene_flow=None)
         return terms

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from drivingscene.train.losses import (
@@ -10,6 +12,7 @@ from drivingscene.train.losses import (
     render_loss,
     reprojection_loss,
     smoothness_loss,
+    supervised_depth_loss,
     supervised_flow_loss,
     warp_loss,
 )
@@ -134,3 +137,17 @@ def test_supervised_flow_loss_balances_moving_and_static_pixels():
     flow.requires_grad_(True)
     supervised_flow_loss(flow + 1, gt, dynamic, valid).backward()
     assert flow.grad[0, 0, 0].abs().sum() == 0 and flow.grad[0, 1, 1].abs().sum() > 0
+
+
+def test_supervised_depth_loss_is_log_error_balanced_and_skips_unknown_depth():
+    gt = torch.full((1, 4, 10), 10.0)
+    gt[0, 3] = 0.0  # unknown (sky)
+    dynamic = torch.zeros(1, 4, 10, dtype=torch.bool)
+    dynamic[0, 0, 0] = True
+    assert supervised_depth_loss(gt.clamp(min=1.0), gt, dynamic) == 0  # the unknown row is not scored
+    pred = gt.clone()
+    pred[0, 0, 0] = 20.0  # the moving pixel twice too far: |log 2| with half the weight
+    assert torch.isclose(supervised_depth_loss(pred, gt, dynamic), torch.tensor(0.5 * math.log(2.0)))
+    pred.requires_grad_(True)
+    supervised_depth_loss(pred * 1.5, gt, dynamic).backward()
+    assert pred.grad[0, 3].abs().sum() == 0 and pred.grad[0, 1].abs().sum() > 0

@@ -236,3 +236,16 @@ def test_flow_supervision_term_and_resume_keeps_the_runs_settings(data_dir, tmp_
     assert "flow_sup" in json.loads((out / "log.jsonl").read_text().splitlines()[-1])
     assert main([*args[:-1], "--out", str(tmp_path / "neg"), "--flow-supervision", "-1"]) == 2
     assert "--flow-supervision: expected a weight >= 0" in capsys.readouterr().err
+
+
+def test_depth_supervision_term_in_stage_one(data_dir, tmp_path):
+    from drivingscene.cli import main
+
+    tiny = tmp_path / "tiny.json"
+    tiny.write_text(json.dumps(TrainConfig(model=TINY_MODEL, log_every=1).to_dict()))
+    out = tmp_path / "depth"
+    args = ["train", "--stage", "static", "--data", str(data_dir), "--out", str(out), "--steps", "2", "--threads", "1"]
+    assert main([*args, "--config", str(tiny), "--lpips", "stlpips", "--depth-supervision", "0.5", "--no-progress"]) == 0
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert all(r["depth_sup"] > 0 for r in records)
+    assert json.loads((out / "config.json").read_text())["weights"]["depth_sup"] == 0.5
