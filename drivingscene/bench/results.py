@@ -113,6 +113,16 @@ def _with_gt_flow(model, pair):
     return recon
 
 
+def _figure_link(args) -> str:
+    import os
+
+    rel = os.path.relpath(args.image, args.out.parent)
+    return (
+        f"![Test pair {args.image_pair}: the real intermediate frame and each method's render of it (PSNR on "
+        f"moving pixels); depth; non-rigid flow against R's residual]({rel})\n"
+    )
+
+
 def _extras(items: list[str]) -> list[tuple[str, str]]:
     out = []
     for item in items:
@@ -220,6 +230,7 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
         "(not the original LPIPS unless it says so). Measured on: "
         f"{machine_description()}, {datetime.now(timezone.utc):%Y-%m-%d}.\n",
         "### Checks (pair by pair, same inputs)\n\n" + "\n".join(checks(scores)) + "\n",
+        *([_figure_link(args)] if args.image and args.out else []),
         _table("Intermediate-frame novel views, all pixels", nvs_head, nvs_all),
         _table("Intermediate-frame novel views, dynamic pixels", nvs_head, nvs_dyn),
         _table(

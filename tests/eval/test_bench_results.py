@@ -55,6 +55,7 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     assert main([*args, "--notes", str(notes)]) == 0
     text = md.read_text()
     assert text.endswith("## Why it looks like this\n")
+    assert "](results.png)" in text
     methods = [
         "DrivingScene (two-stage)",
         "static-only",
