@@ -97,14 +97,14 @@ def run(args: argparse.Namespace) -> int:
     for name, value in (("--lr", args.lr), ("--flow-lr", args.flow_lr)):
         if value is not None and not value > 0:
             raise InputError(f"{name}: expected a positive learning rate, found {value}")
-    if args.flow_supervision is not None:
-        if not args.flow_supervision >= 0:
-            raise InputError(f"--flow-supervision: expected a weight >= 0, found {args.flow_supervision}")
-        base = replace(base, weights=replace(base.weights, flow_sup=args.flow_supervision))
-    if args.depth_supervision is not None:
-        if not args.depth_supervision >= 0:
-            raise InputError(f"--depth-supervision: expected a weight >= 0, found {args.depth_supervision}")
-        base = replace(base, weights=replace(base.weights, depth_sup=args.depth_supervision))
+    for flag, field, value in (
+        ("--flow-supervision", "flow_sup", args.flow_supervision),
+        ("--depth-supervision", "depth_sup", args.depth_supervision),
+    ):
+        if value is not None:
+            if not value >= 0:
+                raise InputError(f"{flag}: expected a weight >= 0, found {value}")
+            base = replace(base, weights=replace(base.weights, **{field: value}))
     config = base.with_overrides(
         stage=args.stage,
         data=str(args.data),

@@ -2,7 +2,8 @@
 
 Stage 1 (static prior):  0.1 L_loc + 0.001 L_smooth + 0.01 L_render
 Stage 2 (dynamics):      0.02 L_warp + 1e-5 L_consist + 0.01 L_render
-                         (+ optional L_flow_sup on synthetic ground truth, not in the paper)
+                         (+ optional L_depth_sup in stage 1 and L_flow_sup in stage 2, on synthetic
+                          ground truth, not in the paper)
 (weights in ``drivingscene.train.config.LossWeights``).
 """
 
@@ -122,17 +123,22 @@ def consistency_loss(flow_fw: Tensor, flow_bw: Tensor) -> Tensor:
     return (diff * inside).sum() / inside.sum().clamp(min=1)
 
 
+def _half_moving_half_static(err: Tensor, valid: Tensor, dynamic: Tensor) -> Tensor:
+    """Half the mean of ``err`` over valid moving pixels plus half over the valid rest (a part
+    with no pixels adds nothing)."""
+    loss = err.new_zeros(())
+    for part in (valid & dynamic, valid & ~dynamic):
+        if part.any():
+            loss = loss + 0.5 * err[part].mean()
+    return loss
+
+
 def supervised_flow_loss(flow: Tensor, gt_flow: Tensor, dynamic: Tensor, valid: Tensor) -> Tensor:
     """L_flow_sup: L1 end-point error of ``flow`` against ``gt_flow`` (both ``[B, H, W, 2]``,
     pixels), divided by the image width, where ``valid``; the mean over moving pixels
     (``dynamic``) and the mean over the rest count half each, so that the few percent of pixels on
     moving objects are not drowned by the static world. Not in the paper: for synthetic pairs."""
-    err = (flow - gt_flow).abs().sum(-1) / flow.shape[-2]
-    loss = flow.new_zeros(())
-    for part in (valid & dynamic, valid & ~dynamic):
-        if part.any():
-            loss = loss + 0.5 * err[part].mean()
-    return loss
+    return _half_moving_half_static((flow - gt_flow).abs().sum(-1) / flow.shape[-2], valid, dynamic)
 
 
 def supervised_depth_loss(depth: Tensor, gt_depth: Tensor, dynamic: Tensor, max_depth: float = 80.0) -> Tensor:
@@ -140,8 +146,4 @@ def supervised_depth_loss(depth: Tensor, gt_depth: Tensor, dynamic: Tensor, max_
     (``dynamic``) and the rest counting half each. Not in the paper: for synthetic pairs."""
     valid = (gt_depth > 0) & (gt_depth <= max_depth) & torch.isfinite(gt_depth)
     err = (torch.log(depth.clamp(min=1e-3)) - torch.log(gt_depth.clamp(min=1e-3))).abs()
-    loss = depth.new_zeros(())
-    for part in (valid & dynamic, valid & ~dynamic):
-        if part.any():
-            loss = loss + 0.5 * err[part].mean()
-    return loss
+    return _half_moving_half_static(err, valid, dynamic)

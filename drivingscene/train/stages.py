@@ -185,8 +185,8 @@ class TrainStep(nn.Module):
         sources = batch.images.flip(0).flatten(0, 1)
         w = self.config.weights
         levels = len(flow.residuals)
-        supervise = w.flow_sup > 0 and batch.gt_flow is not None
-        if w.flow_sup > 0 and not supervise:
+        supervise = w.flow_sup > 0
+        if supervise and batch.gt_flow is None:
             raise InputError("--flow-supervision: the training pairs carry no gt_flow (synthetic pairs do)")
         if supervise:
             gt_flow, gt_valid, gt_dynamic = _flow_targets(batch)
