@@ -107,16 +107,20 @@ def _row(name: str, config: dict, recs: list[dict]) -> str:
     steps = recs[-1]["step"] if recs else 0
     flow_lr = "frozen" if config["stage"] == "static" else config.get("flow_lr") or config["lr"]
     dp_lr = "frozen" if config["stage"] == "dynamic" else config["lr"]
-    sup = config.get("weights", {}).get("flow_sup", 0.0) if config["stage"] != "static" else "–"
-    return f"| {name} | {config['stage']} | {steps} | {dp_lr} | {flow_lr} | {sup} | {wall_hours(recs):.1f} h | {config['data']} |"
+    weights = config.get("weights", {})
+    flow_sup = weights.get("flow_sup", 0.0) if config["stage"] != "static" else "–"
+    depth_sup = weights.get("depth_sup", 0.0) if config["stage"] != "dynamic" else "–"
+    init = f"`{config['init']}`" if config.get("init") else "scratch"
+    cells = [name, config["stage"], steps, dp_lr, flow_lr, depth_sup, flow_sup, init, f"{wall_hours(recs):.1f} h"]
+    return "| " + " | ".join(map(str, cells)) + f" | {config['data']} |"
 
 
 def run(args: argparse.Namespace) -> int:
     runs = [(folder.name, *_read_run(folder)) for folder in args.runs]
     plot_curves(runs, args.figure)
     lines = [
-        "| run | stage | steps | lr D, P | lr R | flow supervision | wall time | data |",
-        "|---|---|---|---|---|---|---|---|",
+        "| run | stage | steps | lr D, P | lr R | depth supervision | flow supervision | init | wall time | data |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     lines += [_row(name, config, recs) for name, config, recs in runs]
     lines += ["", "Trained on (per run, from its `sessions.jsonl`):", ""]

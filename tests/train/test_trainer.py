@@ -195,8 +195,8 @@ def test_training_report_from_runs(data_dir, tmp_path):
     args = ["bench", "training", str(static), str(dynamic), "--figure", str(figure), "--out", str(out)]
     assert main(args) == 0
     text = out.read_text()
-    assert "| static | static | 3 | 0.0001 | frozen |" in text
-    assert "| dynamic | dynamic | 2 | frozen | 0.0005 | 0.0 |" in text
+    assert "| static | static | 3 | 0.0001 | frozen | 0.0 | – | scratch |" in text
+    assert "| dynamic | dynamic | 2 | frozen | 0.0005 | – | 0.0 |" in text
     assert "1 process(es) x 1 thread(s)" in text
     assert figure.stat().st_size > 1000
 
