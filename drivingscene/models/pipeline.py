@@ -38,6 +38,10 @@ class LiftConfig:
     # runs there, so its precision is set there): 1 px at 96x176 is 1.8 px at 176x320. Chosen on
     # validation pairs at 176x320 (`data/val176`) among 1, 1.8, 3, 5, 8 px there.
     dynamic_threshold_px: float = 1.0
+    # A candidate pixel moves only if the other keyframe, sampled along the total flow, matches
+    # it better (3x3 mean absolute colour difference) than sampled along the rigid flow: a
+    # residual that does not explain the images is not trusted (needs the rigid flow).
+    photometric_check: bool = True
 
 
 def sky_mask(depth: Tensor, intrinsics: Tensor, ref_focal: float, config: LiftConfig) -> Tensor:
@@ -162,12 +166,15 @@ def lift_scene_flow(
     batch: PairTensors,
     config: LiftConfig,
     net_width: int | None = None,  # the networks' input width when it differs from the image's
+    rigid: Tensor | None = None,  # [2, V, H, W, 2]: enables config.photometric_check
 ) -> tuple[Tensor, Tensor]:
     """World (local-frame) displacement ``[2, V, H, W, 3]`` and dynamic mask ``[2, V, H, W]``.
 
     A pixel moves only where its residual exceeds the threshold, its flow is forward/backward
-    consistent and both depths are valid; every other pixel falls back to static. Only the
-    candidate pixels (residual above the threshold, not sky) are lifted: a few percent of the image.
+    consistent, both depths are valid and (with ``rigid`` and ``config.photometric_check``) the
+    total flow matches the other keyframe better than the rigid flow does; every other pixel falls
+    back to static. Only the candidate pixels (residual above the threshold, not sky) are lifted:
+    a few percent of the image.
     """
     c2l = batch.cam_to_local
     num_views, height, width = depth.shape[1:]
@@ -176,6 +183,8 @@ def lift_scene_flow(
     for k in (0, 1):
         o = 1 - k
         moving = (residual[k].detach().square().sum(-1) > threshold**2) & ~sky[k]
+        if rigid is not None and config.photometric_check:
+            moving &= total_flow_matches_better(batch.images[k], batch.images[o], total[k].detach(), rigid[k])
         index, row, col = moving.nonzero(as_tuple=True)
         pixels = torch.stack([col, row], -1)
         sf, valid = scene_flow_at_pixels(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o], index, pixels)
@@ -184,6 +193,19 @@ def lift_scene_flow(
         flows.append(total.new_zeros(num_views, height, width, 3).index_put((index, row, col), sf))
         masks.append(torch.zeros_like(moving).index_put((index, row, col), dynamic))
     return torch.stack(flows), torch.stack(masks)
+
+
+def total_flow_matches_better(target: Tensor, source: Tensor, total: Tensor, rigid: Tensor) -> Tensor:
+    """``[V, H, W]`` bool: pixels of ``target`` ``[V, 3, H, W]`` that ``source`` sampled along the
+    ``total`` flow matches better than sampled along the ``rigid`` flow (both ``[V, H, W, 2]``),
+    by the 3x3 mean absolute colour difference; samples outside the image count as mismatches."""
+    errors = []
+    for flow in (total, rigid):
+        warped, inside = backward_warp(source, flow)
+        error = (warped - target).abs().mean(1, keepdim=True)
+        error = F.avg_pool2d(F.pad(error, (1, 1, 1, 1), mode="replicate"), 3, stride=1)[:, 0]
+        errors.append(torch.where(inside, error, torch.full_like(error, float("inf"))))
+    return errors[0] < errors[1]
 
 
 def assemble(

@@ -188,3 +188,35 @@ def test_sparse_lift_matches_the_dense_definition_and_passes_gradients():
     _, half = lift_scene_flow(depth, total.detach(), residual, sky, batch, config, net_width=14)
     _, two_px = lift_scene_flow(depth, total.detach(), residual, sky, batch, LiftConfig(dynamic_threshold_px=2.0))
     assert torch.equal(half, two_px) and half.sum() < masks.sum()
+
+
+def test_photometric_check_keeps_only_residuals_that_explain_the_images():
+    from drivingscene.models.pipeline import total_flow_matches_better
+
+    g = torch.Generator().manual_seed(5)
+    target = torch.rand(1, 3, 24, 32, generator=g)
+    source = target.roll(shifts=4, dims=-1)  # the content moved 4 px to the right
+    rigid = torch.zeros(1, 24, 32, 2)
+    right, wrong = rigid.clone(), rigid.clone()
+    right[..., 0], wrong[..., 0] = 4.0, 7.0
+    inner = (slice(None), slice(2, -2), slice(2, -9))  # away from the wrap-around and the border
+    assert total_flow_matches_better(target, source, right, rigid)[inner].all()
+    # A residual on top of a rigid flow that already explains the pixel is not trusted.
+    assert not total_flow_matches_better(target, source, wrong, right)[inner].any()
+    assert not total_flow_matches_better(target, target, right, rigid)[inner].any()  # nothing moved
+
+    # In the lift, the check only removes candidates, and only with the rigid flow given.
+    pair = make_pair(num_views=3, height=20, width=28)
+    batch = pair_to_tensors(pair)
+    depth = 3.0 + 20.0 * torch.rand(2, 3, 20, 28, generator=g)
+    rigid = torch.randn(2, 3, 20, 28, 2, generator=g)
+    residual = 3.0 * torch.randn(2, 3, 20, 28, 2, generator=g)
+    residual[1] = -residual[0]
+    sky = torch.zeros(2, 3, 20, 28, dtype=torch.bool)
+    config = LiftConfig(dynamic_threshold_px=1.0)
+    _, unchecked = lift_scene_flow(depth, rigid + residual, residual, sky, batch, config)
+    _, checked = lift_scene_flow(depth, rigid + residual, residual, sky, batch, config, rigid=rigid)
+    off = replace(config, photometric_check=False)
+    _, switched_off = lift_scene_flow(depth, rigid + residual, residual, sky, batch, off, rigid=rigid)
+    assert torch.equal(switched_off, unchecked)
+    assert checked.sum() < unchecked.sum() and not (checked & ~unchecked).any()
