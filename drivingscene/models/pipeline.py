@@ -22,7 +22,7 @@ from drivingscene.data.tensors import PairTensors
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
-from drivingscene.geometry.flow import backward_warp, forward_backward_consistency_at, rigid_flow
+from drivingscene.geometry.flow import backward_warp, forward_backward_consistency_at, rigid_flow, sample_bilinear
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels
 from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
@@ -183,29 +183,46 @@ def lift_scene_flow(
     for k in (0, 1):
         o = 1 - k
         moving = (residual[k].detach().square().sum(-1) > threshold**2) & ~sky[k]
-        if rigid is not None and config.photometric_check:
-            moving &= total_flow_matches_better(batch.images[k], batch.images[o], total[k].detach(), rigid[k])
         index, row, col = moving.nonzero(as_tuple=True)
         pixels = torch.stack([col, row], -1)
         sf, valid = scene_flow_at_pixels(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o], index, pixels)
         dynamic = valid & forward_backward_consistency_at(total[k], total[o], index, pixels)
+        if rigid is not None and config.photometric_check:
+            images = batch.images.permute(0, 1, 3, 4, 2)  # channels last for per-pixel gathers
+            dynamic &= total_flow_matches_better(images[k], images[o], total[k].detach(), rigid[k], index, pixels)
         sf = torch.where(dynamic[:, None], sf, torch.zeros_like(sf))
         flows.append(total.new_zeros(num_views, height, width, 3).index_put((index, row, col), sf))
         masks.append(torch.zeros_like(moving).index_put((index, row, col), dynamic))
     return torch.stack(flows), torch.stack(masks)
 
 
-def total_flow_matches_better(target: Tensor, source: Tensor, total: Tensor, rigid: Tensor) -> Tensor:
-    """``[V, H, W]`` bool: pixels of ``target`` ``[V, 3, H, W]`` that ``source`` sampled along the
-    ``total`` flow matches better than sampled along the ``rigid`` flow (both ``[V, H, W, 2]``),
-    by the 3x3 mean absolute colour difference; samples outside the image count as mismatches."""
-    errors = []
-    for flow in (total, rigid):
-        warped, inside = backward_warp(source, flow)
-        error = (warped - target).abs().mean(1, keepdim=True)
-        error = F.avg_pool2d(F.pad(error, (1, 1, 1, 1), mode="replicate"), 3, stride=1)[:, 0]
-        errors.append(torch.where(inside, error, torch.full_like(error, float("inf"))))
-    return errors[0] < errors[1]
+def total_flow_matches_better(
+    target: Tensor,  # [V, H, W, 3] channels last
+    source: Tensor,  # [V, H, W, 3] the other keyframe
+    total: Tensor,  # [V, H, W, 2]
+    rigid: Tensor,  # [V, H, W, 2]
+    index: Tensor,  # [P] camera of each pixel
+    pixels: Tensor,  # [P, 2] integer (u, v)
+) -> Tensor:
+    """``[P]`` bool: pixels whose 3x3 patch ``source`` matches better where the ``total`` flow
+    puts it than where the ``rigid`` flow does (mean absolute colour difference; a patch centre
+    that lands outside the image is a mismatch). Evaluated at the given pixels only."""
+    height, width = target.shape[1:3]
+    flows = [f[index, pixels[:, 1], pixels[:, 0]] for f in (total, rigid)]
+    errors = [pixels.new_zeros(len(index), dtype=target.dtype) for _ in flows]
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            col = (pixels[:, 0] + dx).clamp(0, width - 1)
+            row = (pixels[:, 1] + dy).clamp(0, height - 1)
+            here = target[index, row, col]
+            for error, flow in zip(errors, flows):
+                uv = torch.stack([col, row], -1).to(flow.dtype) + flow
+                error += (sample_bilinear(source, index, uv) - here).abs().mean(-1)
+    inside = []
+    for flow in flows:
+        uv = pixels.to(flow.dtype) + flow
+        inside.append((uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5))
+    return inside[0] & (~inside[1] | (errors[0] < errors[1]))
 
 
 def assemble(

@@ -194,16 +194,22 @@ def test_photometric_check_keeps_only_residuals_that_explain_the_images():
     from drivingscene.models.pipeline import total_flow_matches_better
 
     g = torch.Generator().manual_seed(5)
-    target = torch.rand(1, 3, 24, 32, generator=g)
-    source = target.roll(shifts=4, dims=-1)  # the content moved 4 px to the right
+    target = torch.rand(1, 24, 32, 3, generator=g)
+    source = target.roll(shifts=4, dims=2)  # the content moved 4 px to the right
     rigid = torch.zeros(1, 24, 32, 2)
     right, wrong = rigid.clone(), rigid.clone()
     right[..., 0], wrong[..., 0] = 4.0, 7.0
-    inner = (slice(None), slice(2, -2), slice(2, -9))  # away from the wrap-around and the border
-    assert total_flow_matches_better(target, source, right, rigid)[inner].all()
+    row, col = torch.meshgrid(torch.arange(2, 22), torch.arange(2, 23), indexing="ij")  # away from the wrap
+    pixels = torch.stack([col.flatten(), row.flatten()], -1)
+    index = torch.zeros(len(pixels), dtype=torch.long)
+    assert total_flow_matches_better(target, source, right, rigid, index, pixels).all()
     # A residual on top of a rigid flow that already explains the pixel is not trusted.
-    assert not total_flow_matches_better(target, source, wrong, right)[inner].any()
-    assert not total_flow_matches_better(target, target, right, rigid)[inner].any()  # nothing moved
+    assert not total_flow_matches_better(target, source, wrong, right, index, pixels).any()
+    assert not total_flow_matches_better(target, target, right, rigid, index, pixels).any()  # nothing moved
+    # A total flow that leaves the image is never trusted; a rigid one that leaves it always loses.
+    edge = torch.tensor([[30, 5]])
+    assert not total_flow_matches_better(target, source, right, rigid, index[:1], edge).any()
+    assert total_flow_matches_better(target, source, rigid, right, index[:1], edge).all()
 
     # In the lift, the check only removes candidates, and only with the rigid flow given.
     pair = make_pair(num_views=3, height=20, width=28)
