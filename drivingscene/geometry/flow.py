@@ -52,10 +52,7 @@ def backward_warp(image: Tensor, flow: Tensor, mode: str = "bilinear") -> tuple[
     warped = F.grid_sample(
         image, _to_sample_grid(coords, height, width).to(image.dtype), mode=mode, padding_mode="border", align_corners=True
     )
-    inside = (
-        (coords[..., 0] >= -0.5) & (coords[..., 0] <= width - 0.5) & (coords[..., 1] >= -0.5) & (coords[..., 1] <= height - 0.5)
-    )
-    return warped, inside
+    return warped, inside_image(coords, height, width)
 
 
 def forward_backward_consistency(
@@ -99,6 +96,12 @@ def sample_bilinear(image: Tensor, index: Tensor, uv: Tensor) -> Tensor:
     return top * (1 - wy) + bottom * wy
 
 
+def inside_image(uv: Tensor, height: int, width: int) -> Tensor:
+    """Points ``uv`` ``[..., 2]`` (pixel coordinates) that fall inside an ``height`` x ``width`` image."""
+    u, v = uv[..., 0], uv[..., 1]
+    return (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
+
+
 def forward_backward_consistency_at(
     flow_fw: Tensor, flow_bw: Tensor, index: Tensor, pixels: Tensor, alpha: float = 0.01, beta: float = 0.5
 ) -> Tensor:
@@ -107,5 +110,4 @@ def forward_backward_consistency_at(
     height, width = flow_fw.shape[1:3]
     fw = flow_fw[index, pixels[:, 1], pixels[:, 0]]
     uv = pixels.to(fw.dtype) + fw
-    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
-    return _consistent(fw, sample_bilinear(flow_bw, index, uv), alpha, beta) & inside
+    return _consistent(fw, sample_bilinear(flow_bw, index, uv), alpha, beta) & inside_image(uv, height, width)

@@ -22,7 +22,7 @@ from drivingscene.data.tensors import PairTensors
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
-from drivingscene.geometry.flow import backward_warp, forward_backward_consistency_at, rigid_flow, sample_bilinear
+from drivingscene.geometry.flow import backward_warp, forward_backward_consistency_at, inside_image, rigid_flow, sample_bilinear
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels
 from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
@@ -218,10 +218,7 @@ def total_flow_matches_better(
             for error, flow in zip(errors, flows):
                 uv = torch.stack([col, row], -1).to(flow.dtype) + flow
                 error += (sample_bilinear(source, index, uv) - here).abs().mean(-1)
-    inside = []
-    for flow in flows:
-        uv = pixels.to(flow.dtype) + flow
-        inside.append((uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5))
+    inside = [inside_image(pixels.to(flow.dtype) + flow, height, width) for flow in flows]
     return inside[0] & (~inside[1] | (errors[0] < errors[1]))
 
 
