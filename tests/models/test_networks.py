@@ -219,7 +219,7 @@ def test_photometric_check_keeps_only_residuals_that_explain_the_images():
     residual = 3.0 * torch.randn(2, 3, 20, 28, 2, generator=g)
     residual[1] = -residual[0]
     sky = torch.zeros(2, 3, 20, 28, dtype=torch.bool)
-    config = LiftConfig(dynamic_threshold_px=1.0)
+    config = LiftConfig(dynamic_threshold_px=1.0, photometric_check=True)
     _, unchecked = lift_scene_flow(depth, rigid + residual, residual, sky, batch, config)
     _, checked = lift_scene_flow(depth, rigid + residual, residual, sky, batch, config, rigid=rigid)
     off = replace(config, photometric_check=False)
