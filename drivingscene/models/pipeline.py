@@ -180,6 +180,10 @@ def lift_scene_flow(
     c2l = batch.cam_to_local
     num_views, height, width = depth.shape[1:]
     threshold = config.dynamic_threshold_px * (width / net_width if net_width else 1.0)
+    check = rigid is not None and config.photometric_check
+    if check:  # both keyframes box-filtered once (each is target once and source once), channels last
+        smooth = F.avg_pool2d(F.pad(batch.images.flatten(0, 1), (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+        smooth = smooth.unflatten(0, (2, num_views)).permute(0, 1, 3, 4, 2)
     flows, masks = [], []
     for k in (0, 1):
         o = 1 - k
@@ -188,9 +192,8 @@ def lift_scene_flow(
         pixels = torch.stack([col, row], -1)
         sf, valid = scene_flow_at_pixels(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o], index, pixels)
         dynamic = valid & forward_backward_consistency_at(total[k], total[o], index, pixels)
-        if rigid is not None and config.photometric_check:
-            images = batch.images.permute(0, 1, 3, 4, 2)  # channels last for per-pixel gathers
-            dynamic &= total_flow_matches_better(images[k], images[o], total[k].detach(), rigid[k], index, pixels)
+        if check:
+            dynamic &= total_flow_matches_better(smooth[k], smooth[o], total[k].detach(), rigid[k], index, pixels)
         sf = torch.where(dynamic[:, None], sf, torch.zeros_like(sf))
         flows.append(total.new_zeros(num_views, height, width, 3).index_put((index, row, col), sf))
         masks.append(torch.zeros_like(moving).index_put((index, row, col), dynamic))
@@ -206,16 +209,10 @@ def total_flow_matches_better(
     pixels: Tensor,  # [P, 2] integer (u, v)
 ) -> Tensor:
     """``[P]`` bool: pixels where ``source`` matches ``target`` better along the ``total`` flow
-    than along the ``rigid`` flow (absolute colour difference of the 3x3-box-filtered images, so
-    that single noisy pixels do not decide; a sample outside the image is a mismatch). Evaluated
-    at the given pixels only."""
+    than along the ``rigid`` flow (mean absolute colour difference; a sample outside the image is
+    a mismatch). Evaluated at the given pixels only; `lift_scene_flow` passes 3x3-box-filtered
+    images, so that single noisy pixels do not decide."""
     height, width = target.shape[1:3]
-
-    def box(image: Tensor) -> Tensor:
-        chw = F.pad(image.permute(0, 3, 1, 2), (1, 1, 1, 1), mode="replicate")
-        return F.avg_pool2d(chw, 3, stride=1).permute(0, 2, 3, 1)
-
-    target, source = box(target), box(source)
     here = target[index, pixels[:, 1], pixels[:, 0]]
     errors, inside = [], []
     for flow in (total, rigid):
