@@ -35,10 +35,12 @@ class ModelConfig:
             return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
         size = data.get("input_size")
+        # configs written before FlowConfig.coarse_radius existed describe one radius at every level
+        flow = {"coarse_radius": None, **data.get("flow", {})}
         return cls(
             depth=DepthConfig(**tuples(data.get("depth", {}))),
             gaussians=GaussianHeadConfig(**tuples(data.get("gaussians", {}))),
-            flow=FlowConfig(**tuples(data.get("flow", {}))),
+            flow=FlowConfig(**tuples(flow)),
             input_size=None if size is None else (int(size[0]), int(size[1])),
         )
 

@@ -6,7 +6,7 @@ and the rigid flow. One shared encoder (siamese, the same weights for both image
 camera) builds a feature pyramid at 1/2 ... 1/16; one light pyramidal decoder per camera slot
 refines the residual coarse to fine. At each level the decoder warps the source features by the
 current residual, compares them with the target features in a local cost volume (PWC-Net style,
-radius r) and predicts an update from [cost, target features, residual, rigid flow, hidden].
+radius r; optionally a larger radius at the coarsest level) and predicts an update from [cost, target features, residual, rigid flow, hidden].
 
 Camera slots: a rig of any size V maps each camera to the decoder whose reference yaw is nearest
 to the camera's viewing direction in the ego frame (nuScenes-like rigs: one decoder per camera).
@@ -28,6 +28,9 @@ from drivingscene.geometry.flow import backward_warp
 class FlowConfig:
     channels: tuple[int, ...] = (16, 32, 64, 96)  # encoder at 1/2, 1/4, 1/8, 1/16
     radius: int = 3  # cost-volume search radius in pixels of each level
+    # Search radius at the coarsest level (None: ``radius``). Non-rigid motion between keyframes
+    # can be a large part of the image width; the coarsest level is where it must be found.
+    coarse_radius: int | None = None
     hidden: int = 32
     decoder_yaws_deg: tuple[float, ...] = (0.0, -55.0, -110.0, 180.0, 110.0, 55.0)
     flow_norm: float = 0.05  # flows enter the network divided by flow_norm * W
@@ -104,10 +107,11 @@ class CameraDecoder(nn.Module):
     def __init__(self, config: FlowConfig):
         super().__init__()
         self.config = config
-        cost_ch = (2 * config.radius + 1) ** 2
         n = len(config.channels)
+        coarse = config.radius if config.coarse_radius is None else config.coarse_radius
+        self.radii = [config.radius] * (n - 1) + [coarse]
         self.levels = nn.ModuleList(
-            LevelDecoder(config.channels[i], cost_ch, config.hidden, has_prev=i < n - 1) for i in range(n)
+            LevelDecoder(config.channels[i], (2 * self.radii[i] + 1) ** 2, config.hidden, has_prev=i < n - 1) for i in range(n)
         )
 
     def forward(self, tgt_feats: list[Tensor], src_feats: list[Tensor], rigid: Tensor, size: tuple[int, int]) -> list[Tensor]:
@@ -126,7 +130,7 @@ class CameraDecoder(nn.Module):
                 flow = F.interpolate(flow, size=(h, w), mode="bilinear", align_corners=False)
                 hidden = F.interpolate(hidden, size=(h, w), mode="bilinear", align_corners=False)
                 fs, _ = backward_warp(fs, (flow * to_level).permute(0, 2, 3, 1))
-            cost = F.leaky_relu(local_cost_volume(ft, fs, self.config.radius), 0.1)
+            cost = F.leaky_relu(local_cost_volume(ft, fs, self.radii[i]), 0.1)
             rigid_l = F.interpolate(rigid, size=(h, w), mode="bilinear", align_corners=False)
             parts = [cost, ft, flow / norm, rigid_l / norm] + ([hidden] if hidden is not None else [])
             delta, hidden = self.levels[i](torch.cat(parts, dim=1))

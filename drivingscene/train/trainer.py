@@ -67,6 +67,11 @@ def _load_init(model: DrivingSceneModel, path: str) -> None:
     except (OSError, ValueError) as e:
         raise InputError(f"{path}: --init: expected a .safetensors weights file: {e}") from None
     state = {k[len("model.model.") :] if k.startswith("model.model.") else k: v for k, v in state.items()}
+    own = model.state_dict()
+    reshaped = sorted(k for k, v in state.items() if k in own and own[k].shape != v.shape)
+    if reshaped:  # e.g. stage 2 with a differently shaped R on stage 1's weights: those stay fresh
+        log.warning("%s: --init: %d tensors of another shape left at initialisation: %s", path, len(reshaped), ", ".join(reshaped))
+        state = {k: v for k, v in state.items() if k not in reshaped}
     missing, unexpected = model.load_state_dict(state, strict=False)
     if unexpected or len(missing) == len(model.state_dict()):
         raise InputError(f"{path}: --init: weights do not match the model ({len(unexpected)} unexpected tensors)")

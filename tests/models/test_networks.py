@@ -22,7 +22,7 @@ from drivingscene.models.pipeline import (
     rigid_flows,
     sky_mask,
 )
-from drivingscene.models.residual_flow import decoder_slots, local_cost_volume
+from drivingscene.models.residual_flow import CameraDecoder, FlowConfig, decoder_slots, local_cost_volume
 from tests.factories import make_pair, make_rig
 
 SMALL = ModelConfig(depth=DepthConfig(width=8, decoder_channels=(8, 8, 16, 16, 32)))
@@ -80,6 +80,21 @@ def test_cost_volume_peaks_at_the_true_shift():
     best = cost[0, :, 4:-4, 4:-4].mean(dim=(1, 2)).argmax().item()
     dy, dx = divmod(best, 7)
     assert (dy - 3, dx - 3) == (1, -2)
+
+
+def test_coarse_radius_widens_only_the_coarsest_cost_volume():
+    wide = CameraDecoder(FlowConfig(radius=3, coarse_radius=6))
+    assert wide.radii == [3, 3, 3, 6]
+    assert [lvl.body[0].in_channels for lvl in wide.levels] == [
+        lvl.body[0].in_channels + (13**2 - 7**2) * (i == 3) for i, lvl in enumerate(CameraDecoder(FlowConfig()).levels)
+    ]
+
+
+def test_configs_saved_before_coarse_radius_load_the_same_network():
+    old = ModelConfig().to_dict()
+    del old["flow"]["coarse_radius"]
+    config = ModelConfig.from_dict(old)  # weights trained before the field existed
+    assert CameraDecoder(config.flow).radii == [config.flow.radius] * len(config.flow.channels)
 
 
 def test_residual_flow_starts_at_zero_and_gets_gradients(model):

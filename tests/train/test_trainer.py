@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import os
 import subprocess
 import sys
@@ -69,6 +70,19 @@ def test_dynamic_stage_leaves_depth_and_gaussian_head_untouched(data_dir, tmp_pa
             torch.testing.assert_close(after[key], value, rtol=0, atol=0, msg=key)
     changed = [k for k in after if k.startswith("flow_net.") and not torch.equal(after[k], before[k])]
     assert changed, "the residual flow network did not train"
+
+
+def test_init_with_a_reshaped_flow_network_keeps_depth_and_leaves_new_shapes_fresh(data_dir, tmp_path, caplog):
+    static = train(_config(data_dir, tmp_path / "s", stage="static", steps=1), show_progress=False)
+    wider = replace(TINY_MODEL, flow=replace(TINY_MODEL.flow, coarse_radius=5))
+    config = _config(data_dir, tmp_path / "d", stage="dynamic", steps=1, init=str(static), model=wider)
+    dynamic = train(config, show_progress=False)
+    before, after = load_file(str(static)), load_file(str(dynamic))
+    depth = [k for k in before if k.startswith("depth_net.") and "running" not in k and "num_batches" not in k]
+    assert depth and all(torch.equal(after[k], before[k]) for k in depth)
+    reshaped = [k for k in after if k in before and after[k].shape != before[k].shape]
+    assert reshaped and all(".levels.3.body.0." in k for k in reshaped)
+    assert "left at initialisation" in caplog.text
 
 
 def test_resume_after_interruption_matches_an_uninterrupted_run(data_dir, tmp_path):
