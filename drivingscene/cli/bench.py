@@ -25,6 +25,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.training_report",
         "training report from run folders: config, steps, time, loss curves (docs/training.md)",
     ),
+    "motion": (
+        "drivingscene.bench.motion",
+        "how moving objects move in a set of pairs: flow and its non-rigid part per camera (ground truth only)",
+    ),
     "results": (
         "drivingscene.bench.results",
         "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)",

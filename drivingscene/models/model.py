@@ -35,8 +35,8 @@ class ModelConfig:
             return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
         size = data.get("input_size")
-        # configs written before FlowConfig.coarse_radius existed describe one radius at every level
-        flow = {"coarse_radius": None, **data.get("flow", {})}
+        # configs written before these FlowConfig fields existed describe the network without them
+        flow = {"coarse_radius": None, "search_zero": False, **data.get("flow", {})}
         return cls(
             depth=DepthConfig(**tuples(data.get("depth", {}))),
             gaussians=GaussianHeadConfig(**tuples(data.get("gaussians", {}))),
@@ -67,9 +67,11 @@ class DrivingSceneModel(nn.Module):
         raw = self.gaussian_head.predict_raw(images, depth.depth, depth.features, depth.decoder_features)
         return depth, raw
 
-    def residual_flow(self, warped_source: Tensor, target: Tensor, rigid_flow: Tensor, slots: Tensor) -> list[Tensor]:
+    def residual_flow(
+        self, warped_source: Tensor, target: Tensor, rigid_flow: Tensor, slots: Tensor, source: Tensor | None = None
+    ) -> list[Tensor]:
         """Stage-2 network: residual flows ``[B, 2, H, W]`` per pyramid level, finest last."""
-        return self.flow_net(warped_source, target, rigid_flow, slots)
+        return self.flow_net(warped_source, target, rigid_flow, slots, source)
 
     def camera_slots(self, cam_to_ego: Tensor) -> Tensor:
         """Residual-flow decoder index ``[V]`` for a rig ``[V, 4, 4]``."""

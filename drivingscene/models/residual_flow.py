@@ -8,6 +8,14 @@ refines the residual coarse to fine. At each level the decoder warps the source 
 current residual, compares them with the target features in a local cost volume (PWC-Net style,
 radius r; optionally a larger radius at the coarsest level) and predicts an update from [cost, target features, residual, rigid flow, hidden].
 
+With ``search_zero`` (a deviation from the paper's input, documented in docs/training-notes.md):
+an object that keeps pace with the ego barely moves in the image, while the rigid flow, which
+assumes it static, is large for a near one (a car ahead, 5 m away, while the ego drives 5 m). The
+residual must then cancel the rigid flow, and a search around it never sees the object. So R
+encodes the source image itself, warps its features by the current total flow (rigid + residual)
+at each level, and at the coarsest level also compares them unwarped: a second cost volume
+centred on total flow 0. The decoder picks between the hypotheses.
+
 Camera slots: a rig of any size V maps each camera to the decoder whose reference yaw is nearest
 to the camera's viewing direction in the ego frame (nuScenes-like rigs: one decoder per camera).
 """
@@ -31,6 +39,10 @@ class FlowConfig:
     # Search radius at the coarsest level (None: ``radius``). Non-rigid motion between keyframes
     # can be a large part of the image width; the coarsest level is where it must be found.
     coarse_radius: int | None = None
+    # Search around "moves with the ego" as well as around "static" (see the module docstring):
+    # the source's features (not the rigidly warped image's) are warped by rigid + residual at every
+    # level, and the coarsest level also correlates them unwarped (total flow 0).
+    search_zero: bool = False
     hidden: int = 32
     decoder_yaws_deg: tuple[float, ...] = (0.0, -55.0, -110.0, 180.0, 110.0, 55.0)
     flow_norm: float = 0.05  # flows enter the network divided by flow_norm * W
@@ -110,12 +122,17 @@ class CameraDecoder(nn.Module):
         n = len(config.channels)
         coarse = config.radius if config.coarse_radius is None else config.coarse_radius
         self.radii = [config.radius] * (n - 1) + [coarse]
+        volumes = [1] * (n - 1) + [2 if config.search_zero else 1]
         self.levels = nn.ModuleList(
-            LevelDecoder(config.channels[i], (2 * self.radii[i] + 1) ** 2, config.hidden, has_prev=i < n - 1) for i in range(n)
+            LevelDecoder(config.channels[i], volumes[i] * (2 * self.radii[i] + 1) ** 2, config.hidden, has_prev=i < n - 1)
+            for i in range(n)
         )
 
     def forward(self, tgt_feats: list[Tensor], src_feats: list[Tensor], rigid: Tensor, size: tuple[int, int]) -> list[Tensor]:
-        """Residual flows ``[b, 2, h_l, w_l]`` in full-resolution pixels, coarsest first."""
+        """Residual flows ``[b, 2, h_l, w_l]`` in full-resolution pixels, coarsest first.
+
+        ``src_feats`` are the rigidly warped source's features, or with ``search_zero`` the
+        source's own."""
         height, width = size
         norm = self.config.flow_norm * width
         flow = hidden = None
@@ -124,14 +141,25 @@ class CameraDecoder(nn.Module):
             ft, fs = tgt_feats[i], src_feats[i]
             h, w = ft.shape[-2:]
             to_level = ft.new_tensor([w / width, h / height]).view(1, 2, 1, 1)
-            if flow is None:
+            rigid_l = F.interpolate(rigid, size=(h, w), mode="bilinear", align_corners=False)
+            coarsest = flow is None
+            if coarsest:
                 flow = ft.new_zeros(ft.shape[0], 2, h, w)
             else:
                 flow = F.interpolate(flow, size=(h, w), mode="bilinear", align_corners=False)
                 hidden = F.interpolate(hidden, size=(h, w), mode="bilinear", align_corners=False)
-                fs, _ = backward_warp(fs, (flow * to_level).permute(0, 2, 3, 1))
-            cost = F.leaky_relu(local_cost_volume(ft, fs, self.radii[i]), 0.1)
-            rigid_l = F.interpolate(rigid, size=(h, w), mode="bilinear", align_corners=False)
+            radius = self.radii[i]
+            if self.config.search_zero:
+                warped, _ = backward_warp(fs, ((rigid_l + flow) * to_level).permute(0, 2, 3, 1))
+                costs = [local_cost_volume(ft, warped, radius)]
+                if coarsest:  # the other hypothesis: total flow 0, the object moves with the ego
+                    costs.append(local_cost_volume(ft, fs, radius))
+                cost = torch.cat(costs, dim=1)
+            else:
+                if not coarsest:
+                    fs, _ = backward_warp(fs, (flow * to_level).permute(0, 2, 3, 1))
+                cost = local_cost_volume(ft, fs, radius)
+            cost = F.leaky_relu(cost, 0.1)
             parts = [cost, ft, flow / norm, rigid_l / norm] + ([hidden] if hidden is not None else [])
             delta, hidden = self.levels[i](torch.cat(parts, dim=1))
             flow = flow + delta / to_level  # the update is predicted in this level's pixels
@@ -154,10 +182,15 @@ class ResidualFlowNet(nn.Module):
         target: Tensor,  # [B, 3, H, W]
         rigid_flow: Tensor,  # [B, 2, H, W] pixels
         slots: Tensor,  # [B] decoder index per image
+        source: Tensor | None = None,  # [B, 3, H, W] the source itself: needed with search_zero
     ) -> list[Tensor]:
         """Residual flows ``[B, 2, H, W]`` in pixels, one per pyramid level (finest last), each
         upsampled to full resolution."""
         size = target.shape[-2:]
+        if self.config.search_zero:
+            if source is None:
+                raise ValueError("ResidualFlowNet: search_zero needs the unwarped source images")
+            warped_source = source
         both = self.encoder(torch.cat([target, warped_source], dim=0))
         tgt_feats = [f[: target.shape[0]] for f in both]
         src_feats = [f[target.shape[0] :] for f in both]

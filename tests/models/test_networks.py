@@ -22,7 +22,7 @@ from drivingscene.models.pipeline import (
     rigid_flows,
     sky_mask,
 )
-from drivingscene.models.residual_flow import CameraDecoder, FlowConfig, decoder_slots, local_cost_volume
+from drivingscene.models.residual_flow import CameraDecoder, FlowConfig, ResidualFlowNet, decoder_slots, local_cost_volume
 from tests.factories import make_pair, make_rig
 
 SMALL = ModelConfig(depth=DepthConfig(width=8, decoder_channels=(8, 8, 16, 16, 32)))
@@ -90,11 +90,32 @@ def test_coarse_radius_widens_only_the_coarsest_cost_volume():
     ]
 
 
-def test_configs_saved_before_coarse_radius_load_the_same_network():
+def test_search_zero_adds_a_cost_volume_around_zero_total_flow():
+    torch.manual_seed(0)
+    net = ResidualFlowNet(FlowConfig(channels=(8, 8, 8, 8), hidden=8, search_zero=True)).eval()
+    inputs = []
+    net.decoders[0].levels[3].register_forward_hook(lambda module, args, out: inputs.append(args[0]))
+    target, source = torch.rand(1, 3, 64, 96), torch.rand(1, 3, 64, 96)
+    slots = torch.tensor([0])
+    with torch.no_grad():
+        for shift in (0.0, 40.0):  # no rigid motion, then a large one (a near object, static assumed)
+            net(source, target, torch.full((1, 2, 64, 96), shift), slots, source=source)
+    volume = 7 * 7
+    rigid_centred = [x[:, :volume] for x in inputs]
+    zero_centred = [x[:, volume : 2 * volume] for x in inputs]
+    torch.testing.assert_close(zero_centred[0], zero_centred[1])  # does not follow the rigid flow
+    assert not torch.allclose(rigid_centred[0], rigid_centred[1])  # follows it
+    torch.testing.assert_close(rigid_centred[0], zero_centred[0])  # the same hypothesis when rigid is 0
+    with pytest.raises(ValueError, match="unwarped source"):
+        net(source, target, torch.zeros(1, 2, 64, 96), slots)
+
+
+def test_configs_saved_before_the_search_options_load_the_same_network():
     old = ModelConfig().to_dict()
-    del old["flow"]["coarse_radius"]
-    config = ModelConfig.from_dict(old)  # weights trained before the field existed
+    del old["flow"]["coarse_radius"], old["flow"]["search_zero"]
+    config = ModelConfig.from_dict(old)  # weights trained before the fields existed
     assert CameraDecoder(config.flow).radii == [config.flow.radius] * len(config.flow.channels)
+    assert not config.flow.search_zero
 
 
 def test_residual_flow_starts_at_zero_and_gets_gradients(model):
@@ -241,3 +262,43 @@ def test_photometric_check_keeps_only_residuals_that_explain_the_images():
     _, switched_off = lift_scene_flow(depth, rigid + residual, residual, sky, batch, off, rigid=rigid)
     assert torch.equal(switched_off, unchecked)
     assert checked.sum() < unchecked.sum() and not (checked & ~unchecked).any()
+
+
+def test_object_motion_moves_each_region_by_its_median_flow():
+    from drivingscene.models.pipeline import move_regions_as_objects
+
+    moving = torch.zeros(2, 10, 12, dtype=torch.bool)
+    moving[0, 1:5, 1:5] = True  # a 16-pixel object in camera 0
+    moving[0, 7:9, 8:10] = True  # a 4-pixel speck, apart from it
+    moving[1, 2:6, 2:6] = True  # camera 1: same pixels as an object there, separate region
+    index, row, col = moving.nonzero(as_tuple=True)
+    flow = torch.zeros(len(index), 3)
+    flow[index == 0] = torch.tensor([1.0, 0.0, 0.0])
+    flow[index == 1] = torch.tensor([0.0, 2.0, 0.0])
+    dynamic = torch.ones(len(index), dtype=torch.bool)
+    outlier = (index == 0) & (row == 1) & (col == 1)
+    flow[outlier] = torch.tensor([0.0, 0.0, 40.0])  # a wrong destination depth
+    failed = (index == 1) & (row == 2) & (col == 2)
+    dynamic[failed] = False  # failed the consistency check
+    speck = (index == 0) & (row >= 7)
+    flow[speck] = torch.tensor([5.0, 5.0, 5.0])
+    new_flow, new_dynamic = move_regions_as_objects(moving, index, row, col, flow, dynamic, min_pixels=10)
+    big = (index == 0) & ~speck
+    torch.testing.assert_close(new_flow[big], torch.tensor([[1.0, 0.0, 0.0]]).expand(int(big.sum()), 3))
+    torch.testing.assert_close(new_flow[index == 1], torch.tensor([[0.0, 2.0, 0.0]]).expand(16, 3))
+    assert new_dynamic[index == 1].all()  # the failed pixel moves with its object
+    # Too small a region keeps its per-pixel flow and mask.
+    assert torch.equal(new_flow[speck], flow[speck]) and torch.equal(new_dynamic[speck], dynamic[speck])
+
+    # In the lift it only adds moving pixels (whole regions), never removes one.
+    g = torch.Generator().manual_seed(4)
+    batch = pair_to_tensors(make_pair(num_views=3, height=20, width=28))
+    depth = 3.0 + 20.0 * torch.rand(2, 3, 20, 28, generator=g)
+    residual = torch.zeros(2, 3, 20, 28, 2)
+    residual[0, :, 4:14, 6:20] = torch.tensor([3.0, 0.5])
+    residual[1] = -residual[0].roll(3, dims=2)
+    total = torch.randn(2, 3, 20, 28, 2, generator=g) * 0.2 + residual
+    sky = torch.zeros(2, 3, 20, 28, dtype=torch.bool)
+    _, per_pixel = lift_scene_flow(depth, total, residual, sky, batch, LiftConfig())
+    _, objects = lift_scene_flow(depth, total, residual, sky, batch, LiftConfig(object_motion=True))
+    assert (objects >= per_pixel).all() and objects.sum() > per_pixel.sum()

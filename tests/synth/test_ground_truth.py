@@ -142,3 +142,17 @@ def test_saved_file_is_valid_and_round_trips(medium_pair, tmp_path):
     loaded = load_frame_pair(path)
     np.testing.assert_array_equal(loaded.gt_flow, medium_pair.gt_flow)
     assert loaded.camera_names == medium_pair.camera_names
+
+
+def test_bench_motion_separates_non_rigid_motion(medium_pair):
+    """`bench motion`'s non-rigid part (flow minus the pipeline's rigid flow of the true depth)
+    vanishes on static pixels and not on moving ones."""
+    from dataclasses import replace
+
+    from drivingscene.bench.motion import moving_pixel_motion
+
+    static = replace(medium_pair, gt_dynamic=~medium_pair.gt_dynamic)
+    flow, nonrigid, _ = moving_pixel_motion(static)
+    assert np.median(flow) > 2.0 and np.median(nonrigid) < 0.05
+    flow, nonrigid, cams = moving_pixel_motion(medium_pair)
+    assert len(cams) > 100 and np.median(nonrigid) > 2.0
