@@ -80,7 +80,10 @@ def run(args: argparse.Namespace) -> int:
             f"| {'all' if v is None else v} | {sel.sum()} | {np.median(f) * pct:.1f} % | {np.median(n) * pct:.1f} % "
             f"| {100 * (n * pct > 25).mean():.0f} % | {100 * (f < n).mean():.0f} % |"
         )
-    lines += ["", f"Regenerate: `drivingscene bench motion --data {args.data}" + (f" --count {args.count}`" if args.count else "`")]
+    lines += [
+        "",
+        f"Regenerate: `drivingscene bench motion --data {args.data}" + (f" --count {args.count}`" if args.count else "`"),
+    ]
     lines += [f"Machine: {machine_description()} (the figures do not depend on it)."]
     text = "\n".join(lines) + "\n"
     if args.out:

@@ -70,7 +70,9 @@ def _load_init(model: DrivingSceneModel, path: str) -> None:
     own = model.state_dict()
     reshaped = sorted(k for k, v in state.items() if k in own and own[k].shape != v.shape)
     if reshaped:  # e.g. stage 2 with a differently shaped R on stage 1's weights: those stay fresh
-        log.warning("%s: --init: %d tensors of another shape left at initialisation: %s", path, len(reshaped), ", ".join(reshaped))
+        log.warning(
+            "%s: --init: %d tensors of another shape left at initialisation: %s", path, len(reshaped), ", ".join(reshaped)
+        )
         state = {k: v for k, v in state.items() if k not in reshaped}
     missing, unexpected = model.load_state_dict(state, strict=False)
     if unexpected or len(missing) == len(model.state_dict()):
