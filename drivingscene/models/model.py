@@ -36,7 +36,7 @@ class ModelConfig:
 
         size = data.get("input_size")
         # configs written before these FlowConfig fields existed describe the network without them
-        flow = {"coarse_radius": None, "search_zero": False, **data.get("flow", {})}
+        flow = {"coarse_radius": None, "hypotheses": (1.0,), "scale_flow": False, **data.get("flow", {})}
         return cls(
             depth=DepthConfig(**tuples(data.get("depth", {}))),
             gaussians=GaussianHeadConfig(**tuples(data.get("gaussians", {}))),

@@ -8,13 +8,17 @@ refines the residual coarse to fine. At each level the decoder warps the source 
 current residual, compares them with the target features in a local cost volume (PWC-Net style,
 radius r; optionally a larger radius at the coarsest level) and predicts an update from [cost, target features, residual, rigid flow, hidden].
 
-With ``search_zero`` (a deviation from the paper's input, documented in docs/training-notes.md):
-an object that keeps pace with the ego barely moves in the image, while the rigid flow, which
-assumes it static, is large for a near one (a car ahead, 5 m away, while the ego drives 5 m). The
-residual must then cancel the rigid flow, and a search around it never sees the object. So R
-encodes the source image itself, warps its features by the current total flow (rigid + residual)
-at each level, and at the coarsest level also compares them unwarped: a second cost volume
-centred on total flow 0. The decoder picks between the hypotheses.
+With ``hypotheses`` other than ``(1.0,)`` (a deviation from the paper, see docs/training-notes.md):
+in driving, most moving objects travel along the ego's road, so their image motion is close to a
+*scaled* rigid flow, ``s * rigid``: s = 1 for a parked car, 0 for a car that keeps pace with the
+ego (it barely moves in the image, while the rigid flow, which assumes it static, is large when it
+is near), between for slower traffic, above 1 for oncoming traffic. A residual that must cancel a
+large rigid flow is out of reach of a search around the rigid flow. So R encodes the source image
+itself and, at the coarsest level, correlates the target with it warped by ``s * rigid`` for each
+s in ``hypotheses`` (one cost volume each; s = 0 is the unwarped source); with ``scale_flow`` that
+level also predicts a per-pixel scale, so that its residual is ``(s - 1) * rigid + delta`` and
+"moves with the ego" is one number rather than a large regressed vector. Finer levels warp the
+source's features by the current total flow (rigid + residual) and refine as above.
 
 Camera slots: a rig of any size V maps each camera to the decoder whose reference yaw is nearest
 to the camera's viewing direction in the ego frame (nuScenes-like rigs: one decoder per camera).
@@ -39,10 +43,17 @@ class FlowConfig:
     # Search radius at the coarsest level (None: ``radius``). Non-rigid motion between keyframes
     # can be a large part of the image width; the coarsest level is where it must be found.
     coarse_radius: int | None = None
-    # Search around "moves with the ego" as well as around "static" (see the module docstring):
-    # the source's features (not the rigidly warped image's) are warped by rigid + residual at every
-    # level, and the coarsest level also correlates them unwarped (total flow 0).
-    search_zero: bool = False
+    # Scales s of the rigid flow around which the coarsest level searches (module docstring);
+    # (1.0,) is the paper's R: around the rigid flow only, on the rigidly warped source image.
+    hypotheses: tuple[float, ...] = (1.0,)
+    # The coarsest level also predicts a per-pixel scale of the rigid flow (module docstring).
+    scale_flow: bool = False
+
+    @property
+    def own_source(self) -> bool:
+        """R encodes the source image itself (not the rigidly warped one)."""
+        return tuple(self.hypotheses) != (1.0,)
+
     hidden: int = 32
     decoder_yaws_deg: tuple[float, ...] = (0.0, -55.0, -110.0, 180.0, 110.0, 55.0)
     flow_norm: float = 0.05  # flows enter the network divided by flow_norm * W
@@ -95,7 +106,7 @@ class PyramidEncoder(nn.Module):
 
 
 class LevelDecoder(nn.Module):
-    def __init__(self, feat_ch: int, cost_ch: int, hidden: int, has_prev: bool):
+    def __init__(self, feat_ch: int, cost_ch: int, hidden: int, has_prev: bool, out_ch: int = 2):
         super().__init__()
         in_ch = cost_ch + feat_ch + 4 + (hidden if has_prev else 0)
         self.body = nn.Sequential(
@@ -104,7 +115,7 @@ class LevelDecoder(nn.Module):
             nn.Conv2d(48, hidden, 3, padding=1),
             nn.LeakyReLU(0.1, inplace=True),
         )
-        self.flow = nn.Conv2d(hidden, 2, 3, padding=1)
+        self.flow = nn.Conv2d(hidden, out_ch, 3, padding=1)
         nn.init.zeros_(self.flow.weight)
         nn.init.zeros_(self.flow.bias)
 
@@ -114,7 +125,8 @@ class LevelDecoder(nn.Module):
 
 
 class CameraDecoder(nn.Module):
-    """Coarse-to-fine residual flow for one camera slot."""
+    """The per-level update networks of one camera slot (run by ``ResidualFlowNet``, which
+    batches the warps and cost volumes of all slots)."""
 
     def __init__(self, config: FlowConfig):
         super().__init__()
@@ -122,49 +134,12 @@ class CameraDecoder(nn.Module):
         n = len(config.channels)
         coarse = config.radius if config.coarse_radius is None else config.coarse_radius
         self.radii = [config.radius] * (n - 1) + [coarse]
-        volumes = [1] * (n - 1) + [2 if config.search_zero else 1]
+        volumes = [1] * (n - 1) + [len(config.hypotheses)]
+        outputs = [2] * (n - 1) + [3 if config.scale_flow else 2]
         self.levels = nn.ModuleList(
-            LevelDecoder(config.channels[i], volumes[i] * (2 * self.radii[i] + 1) ** 2, config.hidden, has_prev=i < n - 1)
+            LevelDecoder(config.channels[i], volumes[i] * (2 * self.radii[i] + 1) ** 2, config.hidden, i < n - 1, outputs[i])
             for i in range(n)
         )
-
-    def forward(self, tgt_feats: list[Tensor], src_feats: list[Tensor], rigid: Tensor, size: tuple[int, int]) -> list[Tensor]:
-        """Residual flows ``[b, 2, h_l, w_l]`` in full-resolution pixels, coarsest first.
-
-        ``src_feats`` are the rigidly warped source's features, or with ``search_zero`` the
-        source's own."""
-        height, width = size
-        norm = self.config.flow_norm * width
-        flow = hidden = None
-        flows = []
-        for i in range(len(tgt_feats) - 1, -1, -1):
-            ft, fs = tgt_feats[i], src_feats[i]
-            h, w = ft.shape[-2:]
-            to_level = ft.new_tensor([w / width, h / height]).view(1, 2, 1, 1)
-            rigid_l = F.interpolate(rigid, size=(h, w), mode="bilinear", align_corners=False)
-            coarsest = flow is None
-            if coarsest:
-                flow = ft.new_zeros(ft.shape[0], 2, h, w)
-            else:
-                flow = F.interpolate(flow, size=(h, w), mode="bilinear", align_corners=False)
-                hidden = F.interpolate(hidden, size=(h, w), mode="bilinear", align_corners=False)
-            radius = self.radii[i]
-            if self.config.search_zero:
-                warped, _ = backward_warp(fs, ((rigid_l + flow) * to_level).permute(0, 2, 3, 1))
-                costs = [local_cost_volume(ft, warped, radius)]
-                if coarsest:  # the other hypothesis: total flow 0, the object moves with the ego
-                    costs.append(local_cost_volume(ft, fs, radius))
-                cost = torch.cat(costs, dim=1)
-            else:
-                if not coarsest:
-                    fs, _ = backward_warp(fs, (flow * to_level).permute(0, 2, 3, 1))
-                cost = local_cost_volume(ft, fs, radius)
-            cost = F.leaky_relu(cost, 0.1)
-            parts = [cost, ft, flow / norm, rigid_l / norm] + ([hidden] if hidden is not None else [])
-            delta, hidden = self.levels[i](torch.cat(parts, dim=1))
-            flow = flow + delta / to_level  # the update is predicted in this level's pixels
-            flows.append(flow)
-        return flows
 
 
 class ResidualFlowNet(nn.Module):
@@ -182,24 +157,69 @@ class ResidualFlowNet(nn.Module):
         target: Tensor,  # [B, 3, H, W]
         rigid_flow: Tensor,  # [B, 2, H, W] pixels
         slots: Tensor,  # [B] decoder index per image
-        source: Tensor | None = None,  # [B, 3, H, W] the source itself: needed with search_zero
+        source: Tensor | None = None,  # [B, 3, H, W] the source itself: needed with own_source
     ) -> list[Tensor]:
         """Residual flows ``[B, 2, H, W]`` in pixels, one per pyramid level (finest last), each
         upsampled to full resolution."""
         size = target.shape[-2:]
-        if self.config.search_zero:
+        if self.config.own_source:
             if source is None:
-                raise ValueError("ResidualFlowNet: search_zero needs the unwarped source images")
+                raise ValueError("ResidualFlowNet: these hypotheses need the unwarped source images")
             warped_source = source
         both = self.encoder(torch.cat([target, warped_source], dim=0))
-        tgt_feats = [f[: target.shape[0]] for f in both]
-        src_feats = [f[target.shape[0] :] for f in both]
-        levels = len(tgt_feats)
-        out = [target.new_zeros(target.shape[0], 2, *size) for _ in range(levels)]
-        for slot in slots.unique().tolist():
-            idx = (slots == slot).nonzero().squeeze(1)
-            flows = self.decoders[slot]([f[idx] for f in tgt_feats], [f[idx] for f in src_feats], rigid_flow[idx], size)
-            for level, flow in enumerate(flows):
-                full = F.interpolate(flow.float(), size=size, mode="bilinear", align_corners=False)
-                out[level] = out[level].index_copy(0, idx, full)
-        return out
+        count = target.shape[0]
+        groups = [(slot, (slots == slot).nonzero().squeeze(1)) for slot in slots.unique().tolist()]
+        flows = self._decode([f[:count] for f in both], [f[count:] for f in both], rigid_flow, groups, size)
+        return [F.interpolate(flow.float(), size=size, mode="bilinear", align_corners=False) for flow in flows]
+
+    def _decode(
+        self, tgt_feats: list[Tensor], src_feats: list[Tensor], rigid: Tensor, groups: list, size: tuple[int, int]
+    ) -> list[Tensor]:
+        """Residual flows ``[B, 2, h_l, w_l]`` in full-resolution pixels, coarsest first. Warps and
+        cost volumes run on all images at once, each slot's decoder on its images.
+
+        ``src_feats`` are the rigidly warped source's features, or with ``own_source`` the
+        source's own."""
+        config = self.config
+        height, width = size
+        norm = config.flow_norm * width
+        radii = self.decoders[0].radii
+        flow = hidden = None
+        flows = []
+        for i in range(len(tgt_feats) - 1, -1, -1):
+            ft, fs = tgt_feats[i], src_feats[i]
+            h, w = ft.shape[-2:]
+            to_level = ft.new_tensor([w / width, h / height]).view(1, 2, 1, 1)
+            rigid_l = F.interpolate(rigid, size=(h, w), mode="bilinear", align_corners=False)
+            coarsest = flow is None
+            if coarsest:
+                flow = ft.new_zeros(ft.shape[0], 2, h, w)
+            else:
+                flow = F.interpolate(flow, size=(h, w), mode="bilinear", align_corners=False)
+                hidden = F.interpolate(hidden, size=(h, w), mode="bilinear", align_corners=False)
+            if config.own_source:
+                shifts = [s * rigid_l for s in config.hypotheses] if coarsest else [rigid_l + flow]
+                costs = []
+                for shift in shifts:
+                    moved = fs if not shift.any() else backward_warp(fs, (shift * to_level).permute(0, 2, 3, 1))[0]
+                    costs.append(local_cost_volume(ft, moved, radii[i]))
+                cost = torch.cat(costs, dim=1)
+            else:
+                if not coarsest:
+                    fs, _ = backward_warp(fs, (flow * to_level).permute(0, 2, 3, 1))
+                cost = local_cost_volume(ft, fs, radii[i])
+            cost = F.leaky_relu(cost, 0.1)
+            parts = torch.cat([cost, ft, flow / norm, rigid_l / norm] + ([hidden] if hidden is not None else []), dim=1)
+            delta = hidden = None
+            for slot, idx in groups:
+                d, hid = self.decoders[slot].levels[i](parts if len(groups) == 1 else parts[idx])
+                if delta is None:
+                    delta = d.new_zeros(parts.shape[0], *d.shape[1:])
+                    hidden = hid.new_zeros(parts.shape[0], *hid.shape[1:])
+                delta, hidden = delta.index_copy(0, idx, d), hidden.index_copy(0, idx, hid)
+            if delta.shape[1] == 3:  # a scale of the rigid flow, then an update on top
+                flow = flow + delta[:, 2:] * rigid_l
+                delta = delta[:, :2]
+            flow = flow + delta / to_level  # the update is predicted in this level's pixels
+            flows.append(flow)
+        return flows

@@ -90,9 +90,9 @@ def test_coarse_radius_widens_only_the_coarsest_cost_volume():
     ]
 
 
-def test_search_zero_adds_a_cost_volume_around_zero_total_flow():
+def test_hypotheses_add_cost_volumes_around_scaled_rigid_flow():
     torch.manual_seed(0)
-    net = ResidualFlowNet(FlowConfig(channels=(8, 8, 8, 8), hidden=8, search_zero=True)).eval()
+    net = ResidualFlowNet(FlowConfig(channels=(8, 8, 8, 8), hidden=8, hypotheses=(1.0, 0.0))).eval()
     inputs = []
     net.decoders[0].levels[3].register_forward_hook(lambda module, args, out: inputs.append(args[0]))
     target, source = torch.rand(1, 3, 64, 96), torch.rand(1, 3, 64, 96)
@@ -110,12 +110,28 @@ def test_search_zero_adds_a_cost_volume_around_zero_total_flow():
         net(source, target, torch.zeros(1, 2, 64, 96), slots)
 
 
+def test_scale_flow_turns_the_rigid_flow_off_with_one_number():
+    """A coarsest-level scale of 0 (bias -1 on the scale output) gives residual = -rigid, i.e. a
+    total flow of 0, at every output level; the untrained refinements add nothing."""
+    net = ResidualFlowNet(FlowConfig(channels=(8, 8, 8, 8), hidden=8, hypotheses=(1.0, 0.0), scale_flow=True)).eval()
+    image = torch.rand(1, 3, 64, 96)
+    rigid = torch.tensor([30.0, -12.0]).view(1, 2, 1, 1).expand(1, 2, 64, 96)
+    slots = torch.tensor([0])
+    with torch.no_grad():
+        assert all(r.abs().max() == 0 for r in net(image, image, rigid, slots, source=image))  # starts at 0
+        net.decoders[0].levels[3].flow.bias[2] = -1.0
+        residuals = net(image, image, rigid, slots, source=image)
+    for residual in residuals:
+        torch.testing.assert_close(residual, -rigid)
+
+
 def test_configs_saved_before_the_search_options_load_the_same_network():
     old = ModelConfig().to_dict()
-    del old["flow"]["coarse_radius"], old["flow"]["search_zero"]
+    for key in ("coarse_radius", "hypotheses", "scale_flow"):
+        del old["flow"][key]
     config = ModelConfig.from_dict(old)  # weights trained before the fields existed
     assert CameraDecoder(config.flow).radii == [config.flow.radius] * len(config.flow.channels)
-    assert not config.flow.search_zero
+    assert config.flow.hypotheses == (1.0,) and not config.flow.scale_flow and not config.flow.own_source
 
 
 def test_residual_flow_starts_at_zero_and_gets_gradients(model):
