@@ -4,7 +4,9 @@ From the pairs' ground truth only (no model): for the pixels of moving objects a
 land inside the other image, per camera, the optical flow and its non-rigid part (the flow minus
 the rigid flow of the ground-truth depth, i.e. what R has to supply), both in percent of the image
 width, and how many of those pixels are closer to "moves with the ego" (flow 0) than to "static"
-(the rigid flow). This is what a residual-flow network's search range and hypotheses must cover.
+(the rigid flow), and what is left of the flow after the best per-pixel scale of the rigid flow
+(``|flow - s* rigid|``, s* by least squares): small when objects move along the ego's direction of
+travel. This is what a residual-flow network's search range and hypotheses must cover.
 """
 
 from __future__ import annotations
@@ -23,9 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
-def moving_pixel_motion(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flow and non-rigid flow magnitudes ``[P]`` (pixels) and camera ``[P]`` of the moving pixels
-    of keyframe 0 whose ground-truth flow lands inside the other image."""
+def moving_pixel_motion(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Magnitudes ``[P]`` (pixels) of the flow, its non-rigid part and its part off the rigid
+    direction, and the camera ``[P]``, for the moving pixels of keyframe 0 whose ground-truth flow
+    lands inside the other image."""
     import torch
 
     from drivingscene.data.tensors import pair_to_tensors
@@ -43,7 +46,10 @@ def moving_pixel_motion(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     use = pair.gt_dynamic[0] & np.isfinite(flow).all(-1) & (pair.gt_depth[0] > 0)
     use &= (dest[..., 0] >= 0) & (dest[..., 0] <= width - 1) & (dest[..., 1] >= 0) & (dest[..., 1] <= height - 1)
     cams = np.broadcast_to(np.arange(num_views)[:, None, None], use.shape)
-    return np.linalg.norm(flow, axis=-1)[use], np.linalg.norm(flow - rigid, axis=-1)[use], cams[use]
+    flow, rigid = flow[use], rigid[use]
+    scale = (flow * rigid).sum(-1) / np.maximum((rigid * rigid).sum(-1), 1e-9)
+    off = np.linalg.norm(flow - scale[:, None] * rigid, axis=-1)
+    return np.linalg.norm(flow, axis=-1), np.linalg.norm(flow - rigid, axis=-1), off, cams[use]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,31 +60,35 @@ def run(args: argparse.Namespace) -> int:
     files = list_pairs(args.data)[: args.count]
     if not files:
         raise InputError(f"{args.data}: --data: expected pair_*.npz files")
-    flows, nonrigid, cams, width, pixels = [], [], [], None, 0
+    flows, nonrigid, offs, cams, width, pixels = [], [], [], [], None, 0
     for path in files:
         pair = load_frame_pair(path)
-        f, n, c = moving_pixel_motion(pair)
+        f, n, o, c = moving_pixel_motion(pair)
         flows.append(f)
         nonrigid.append(n)
+        offs.append(o)
         cams.append(c)
         width = pair.images.shape[-2]
         pixels += pair.images[0, ..., 0].size
-    flow, nonrigid, cam = (np.concatenate(x) for x in (flows, nonrigid, cams))
+    flow, nonrigid, off, cam = (np.concatenate(x) for x in (flows, nonrigid, offs, cams))
     pct = 100.0 / width
     lines = [
+        "## Motion of moving objects",
+        "",
         f"Moving-object motion in {len(files)} pairs of `{args.data}` ({width} px wide), keyframe 0 -> 1; "
         f"moving pixels that land inside the other image: {len(flow)} ({100 * len(flow) / pixels:.1f} % of all pixels). "
         "Flow and non-rigid flow (flow minus the rigid flow of the true depth) in % of the image width.",
         "",
-        "| camera | moving px | flow, median | non-rigid, median | non-rigid > 25 % of width | closer to flow 0 than to rigid |",
-        "|---|---|---|---|---|---|",
+        "| camera | moving px | flow, median | non-rigid, median | non-rigid > 25 % of width "
+        "| closer to flow 0 than to rigid | off the rigid direction, median |",
+        "|---|---|---|---|---|---|---|",
     ]
     for v in [*np.unique(cam).tolist(), None]:
         sel = np.ones_like(cam, bool) if v is None else cam == v
-        f, n = flow[sel], nonrigid[sel]
+        f, n, o = flow[sel], nonrigid[sel], off[sel]
         lines.append(
             f"| {'all' if v is None else v} | {sel.sum()} | {np.median(f) * pct:.1f} % | {np.median(n) * pct:.1f} % "
-            f"| {100 * (n * pct > 25).mean():.0f} % | {100 * (f < n).mean():.0f} % |"
+            f"| {100 * (n * pct > 25).mean():.0f} % | {100 * (f < n).mean():.0f} % | {np.median(o) * pct:.1f} % |"
         )
     lines += [
         "",
