@@ -133,12 +133,26 @@ def bound_flow(flow: Tensor) -> Tensor:
     return torch.minimum(torch.maximum(grid + flow, lo), hi) - grid
 
 
+# Nearer than this (metres, in front of the destination camera) a static point has no usable rigid
+# flow: it would pass behind the camera (or project arbitrarily far off the image).
+NEAR_Z = 0.5
+
+
 def rigid_flows(depth: Tensor, batch: PairTensors) -> Tensor:
-    """``[2, V, H, W, 2]`` rigid flow 0->1 from depth_0 and 1->0 from depth_1, bounded (`bound_flow`)."""
+    """``[2, V, H, W, 2]`` rigid flow 0->1 from depth_0 and 1->0 from depth_1, bounded (`bound_flow`).
+
+    Where a static world would carry the point behind the other keyframe's camera (nearer than
+    ``NEAR_Z``), the rigid flow is 0: a surface there that is still seen at the other keyframe
+    moves with the ego (a car following close behind, or keeping pace ahead), and one that is not
+    seen has no flow to find. R's residual starts from there, and the Gaussian stays static
+    unless R moves it.
+    """
     c2l = batch.cam_to_local
-    f01, _ = rigid_flow(depth[0], batch.intrinsics, c2l[0], c2l[1])
-    f10, _ = rigid_flow(depth[1], batch.intrinsics, c2l[1], c2l[0])
-    return bound_flow(torch.stack([f01, f10]))
+    f01, z01 = rigid_flow(depth[0], batch.intrinsics, c2l[0], c2l[1])
+    f10, z10 = rigid_flow(depth[1], batch.intrinsics, c2l[1], c2l[0])
+    flow = bound_flow(torch.stack([f01, f10]))
+    behind = torch.stack([z01, z10]) < NEAR_Z
+    return torch.where(behind[..., None], torch.zeros_like(flow), flow)
 
 
 def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) -> FlowPrediction:

@@ -190,7 +190,10 @@ def test_networks_run_at_the_training_size_and_outputs_come_back_full_size():
     torch.testing.assert_close(1 / shrunk, static.depth_output.depth.float(), rtol=0.05, atol=0.0)
 
 
-def test_rigid_flow_of_points_behind_the_destination_camera_is_bounded():
+def test_rigid_flow_is_bounded_and_zero_for_points_that_pass_behind_the_camera():
+    from drivingscene.geometry.flow import rigid_flow
+    from drivingscene.models.pipeline import NEAR_Z
+
     # The ego drives 8 m forward; a point 3 m ahead of the front camera ends up behind it.
     pair = make_pair(height=12, width=16)
     batch = pair_to_tensors(pair)
@@ -204,6 +207,11 @@ def test_rigid_flow_of_points_behind_the_destination_camera_is_bounded():
     assert torch.isfinite(flow).all()
     assert dest[..., 0].min() >= -16 and dest[..., 0].max() <= 31
     assert dest[..., 1].min() >= -12 and dest[..., 1].max() <= 23
+    # No static-world flow behind the camera: 0 there (the point moves with the ego, or is gone).
+    _, z = rigid_flow(depth[0], batch.intrinsics, batch.cam_to_local[0], batch.cam_to_local[1])
+    behind = z < NEAR_Z
+    assert behind.any() and (~behind).any()
+    assert (flow[0][behind] == 0).all() and (flow[0][~behind].norm(dim=-1) > 1).all()
     # Points that stay in front keep their exact flow: bounding only touches far destinations.
     near = rigid_flows(torch.full_like(depth, 200.0), batch)
     assert near.abs().max() < 8
