@@ -105,7 +105,9 @@ def reconstruct(
     scene_flow = None
     if flow is not None:
         net_width = model.config.input_size[1] if model.config.input_size else None
-        scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, options.lift, net_width, rigid=flow.rigid)
+        scene_flow, _ = lift_scene_flow(
+            depth, flow.total, flow.residual, sky, batch, options.lift, net_width, rigid=flow.rigid, behind=flow.behind
+        )
     _sync(device)
     timings["flow_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -48,6 +48,10 @@ class LiftConfig:
     # rigid over a keyframe interval; single pixels with a wrong destination depth or a failed
     # consistency check then neither fly off nor stay behind). Regions with fewer consistent
     # pixels than ``object_min_px`` keep per-pixel motion.
+    # Pixels without a rigid flow (a static world would carry them behind the other camera;
+    # `rigid_flows`) are candidates whatever their residual: still seen at the other keyframe,
+    # they move with the ego.
+    behind_candidates: bool = True
     object_motion: bool = False
     object_min_px: int = 16
 
@@ -71,6 +75,7 @@ class FlowPrediction:
     rigid: Tensor  # [2, V, H, W, 2]: [0] 0->1 at keyframe-0 pixels, [1] 1->0
     residuals: list[Tensor]  # per pyramid level, [2, V, H, W, 2], finest last
     warped_sources: Tensor  # [2, V, 3, H, W] the other keyframe warped by the rigid flow
+    behind: Tensor | None = None  # [2, V, H, W] bool: no rigid flow there (`rigid_flows`)
 
     @property
     def residual(self) -> Tensor:
@@ -147,12 +152,17 @@ def rigid_flows(depth: Tensor, batch: PairTensors) -> Tensor:
     seen has no flow to find. R's residual starts from there, and the Gaussian stays static
     unless R moves it.
     """
+    return rigid_flows_and_behind(depth, batch)[0]
+
+
+def rigid_flows_and_behind(depth: Tensor, batch: PairTensors) -> tuple[Tensor, Tensor]:
+    """`rigid_flows` and the mask ``[2, V, H, W]`` of pixels it set to 0 (behind the other camera)."""
     c2l = batch.cam_to_local
     f01, z01 = rigid_flow(depth[0], batch.intrinsics, c2l[0], c2l[1])
     f10, z10 = rigid_flow(depth[1], batch.intrinsics, c2l[1], c2l[0])
     flow = bound_flow(torch.stack([f01, f10]))
     behind = torch.stack([z01, z10]) < NEAR_Z
-    return torch.where(behind[..., None], torch.zeros_like(flow), flow)
+    return torch.where(behind[..., None], torch.zeros_like(flow), flow), behind
 
 
 def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) -> FlowPrediction:
@@ -163,7 +173,7 @@ def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) ->
     """
     size = batch.image_size
     net_size = tuple(model.config.input_size or size)
-    rigid = rigid_flows(depth, batch)
+    rigid, behind = rigid_flows_and_behind(depth, batch)
     targets = batch.images.flatten(0, 1)  # [2V, 3, H, W]
     sources = batch.images.flip(0).flatten(0, 1)  # the other keyframe
     rigid_chw = rigid.flatten(0, 1).permute(0, 3, 1, 2)
@@ -177,7 +187,8 @@ def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) ->
     if net_size != tuple(size):
         residuals = [_resize(r.float(), size, "bilinear") / to_net for r in residuals]
     residuals = [r.float().permute(0, 2, 3, 1).unflatten(0, (2, batch.num_views)) for r in residuals]
-    return FlowPrediction(rigid=rigid, residuals=residuals, warped_sources=warped.unflatten(0, (2, batch.num_views)))
+    warped = warped.unflatten(0, (2, batch.num_views))
+    return FlowPrediction(rigid=rigid, residuals=residuals, warped_sources=warped, behind=behind)
 
 
 def lift_scene_flow(
@@ -189,14 +200,16 @@ def lift_scene_flow(
     config: LiftConfig,
     net_width: int | None = None,  # the networks' input width when it differs from the image's
     rigid: Tensor | None = None,  # [2, V, H, W, 2]: enables config.photometric_check
+    behind: Tensor | None = None,  # [2, V, H, W] bool: candidates whatever their residual (no rigid flow)
 ) -> tuple[Tensor, Tensor]:
     """World (local-frame) displacement ``[2, V, H, W, 3]`` and dynamic mask ``[2, V, H, W]``.
 
     A pixel moves only where its residual exceeds the threshold, its flow is forward/backward
     consistent, both depths are valid and (with ``rigid`` and ``config.photometric_check``) the
     total flow matches the other keyframe better than the rigid flow does; every other pixel falls
-    back to static. Only the candidate pixels (residual above the threshold, not sky) are lifted:
-    a few percent of the image.
+    back to static. Only the candidate pixels (residual above the threshold, or ``behind``, where
+    the rigid flow is 0 because a static world would carry the point behind the other camera, so
+    that a small residual means "moves with the ego"; not sky) are lifted: a few percent of the image.
     """
     c2l = batch.cam_to_local
     num_views, height, width = depth.shape[1:]
@@ -208,7 +221,10 @@ def lift_scene_flow(
     flows, masks = [], []
     for k in (0, 1):
         o = 1 - k
-        moving = (residual[k].detach().square().sum(-1) > threshold**2) & ~sky[k]
+        moving = residual[k].detach().square().sum(-1) > threshold**2
+        if behind is not None and config.behind_candidates:
+            moving |= behind[k]
+        moving &= ~sky[k]
         index, row, col = moving.nonzero(as_tuple=True)
         pixels = torch.stack([col, row], -1)
         sf, valid = scene_flow_at_pixels(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o], index, pixels)

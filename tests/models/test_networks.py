@@ -326,3 +326,25 @@ def test_object_motion_moves_each_region_by_its_median_flow():
     _, per_pixel = lift_scene_flow(depth, total, residual, sky, batch, LiftConfig())
     _, objects = lift_scene_flow(depth, total, residual, sky, batch, LiftConfig(object_motion=True))
     assert (objects >= per_pixel).all() and objects.sum() > per_pixel.sum()
+
+
+def test_pixels_without_rigid_flow_move_with_the_ego_when_consistent():
+    """Behind the other camera the rigid flow is 0; a zero residual there means the surface kept its
+    place in the image: it moved with the ego, and the lift moves its Gaussian by the ego motion."""
+    batch = pair_to_tensors(make_pair(num_views=2, height=12, width=16))
+    depth = torch.full((2, 2, 12, 16), 4.0)
+    total = torch.zeros(2, 2, 12, 16, 2)
+    sky = torch.zeros(2, 2, 12, 16, dtype=torch.bool)
+    behind = torch.zeros_like(sky)
+    behind[:, 0, 3:7, 4:9] = True
+    flows, masks = lift_scene_flow(depth, total, total, sky, batch, LiftConfig(), behind=behind)
+    assert torch.equal(masks, behind)
+    # The same camera-frame point at both keyframes: it moved exactly as the camera did.
+    c2l, k_inv = batch.cam_to_local.double(), torch.linalg.inv(batch.intrinsics[0].double())
+    ray = k_inv @ torch.tensor([5.0, 4.0, 1.0], dtype=torch.float64)  # pixel (u=5, v=4)
+    point = torch.cat([4.0 * ray / ray[2], torch.ones(1, dtype=torch.float64)])
+    moved = (c2l[1, 0] @ point - c2l[0, 0] @ point)[:3]
+    assert moved.norm() > 0.1
+    torch.testing.assert_close(flows[0, 0, 4, 5].double(), moved, atol=1e-4, rtol=1e-4)
+    _, off = lift_scene_flow(depth, total, total, sky, batch, LiftConfig(behind_candidates=False), behind=behind)
+    assert not off.any()
