@@ -25,20 +25,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
-def moving_pixel_motion(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def moving_pixel_motion(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Magnitudes ``[P]`` (pixels) of the flow, its non-rigid part and its part off the rigid
-    direction, and the camera ``[P]``, for the moving pixels of keyframe 0 whose ground-truth flow
-    lands inside the other image."""
+    direction, the camera ``[P]`` and whether the pixel has no rigid flow ``[P]`` (a static world
+    would carry it behind the other camera), for the moving pixels of keyframe 0 whose
+    ground-truth flow lands inside the other image."""
     import torch
 
     from drivingscene.data.tensors import pair_to_tensors
     from drivingscene.errors import InputError
-    from drivingscene.models.pipeline import rigid_flows
+    from drivingscene.models.pipeline import rigid_flows_and_behind
 
     if pair.gt_flow is None or pair.gt_depth is None or pair.gt_dynamic is None:
         raise InputError("bench motion: expected pairs with gt_flow, gt_depth and gt_dynamic (drivingscene synth)")
     depth = torch.from_numpy(np.nan_to_num(pair.gt_depth, nan=0.0)).float().clamp(min=1e-3)
-    rigid = rigid_flows(depth, pair_to_tensors(pair))[0].numpy()
+    rigid, behind = rigid_flows_and_behind(depth, pair_to_tensors(pair))
+    rigid, behind = rigid[0].numpy(), behind[0].numpy()
     flow = pair.gt_flow[0]
     num_views, height, width = flow.shape[:3]
     grid = np.stack(np.meshgrid(np.arange(width), np.arange(height)), -1)
@@ -49,7 +51,7 @@ def moving_pixel_motion(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
     flow, rigid = flow[use], rigid[use]
     scale = (flow * rigid).sum(-1) / np.maximum((rigid * rigid).sum(-1), 1e-9)
     off = np.linalg.norm(flow - scale[:, None] * rigid, axis=-1)
-    return np.linalg.norm(flow, axis=-1), np.linalg.norm(flow - rigid, axis=-1), off, cams[use]
+    return np.linalg.norm(flow, axis=-1), np.linalg.norm(flow - rigid, axis=-1), off, cams[use], behind[use]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,35 +62,38 @@ def run(args: argparse.Namespace) -> int:
     files = list_pairs(args.data)[: args.count]
     if not files:
         raise InputError(f"{args.data}: --data: expected pair_*.npz files")
-    flows, nonrigid, offs, cams, width, pixels = [], [], [], [], None, 0
+    flows, nonrigid, offs, cams, behinds, width, pixels = [], [], [], [], [], None, 0
     for path in files:
         pair = load_frame_pair(path)
-        f, n, o, c = moving_pixel_motion(pair)
+        f, n, o, c, b = moving_pixel_motion(pair)
+        behinds.append(b)
         flows.append(f)
         nonrigid.append(n)
         offs.append(o)
         cams.append(c)
         width = pair.images.shape[-2]
         pixels += pair.images[0, ..., 0].size
-    flow, nonrigid, off, cam = (np.concatenate(x) for x in (flows, nonrigid, offs, cams))
+    flow, nonrigid, off, cam, behind = (np.concatenate(x) for x in (flows, nonrigid, offs, cams, behinds))
     pct = 100.0 / width
     lines = [
         "## Motion of moving objects",
         "",
         f"Moving-object motion in {len(files)} pairs of `{args.data}` ({width} px wide), keyframe 0 -> 1; "
         f"moving pixels that land inside the other image: {len(flow)} ({100 * len(flow) / pixels:.1f} % of all pixels). "
-        "Flow and non-rigid flow (flow minus the rigid flow of the true depth) in % of the image width.",
+        "Flow and non-rigid flow (flow minus the rigid flow of the true depth, `rigid_flows`: 0 where a static world "
+        "would carry the point behind the other camera) in % of the image width.",
         "",
         "| camera | moving px | flow, median | non-rigid, median | non-rigid > 25 % of width "
-        "| closer to flow 0 than to rigid | off the rigid direction, median |",
-        "|---|---|---|---|---|---|---|",
+        "| no rigid flow (behind the camera) | closer to flow 0 than to rigid | off the rigid direction, median |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for v in [*np.unique(cam).tolist(), None]:
         sel = np.ones_like(cam, bool) if v is None else cam == v
-        f, n, o = flow[sel], nonrigid[sel], off[sel]
+        f, n, o, b = flow[sel], nonrigid[sel], off[sel], behind[sel]
         lines.append(
             f"| {'all' if v is None else v} | {sel.sum()} | {np.median(f) * pct:.1f} % | {np.median(n) * pct:.1f} % "
-            f"| {100 * (n * pct > 25).mean():.0f} % | {100 * (f < n).mean():.0f} % | {np.median(o) * pct:.1f} % |"
+            f"| {100 * (n * pct > 25).mean():.0f} % | {100 * b.mean():.0f} % | {100 * (f < n)[~b].mean():.0f} % "
+            f"| {np.median(o[~b]) * pct:.1f} % |"
         )
     lines += [
         "",

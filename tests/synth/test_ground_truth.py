@@ -152,7 +152,7 @@ def test_bench_motion_separates_non_rigid_motion(medium_pair):
     from drivingscene.bench.motion import moving_pixel_motion
 
     static = replace(medium_pair, gt_dynamic=~medium_pair.gt_dynamic)
-    flow, nonrigid, off, _ = moving_pixel_motion(static)
+    flow, nonrigid, off, _, _ = moving_pixel_motion(static)
     assert np.median(flow) > 2.0 and np.median(nonrigid) < 0.05 and np.median(off) < 0.05
-    flow, nonrigid, off, cams = moving_pixel_motion(medium_pair)
+    flow, nonrigid, off, cams, _ = moving_pixel_motion(medium_pair)
     assert len(cams) > 100 and np.median(nonrigid) > 2.0
