@@ -26,6 +26,7 @@ from drivingscene.errors import InputError
 NVS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "{lpips}", "{:.3f}")]
 FULL, STATIC = "DrivingScene (two-stage)", "static-only (no residual flow)"
 GT_FLOW = "diagnostic: DrivingScene depth + GT flow"
+GT_FLOW_QUARTER = "diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"
 ORACLE_STATIC = "diagnostic: oracle without scene flow"
 DEPTH = [
     ("abs_rel", "AbsRel", "{:.3f}"),
@@ -85,6 +86,7 @@ def _methods(args):
         methods.append((name, lambda pair, m=extra: reconstruct(m, pair)))
     if args.diagnostics:
         methods.append((GT_FLOW, lambda pair: _with_gt_flow(model, pair)))
+        methods.append((GT_FLOW_QUARTER, lambda pair: _with_gt_flow(model, pair, error_share=0.25)))
     if not args.no_oracle:
         methods.append(("oracle (GT depth + scene flow)", oracle_reconstruction))
         if args.diagnostics:
@@ -92,9 +94,11 @@ def _methods(args):
     return methods
 
 
-def _with_gt_flow(model, pair):
+def _with_gt_flow(model, pair, error_share: float = 0.0):
     """The model's reconstruction with its total flow replaced by the ground truth (bounded as the
-    model's is): what a perfect R would give with this depth."""
+    model's is): what a perfect R would give with this depth. With ``error_share`` > 0, the
+    ground truth plus that share of the model's own flow error: how fast the gain fades with R's
+    error."""
     import torch
 
     from drivingscene.methods import feedforward
@@ -106,7 +110,10 @@ def _with_gt_flow(model, pair):
 
     def predict(model_, batch, depth):
         flow = feedforward.predict_flow(model_, batch, depth)
-        return FlowPrediction(rigid=flow.rigid, residuals=[gt - flow.rigid], warped_sources=flow.warped_sources)
+        total = gt + error_share * (flow.total - gt) if error_share else gt
+        return FlowPrediction(
+            rigid=flow.rigid, residuals=[total - flow.rigid], warped_sources=flow.warped_sources, behind=flow.behind
+        )
 
     recon = feedforward.reconstruct(model, pair, flow_predictor=predict)
     recon.meta["method"] = "drivingscene-gt-flow"

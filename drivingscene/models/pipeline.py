@@ -43,17 +43,10 @@ class LiftConfig:
     # images is not trusted (needs the rigid flow). Off by default: on validation pairs it raised
     # all-pixel PSNR but lowered the moving-pixel gain, and costs ~45 ms at 176x320 (results-notes).
     photometric_check: bool = False
-    # Optionally, each 8-connected region of candidate pixels in a camera moves as one piece: the
-    # median scene flow of its consistent pixels, given to all its candidate pixels (objects are
-    # rigid over a keyframe interval; single pixels with a wrong destination depth or a failed
-    # consistency check then neither fly off nor stay behind). Regions with fewer consistent
-    # pixels than ``object_min_px`` keep per-pixel motion.
     # Pixels without a rigid flow (a static world would carry them behind the other camera;
     # `rigid_flows`) are candidates whatever their residual: still seen at the other keyframe,
     # they move with the ego.
     behind_candidates: bool = True
-    object_motion: bool = False
-    object_min_px: int = 16
 
 
 def sky_mask(depth: Tensor, intrinsics: Tensor, ref_focal: float, config: LiftConfig) -> Tensor:
@@ -231,43 +224,10 @@ def lift_scene_flow(
         dynamic = valid & forward_backward_consistency_at(total[k], total[o], index, pixels)
         if check:
             dynamic &= total_flow_matches_better(smooth[k], smooth[o], total[k].detach(), rigid[k], index, pixels)
-        if config.object_motion:
-            sf, dynamic = move_regions_as_objects(moving, index, row, col, sf, dynamic, config.object_min_px)
         sf = torch.where(dynamic[:, None], sf, torch.zeros_like(sf))
         flows.append(total.new_zeros(num_views, height, width, 3).index_put((index, row, col), sf))
         masks.append(torch.zeros_like(moving).index_put((index, row, col), dynamic))
     return torch.stack(flows), torch.stack(masks)
-
-
-def move_regions_as_objects(
-    moving: Tensor,  # [V, H, W] bool: the candidate pixels
-    index: Tensor,  # [P] camera of each candidate
-    row: Tensor,  # [P]
-    col: Tensor,  # [P]
-    scene_flow: Tensor,  # [P, 3]
-    dynamic: Tensor,  # [P] bool: the candidates whose own flow passed every check
-    min_pixels: int,
-) -> tuple[Tensor, Tensor]:
-    """Scene flow ``[P, 3]`` and dynamic mask ``[P]`` where each 8-connected region of ``moving``
-    with at least ``min_pixels`` dynamic pixels moves by the median flow of those, all its pixels
-    included; other regions are returned unchanged."""
-    import cv2
-    import numpy as np
-
-    labels = np.zeros(moving.shape, np.int64)
-    offset = 0
-    for view, mask in enumerate(moving.cpu().numpy().astype(np.uint8)):
-        count, lab = cv2.connectedComponents(mask, connectivity=8)
-        labels[view] = np.where(lab > 0, lab + offset, 0)
-        offset += count
-    region = torch.from_numpy(labels).to(index.device)[index, row, col]  # [P], >= 1
-    counts = torch.bincount(region[dynamic], minlength=offset + 1)
-    scene_flow, dynamic = scene_flow.clone(), dynamic.clone()
-    for label in (counts >= max(min_pixels, 1)).nonzero().flatten().tolist():
-        members = region == label
-        scene_flow[members] = scene_flow[members & dynamic].median(dim=0).values
-        dynamic[members] = True
-    return scene_flow, dynamic
 
 
 def total_flow_matches_better(

@@ -288,46 +288,6 @@ def test_photometric_check_keeps_only_residuals_that_explain_the_images():
     assert checked.sum() < unchecked.sum() and not (checked & ~unchecked).any()
 
 
-def test_object_motion_moves_each_region_by_its_median_flow():
-    from drivingscene.models.pipeline import move_regions_as_objects
-
-    moving = torch.zeros(2, 10, 12, dtype=torch.bool)
-    moving[0, 1:5, 1:5] = True  # a 16-pixel object in camera 0
-    moving[0, 7:9, 8:10] = True  # a 4-pixel speck, apart from it
-    moving[1, 2:6, 2:6] = True  # camera 1: same pixels as an object there, separate region
-    index, row, col = moving.nonzero(as_tuple=True)
-    flow = torch.zeros(len(index), 3)
-    flow[index == 0] = torch.tensor([1.0, 0.0, 0.0])
-    flow[index == 1] = torch.tensor([0.0, 2.0, 0.0])
-    dynamic = torch.ones(len(index), dtype=torch.bool)
-    outlier = (index == 0) & (row == 1) & (col == 1)
-    flow[outlier] = torch.tensor([0.0, 0.0, 40.0])  # a wrong destination depth
-    failed = (index == 1) & (row == 2) & (col == 2)
-    dynamic[failed] = False  # failed the consistency check
-    speck = (index == 0) & (row >= 7)
-    flow[speck] = torch.tensor([5.0, 5.0, 5.0])
-    new_flow, new_dynamic = move_regions_as_objects(moving, index, row, col, flow, dynamic, min_pixels=10)
-    big = (index == 0) & ~speck
-    torch.testing.assert_close(new_flow[big], torch.tensor([[1.0, 0.0, 0.0]]).expand(int(big.sum()), 3))
-    torch.testing.assert_close(new_flow[index == 1], torch.tensor([[0.0, 2.0, 0.0]]).expand(16, 3))
-    assert new_dynamic[index == 1].all()  # the failed pixel moves with its object
-    # Too small a region keeps its per-pixel flow and mask.
-    assert torch.equal(new_flow[speck], flow[speck]) and torch.equal(new_dynamic[speck], dynamic[speck])
-
-    # In the lift it only adds moving pixels (whole regions), never removes one.
-    g = torch.Generator().manual_seed(4)
-    batch = pair_to_tensors(make_pair(num_views=3, height=20, width=28))
-    depth = 3.0 + 20.0 * torch.rand(2, 3, 20, 28, generator=g)
-    residual = torch.zeros(2, 3, 20, 28, 2)
-    residual[0, :, 4:14, 6:20] = torch.tensor([3.0, 0.5])
-    residual[1] = -residual[0].roll(3, dims=2)
-    total = torch.randn(2, 3, 20, 28, 2, generator=g) * 0.2 + residual
-    sky = torch.zeros(2, 3, 20, 28, dtype=torch.bool)
-    _, per_pixel = lift_scene_flow(depth, total, residual, sky, batch, LiftConfig())
-    _, objects = lift_scene_flow(depth, total, residual, sky, batch, LiftConfig(object_motion=True))
-    assert (objects >= per_pixel).all() and objects.sum() > per_pixel.sum()
-
-
 def test_pixels_without_rigid_flow_move_with_the_ego_when_consistent():
     """Behind the other camera the rigid flow is 0; a zero residual there means the surface kept its
     place in the image: it moved with the ego, and the lift moves its Gaussian by the ego motion."""
