@@ -35,6 +35,27 @@ def default_build_dir() -> Path:
     return Path.home() / ".cache" / "drivingscene" / "torch_extensions" / tag
 
 
+# A build takes ~15 s; a lock file older than this was left by a process killed mid-build, and torch
+# would wait for it forever.
+STALE_LOCK_S = 600.0
+
+
+def clear_stale_lock(build_dir: Path, max_age_s: float = STALE_LOCK_S) -> bool:
+    """Remove ``build_dir/lock`` if it is older than ``max_age_s``; True if it was removed."""
+    import time
+
+    lock = Path(build_dir) / "lock"
+    try:
+        age = time.time() - lock.stat().st_mtime
+    except FileNotFoundError:
+        return False
+    if age < max_age_s:
+        return False
+    log.warning("%s: removing a build lock left %.0f s ago by an interrupted build", lock, age)
+    lock.unlink(missing_ok=True)
+    return True
+
+
 def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> Callable | None:
     """Compile (or reuse) the extension and return its ``find_pairs`` op, or ``None`` on any failure."""
     build_dir = Path(build_dir) if build_dir is not None else default_build_dir()
@@ -45,6 +66,7 @@ def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> 
         if missing:
             raise FileNotFoundError(f"C++ source not installed: {', '.join(missing)}")
         build_dir.mkdir(parents=True, exist_ok=True)
+        clear_stale_lock(build_dir)
         cpp_extension.load(
             name=EXTENSION_NAME,
             sources=[str(s) for s in SOURCES],

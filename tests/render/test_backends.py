@@ -82,3 +82,19 @@ def test_gsplat_is_never_chosen_or_imported_on_cpu():
     rasterize(means, torch.tensor([[1.0, 0, 0, 0]]), torch.ones(1, 3), torch.ones(1) * 0.5, torch.ones(1, 3),
               torch.eye(4)[None], torch.eye(3)[None], 4, 4)  # fmt: skip
     assert imported_before or "gsplat" not in sys.modules
+
+
+def test_a_lock_left_by_a_killed_build_is_removed_and_a_live_one_kept(tmp_path, caplog):
+    import os
+    import time
+
+    from drivingscene.render.cpp import clear_stale_lock
+
+    assert not clear_stale_lock(tmp_path)  # no lock
+    lock = tmp_path / "lock"
+    lock.touch()
+    assert not clear_stale_lock(tmp_path) and lock.exists()  # another process is building now
+    old = time.time() - 3600
+    os.utime(lock, (old, old))
+    assert clear_stale_lock(tmp_path) and not lock.exists()
+    assert "interrupted build" in caplog.text
