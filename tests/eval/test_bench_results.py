@@ -64,19 +64,22 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
         "oracle (GT depth + scene flow)",
     ]
     methods += ["diagnostic: DrivingScene depth + GT flow", "diagnostic: oracle without scene flow"]
+    methods += ["diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"]
     for heading in ("all pixels", "dynamic pixels", "Depth at the keyframes", "end-point error", "ST-LPIPS"):
         assert heading in text
     assert all(m in text for m in methods)
     scores = json.loads(js.read_text())
     assert "Full model vs static-only on dynamic pixels" in text and "lowers the dynamic-pixel flow error" in text
     assert "AbsRel, moving objects" in text
-    assert len(scores) == 7 and all(len(rows) == 1 for rows in scores.values())
+    assert len(scores) == 8 and all(len(rows) == 1 for rows in scores.values())
     oracle = scores["oracle (GT depth + scene flow)"][0]
     assert oracle["depth_abs_rel"] < 1e-6 and oracle["psnr_dyn"] > scores["static-only (no residual flow)"][0]["psnr_dyn"]
     assert oracle["psnr_dyn"] > scores["diagnostic: oracle without scene flow"][0]["psnr_dyn"]
     with_gt = scores["diagnostic: DrivingScene depth + GT flow"][0]
     full = scores["DrivingScene (two-stage)"][0]
     assert with_gt["epe_dyn_total"] < 0.5 < full["epe_dyn_total"]  # the ground truth itself, up to bounding
+    quarter = scores["diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"][0]
+    assert 0.2 * full["epe_dyn_total"] < quarter["epe_dyn_total"] < 0.3 * full["epe_dyn_total"]
     image = cv2.imread(str(png))
     height, width = synth_pair.image_size
     assert image.shape[0] > 2 * height and 8 * width > image.shape[1] > 6 * width  # 2 rows; frame + 5 methods (no diagnostics)
