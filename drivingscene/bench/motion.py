@@ -25,22 +25,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
+def rigid_from_gt_depth(pair) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid flow ``[2, V, H, W, 2]`` of the ground-truth depth (sky: far away) and the mask
+    ``[2, V, H, W]`` of pixels without one (`rigid_flows_and_behind`)."""
+    import torch
+
+    from drivingscene.data.tensors import pair_to_tensors
+    from drivingscene.models.pipeline import rigid_flows_and_behind
+
+    depth = torch.from_numpy(np.where(pair.gt_depth > 0, pair.gt_depth, 1e4)).float()
+    rigid, behind = rigid_flows_and_behind(depth, pair_to_tensors(pair, with_gt=False, with_eval=False))
+    return rigid.numpy(), behind.numpy()
+
+
 def moving_pixel_motion(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Magnitudes ``[P]`` (pixels) of the flow, its non-rigid part and its part off the rigid
     direction, the camera ``[P]`` and whether the pixel has no rigid flow ``[P]`` (a static world
     would carry it behind the other camera), for the moving pixels of keyframe 0 whose
     ground-truth flow lands inside the other image."""
-    import torch
-
-    from drivingscene.data.tensors import pair_to_tensors
     from drivingscene.errors import InputError
-    from drivingscene.models.pipeline import rigid_flows_and_behind
 
     if pair.gt_flow is None or pair.gt_depth is None or pair.gt_dynamic is None:
         raise InputError("bench motion: expected pairs with gt_flow, gt_depth and gt_dynamic (drivingscene synth)")
-    depth = torch.from_numpy(np.nan_to_num(pair.gt_depth, nan=0.0)).float().clamp(min=1e-3)
-    rigid, behind = rigid_flows_and_behind(depth, pair_to_tensors(pair))
-    rigid, behind = rigid[0].numpy(), behind[0].numpy()
+    rigid, behind = (x[0] for x in rigid_from_gt_depth(pair))
     flow = pair.gt_flow[0]
     num_views, height, width = flow.shape[:3]
     grid = np.stack(np.meshgrid(np.arange(width), np.arange(height)), -1)

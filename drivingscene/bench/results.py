@@ -261,6 +261,7 @@ def figure(recons: dict, pair, path: Path) -> Path:
     predicted depth at keyframe 0, and the ground-truth, rigid and total flow 0 -> 1 (one colour scale)."""
     import numpy as np
 
+    from drivingscene.bench.motion import rigid_from_gt_depth
     from drivingscene.render.scene import render_eval_frames
     from drivingscene.viz import contact_sheet, depth_to_rgb, flow_to_rgb, save_png
 
@@ -283,7 +284,7 @@ def figure(recons: dict, pair, path: Path) -> Path:
     if pair.gt_flow is not None:
         # The part of the motion that ego motion does not explain: ground truth (flow minus the
         # rigid flow of the true depth) against R's residual, on one scale set by the moving pixels.
-        non_rigid = pair.gt_flow[0, v] - _rigid_from_gt_depth(pair)[0, v]
+        non_rigid = pair.gt_flow[0, v] - rigid_from_gt_depth(pair)[0][0, v]
         moving = np.linalg.norm(non_rigid, axis=-1)[pair.gt_dynamic[0, v]] if pair.gt_dynamic is not None else []
         rim = float(np.percentile(moving, 95)) if len(moving) else None
         height, width = gt_depth.shape
@@ -292,18 +293,6 @@ def figure(recons: dict, pair, path: Path) -> Path:
         second += [flow_to_rgb(np.where(seen[..., None], non_rigid, 0), rim), flow_to_rgb(model.residual_flow[0, v], rim)]
         second_names += ["non-rigid flow 0->1: ground truth", "residual flow: DrivingScene"]
     return save_png(path, contact_sheet([row, second], [names, second_names]))
-
-
-def _rigid_from_gt_depth(pair):
-    """Rigid flow ``[2, V, H, W, 2]`` of the ground-truth depth (sky: far away)."""
-    import numpy as np
-    import torch
-
-    from drivingscene.data.tensors import pair_to_tensors
-    from drivingscene.models.pipeline import rigid_flows
-
-    depth = torch.from_numpy(np.where(pair.gt_depth > 0, pair.gt_depth, 1e4)).float()
-    return rigid_flows(depth, pair_to_tensors(pair, with_gt=False, with_eval=False)).numpy()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -48,15 +48,20 @@ class FlowConfig:
     hypotheses: tuple[float, ...] = (1.0,)
     # The coarsest level also predicts a per-pixel scale of the rigid flow (module docstring).
     scale_flow: bool = False
+    hidden: int = 32
+    decoder_yaws_deg: tuple[float, ...] = (0.0, -55.0, -110.0, 180.0, 110.0, 55.0)
+    flow_norm: float = 0.05  # flows enter the network divided by flow_norm * W
 
     @property
     def own_source(self) -> bool:
         """R encodes the source image itself (not the rigidly warped one)."""
         return tuple(self.hypotheses) != (1.0,)
 
-    hidden: int = 32
-    decoder_yaws_deg: tuple[float, ...] = (0.0, -55.0, -110.0, 180.0, 110.0, 55.0)
-    flow_norm: float = 0.05  # flows enter the network divided by flow_norm * W
+    @property
+    def level_radii(self) -> list[int]:
+        """Cost-volume search radius per pyramid level, finest first."""
+        coarse = self.radius if self.coarse_radius is None else self.coarse_radius
+        return [self.radius] * (len(self.channels) - 1) + [coarse]
 
 
 def decoder_slots(cam_to_ego: Tensor, yaws_deg: tuple[float, ...]) -> Tensor:
@@ -130,14 +135,12 @@ class CameraDecoder(nn.Module):
 
     def __init__(self, config: FlowConfig):
         super().__init__()
-        self.config = config
         n = len(config.channels)
-        coarse = config.radius if config.coarse_radius is None else config.coarse_radius
-        self.radii = [config.radius] * (n - 1) + [coarse]
+        radii = config.level_radii
         volumes = [1] * (n - 1) + [len(config.hypotheses)]
         outputs = [2] * (n - 1) + [3 if config.scale_flow else 2]
         self.levels = nn.ModuleList(
-            LevelDecoder(config.channels[i], volumes[i] * (2 * self.radii[i] + 1) ** 2, config.hidden, i < n - 1, outputs[i])
+            LevelDecoder(config.channels[i], volumes[i] * (2 * radii[i] + 1) ** 2, config.hidden, i < n - 1, outputs[i])
             for i in range(n)
         )
 
@@ -183,7 +186,7 @@ class ResidualFlowNet(nn.Module):
         config = self.config
         height, width = size
         norm = config.flow_norm * width
-        radii = self.decoders[0].radii
+        radii = config.level_radii
         flow = hidden = None
         flows = []
         for i in range(len(tgt_feats) - 1, -1, -1):

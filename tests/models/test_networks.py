@@ -84,7 +84,7 @@ def test_cost_volume_peaks_at_the_true_shift():
 
 def test_coarse_radius_widens_only_the_coarsest_cost_volume():
     wide = CameraDecoder(FlowConfig(radius=3, coarse_radius=6))
-    assert wide.radii == [3, 3, 3, 6]
+    assert FlowConfig(radius=3, coarse_radius=6).level_radii == [3, 3, 3, 6]
     assert [lvl.body[0].in_channels for lvl in wide.levels] == [
         lvl.body[0].in_channels + (13**2 - 7**2) * (i == 3) for i, lvl in enumerate(CameraDecoder(FlowConfig()).levels)
     ]
@@ -130,7 +130,7 @@ def test_configs_saved_before_the_search_options_load_the_same_network():
     for key in ("coarse_radius", "hypotheses", "scale_flow"):
         del old["flow"][key]
     config = ModelConfig.from_dict(old)  # weights trained before the fields existed
-    assert CameraDecoder(config.flow).radii == [config.flow.radius] * len(config.flow.channels)
+    assert config.flow.level_radii == [config.flow.radius] * len(config.flow.channels)
     assert config.flow.hypotheses == (1.0,) and not config.flow.scale_flow and not config.flow.own_source
 
 
