@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 from drivingscene.cli.common import check_output, positive_int
@@ -15,6 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON")
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: assets/weights/drivingscene.safetensors)")
     p.add_argument("--static-only", action="store_true", help="no residual flow (every Gaussian static)")
+    p.add_argument(
+        "--no-search", action="store_true", help="R's flow as it is, without the search along the rigid flow (ablation)"
+    )
     p.add_argument("--threads", type=positive_int, default=None)
     p.add_argument("--no-amp", action="store_true", help="float32 networks (default: bf16 autocast on CPU)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
@@ -93,6 +97,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     pair = load_frame_pair(args.scene)
     model = load_model(args.weights, device=device)
     options = InferenceOptions(use_residual=not args.static_only, amp=not args.no_amp, threads=args.threads)
+    if args.no_search:
+        options = replace(options, search=None)
     recon = reconstruct(model, pair, options)
     _report(recon, save_reconstruction(recon, args.out))
     return 0

@@ -3,8 +3,9 @@
     reconstruct(model, pair)  ->  Reconstruction with the dynamic Gaussians of both keyframes and the
                                   per-camera depth, rigid flow and residual flow.
 
-Variants for the ablations: ``use_residual=False`` (static-only: rigid flow, every Gaussian static)
-and a model trained in one stage (it is the same code with other weights).
+Variants for the ablations: ``use_residual=False`` (static-only: rigid flow, every Gaussian static),
+``search=None`` (R's flow as it is, without the search along the rigid flow) and a model trained in
+one stage (it is the same code with other weights).
 """
 
 from __future__ import annotations
@@ -24,7 +25,16 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.methods.oracle import fit_sky_from_pixels
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
-from drivingscene.models.pipeline import LiftConfig, assemble, lift_scene_flow, predict_flow, predict_static, sky_mask
+from drivingscene.models.pipeline import (
+    LiftConfig,
+    MotionSearchConfig,
+    assemble,
+    lift_scene_flow,
+    predict_flow,
+    predict_static,
+    search_motion,
+    sky_mask,
+)
 from drivingscene.resources import asset_path
 
 DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
@@ -34,6 +44,8 @@ DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
 class InferenceOptions:
     use_residual: bool = True  # False: static-only ablation (rigid flow, no dynamic Gaussians)
     lift: LiftConfig = LiftConfig()
+    # R's flow refined by a photometric search along the rigid flow (models/pipeline.py); None: R alone
+    search: MotionSearchConfig | None = MotionSearchConfig()
     amp: bool = True  # bf16 autocast for D and P on CPU (R runs in float32: faster there, see training-notes)
     threads: int | None = None
 
@@ -85,7 +97,8 @@ def reconstruct(
 ) -> Reconstruction:
     """Dynamic Gaussians of both keyframes (world frame) and per-camera maps, with timings in ``meta``.
 
-    ``flow_predictor(model, batch, depth) -> FlowPrediction`` replaces R (diagnostics: ground-truth flow)."""
+    ``flow_predictor(model, batch, depth) -> FlowPrediction`` replaces R and the search
+    (diagnostics: ground-truth flow)."""
     if options.threads:
         torch.set_num_threads(options.threads)
     device = next(model.parameters()).device
@@ -101,6 +114,8 @@ def reconstruct(
     sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
     t0 = time.perf_counter()
     flow = (flow_predictor or predict_flow)(model, batch, depth) if options.use_residual else None
+    if flow is not None and flow_predictor is None and options.search is not None:
+        flow = search_motion(flow, batch, options.search, model.config.input_size)
     rigid = flow.rigid if flow is not None else None
     scene_flow = None
     if flow is not None:

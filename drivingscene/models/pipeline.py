@@ -4,6 +4,8 @@
     rigid_{0->1}   = project(T_{1<-0} unproject(depth_0))     (ego motion and extrinsics known)
     residual_{0->1}= R(warp(I_1, rigid_{0->1}), I_0, rigid_{0->1})   and symmetrically 1 -> 0
     total          = rigid + residual
+    total          = search(total, s * rigid for s in a grid)   at inference, per pixel the hypothesis
+                     that matches the other keyframe best (optional, `MotionSearchConfig`)
     scene flow     = lift(total, depth_0, depth_1)  where forward/backward-consistent and the
                      residual is above a threshold; elsewhere the Gaussian is static (zero flow)
 
@@ -12,7 +14,7 @@ Everything runs in the local frame of ``PairTensors`` (ego at keyframe 0).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -23,6 +25,7 @@ from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency_at, inside_image, rigid_flow, sample_bilinear
+from drivingscene.geometry.flow_search import flow_from_choice, luma, search_along_rigid
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels
 from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
@@ -49,6 +52,46 @@ class LiftConfig:
     behind_candidates: bool = True
 
 
+@dataclass(frozen=True)
+class MotionSearchConfig:
+    """The search along the rigid flow that refines R's flow at inference (`search_motion`).
+
+    Each pixel keeps, among ``s * rigid`` for s from ``scale_min`` to ``scale_max`` in steps of
+    ``scale_step`` and R's total flow, the flow along which the other keyframe matches it best
+    (geometry/flow_search.py). With the ego at 8 m/s, s = -0.5 is a car pulling away at 1.5 times
+    its speed and s = 3 an oncoming one at twice it. Chosen on validation pairs (`data/val176`,
+    never the test pairs); docs/results-notes.md gives the figures.
+    """
+
+    scale_min: float = -0.5
+    scale_max: float = 3.0
+    scale_step: float = 0.1
+    # Odd box window (pixels at the networks' input size) over which the photometric cost is averaged.
+    window: int = 7
+    # Subtracted from the cost (mean absolute luma difference in [0, 1]) of R's flow, so that near
+    # ties go to R, and of s = 1, so that a pixel leaves the static world only when another
+    # hypothesis matches clearly better.
+    network_bonus: float = 0.002
+    static_bonus: float = 0.01
+    # False: search among the scaled rigid flows only (diagnostic: the search without R).
+    use_network: bool = True
+
+    def __post_init__(self):
+        if not (self.scale_step > 0 and self.scale_min <= 1.0 <= self.scale_max):
+            raise ValueError(
+                "MotionSearchConfig: expected scale_step > 0 and scale_min <= 1 <= scale_max, found "
+                f"{self.scale_step}, {self.scale_min}, {self.scale_max}"
+            )
+        if self.window < 1 or self.window % 2 == 0:
+            raise ValueError(f"MotionSearchConfig.window: expected an odd number >= 1, found {self.window}")
+
+    def scales(self) -> Tensor:
+        """The grid of s, with 1 on it exactly (the static hypothesis)."""
+        below = torch.arange(round((1.0 - self.scale_min) / self.scale_step), 0, -1, dtype=torch.float64)
+        above = torch.arange(0, round((self.scale_max - 1.0) / self.scale_step) + 1, dtype=torch.float64)
+        return (1.0 + torch.cat([-below, above]) * self.scale_step).float()
+
+
 def sky_mask(depth: Tensor, intrinsics: Tensor, ref_focal: float, config: LiftConfig) -> Tensor:
     """``[..., V, H, W]`` bool: pixels treated as sky, for depth ``[..., V, H, W]``."""
     focal = intrinsics[:, 0, 0] / depth.shape[-1]
@@ -69,14 +112,16 @@ class FlowPrediction:
     residuals: list[Tensor]  # per pyramid level, [2, V, H, W, 2], finest last
     warped_sources: Tensor  # [2, V, 3, H, W] the other keyframe warped by the rigid flow
     behind: Tensor | None = None  # [2, V, H, W] bool: no rigid flow there (`rigid_flows`)
+    searched: Tensor | None = None  # [2, V, H, W, 2] total flow chosen by `search_motion`, if it ran
 
     @property
     def residual(self) -> Tensor:
-        return self.residuals[-1]
+        """The non-rigid part of `total`: R's finest residual, or the searched flow's."""
+        return self.residuals[-1] if self.searched is None else self.searched - self.rigid
 
     @property
     def total(self) -> Tensor:
-        return self.rigid + self.residual
+        return self.searched if self.searched is not None else self.rigid + self.residuals[-1]
 
 
 def _resize(x: Tensor, size: tuple[int, int], mode: str) -> Tensor:
@@ -182,6 +227,33 @@ def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) ->
     residuals = [r.float().permute(0, 2, 3, 1).unflatten(0, (2, batch.num_views)) for r in residuals]
     warped = warped.unflatten(0, (2, batch.num_views))
     return FlowPrediction(rigid=rigid, residuals=residuals, warped_sources=warped, behind=behind)
+
+
+def search_motion(
+    flow: FlowPrediction, batch: PairTensors, config: MotionSearchConfig, net_size: tuple[int, int] | None = None
+) -> FlowPrediction:
+    """``flow`` with ``searched`` set: per pixel, R's total flow or a multiple of the rigid flow,
+    whichever the other keyframe matches best (`MotionSearchConfig`). The search runs on luma at
+    ``net_size`` (R's input size; default the images') and its choice is applied at full size."""
+    size = tuple(batch.image_size)
+    net_size = tuple(net_size or size)
+    images = luma(batch.images.flatten(0, 1))  # [2V, 1, H, W], keyframe-major
+    others = luma(batch.images.flip(0).flatten(0, 1))
+    rigid, total = flow.rigid.flatten(0, 1), flow.total.flatten(0, 1)
+    rigid_net, total_net = rigid, total
+    if net_size != size:
+        images, others = _resize(images, net_size, "area"), _resize(others, net_size, "area")
+        to_net = rigid.new_tensor([net_size[1] / size[1], net_size[0] / size[0]])
+        rigid_net, total_net = (_resize(f.permute(0, 3, 1, 2), net_size, "bilinear").permute(0, 2, 3, 1) * to_net for f in (rigid, total))
+    scales = config.scales()
+    proposal = total_net if config.use_network else None
+    choice = search_along_rigid(
+        images, others, rigid_net, scales, config.window, proposal, config.network_bonus, config.static_bonus
+    )
+    if net_size != size:
+        choice = F.interpolate(choice[:, None].float(), size=size, mode="nearest")[:, 0].long()
+    searched = flow_from_choice(choice, scales, rigid, total if config.use_network else None)
+    return replace(flow, searched=searched.unflatten(0, (2, batch.num_views)))
 
 
 def lift_scene_flow(

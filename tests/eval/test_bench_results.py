@@ -65,13 +65,15 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     ]
     methods += ["diagnostic: DrivingScene depth + GT flow", "diagnostic: oracle without scene flow"]
     methods += ["diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"]
+    methods += ["DrivingScene, R alone (no search)", "diagnostic: the search without R"]
     for heading in ("all pixels", "dynamic pixels", "Depth at the keyframes", "end-point error", "ST-LPIPS"):
         assert heading in text
     assert all(m in text for m in methods)
     scores = json.loads(js.read_text())
     assert "Full model vs static-only on dynamic pixels" in text and "lowers the dynamic-pixel flow error" in text
     assert "AbsRel, moving objects" in text
-    assert len(scores) == 8 and all(len(rows) == 1 for rows in scores.values())
+    assert "R alone (no search) vs static-only on dynamic pixels" in text and "R's residual alone lowers" in text
+    assert len(scores) == 10 and all(len(rows) == 1 for rows in scores.values())
     oracle = scores["oracle (GT depth + scene flow)"][0]
     assert oracle["depth_abs_rel"] < 1e-6 and oracle["psnr_dyn"] > scores["static-only (no residual flow)"][0]["psnr_dyn"]
     assert oracle["psnr_dyn"] > scores["diagnostic: oracle without scene flow"][0]["psnr_dyn"]
@@ -82,11 +84,11 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     assert 0.2 * full["epe_dyn_total"] < quarter["epe_dyn_total"] < 0.3 * full["epe_dyn_total"]
     image = cv2.imread(str(png))
     height, width = synth_pair.image_size
-    assert image.shape[0] > 2 * height and 8 * width > image.shape[1] > 6 * width  # 2 rows; frame + 5 methods (no diagnostics)
+    assert image.shape[0] > 2 * height and 9 * width > image.shape[1] > 7 * width  # 2 rows; frame + 6 methods (no diagnostics)
 
 
 def test_checks_compare_pair_by_pair_with_a_sign_test():
-    from drivingscene.bench.results import FULL, STATIC, checks, sign_test
+    from drivingscene.bench.results import FULL, R_ALONE, STATIC, checks, sign_test
 
     assert sign_test(6, 6) == 1 / 64 and sign_test(0, 6) == 1.0 and sign_test(10, 20) > 0.5
     full = [{"psnr_dyn": 20.0, "epe_dyn_rigid": 10.0, "epe_dyn_total": 8.0}] * 6
@@ -100,6 +102,10 @@ def test_checks_compare_pair_by_pair_with_a_sign_test():
     lines = checks({FULL: mixed, STATIC: [{"psnr_dyn": 19.0}] * 4})
     assert "**not shown**" in lines[0] and "higher in 1 of 4 pairs" in lines[0]
     assert "**does NOT hold**" in lines[1]
+    # With R alone scored too, both claims are also stated for it, after the full model's.
+    lines = checks({FULL: full, STATIC: [{"psnr_dyn": 19.0}] * 6, R_ALONE: mixed[1:] * 2})
+    assert len(lines) == 4 and lines[1].startswith("- R alone (no search) vs static-only") and "higher in 0 of 6" in lines[1]
+    assert lines[3].startswith("- R's residual alone lowers") and "**does NOT hold**" in lines[3]
 
 
 def test_extra_needs_name_and_weights(tmp_path, capsys):

@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.gaussians.assembly import surfel_frames
@@ -308,3 +309,28 @@ def test_pixels_without_rigid_flow_move_with_the_ego_when_consistent():
     torch.testing.assert_close(flows[0, 0, 4, 5].double(), moved, atol=1e-4, rtol=1e-4)
     _, off = lift_scene_flow(depth, total, total, sky, batch, LiftConfig(behind_candidates=False), behind=behind)
     assert not off.any()
+
+
+def test_search_keeps_the_flow_that_explains_the_images_at_full_size():
+    """Both keyframes show the same image although the rigid flow says 3 px: the content kept pace
+    with the ego, and the search (run at half size, applied at full size) finds the zero flow."""
+    from drivingscene.models.pipeline import FlowPrediction, MotionSearchConfig, search_motion
+
+    batch = pair_to_tensors(make_pair(num_views=2, height=24, width=32))
+    g = torch.Generator().manual_seed(3)
+    texture = F.avg_pool2d(torch.rand(2, 3, 24, 32, generator=g), 3, stride=1, padding=1)
+    batch = replace(batch, images=torch.stack([texture, texture]))
+    rigid = torch.zeros(2, 2, 24, 32, 2)
+    rigid[..., 0] = 3.0
+    flow = FlowPrediction(rigid=rigid, residuals=[torch.zeros_like(rigid)], warped_sources=torch.zeros(2, 2, 3, 24, 32))
+    searched = search_motion(flow, batch, MotionSearchConfig(), net_size=(12, 16))
+    assert searched.searched.shape == rigid.shape and flow.searched is None
+    assert searched.total[..., 4:-4, 4:-4, :].abs().max() < 0.05  # s = 0: no motion in the image
+    torch.testing.assert_close(searched.residual, searched.total - rigid)
+    # Without R's proposal (diagnostic) the choice is among multiples of the rigid flow only.
+    alone = search_motion(flow, batch, MotionSearchConfig(use_network=False), net_size=(12, 16)).total
+    ratios = alone[..., 0] / 3.0
+    grid = MotionSearchConfig().scales()
+    assert (ratios[..., None] - grid).abs().amin(-1).max() < 1e-5
+    with pytest.raises(ValueError, match="window"):
+        MotionSearchConfig(window=2)

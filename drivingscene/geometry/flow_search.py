@@ -1,0 +1,78 @@
+"""Photometric search for the flow of moving things along the rigid flow (winner takes all).
+
+Where the world is static, a pixel's flow is the rigid flow ``r(p)`` (its depth and the ego
+motion). A vehicle driving along the ego's direction of travel (most moving pixels,
+docs/motion.md) has, to first order, the flow of a static point seen with the ego translation
+scaled: ``s * r(p)``, with ``s = 1`` static, ``s = 0`` keeping pace with the ego, ``s < 0`` pulling
+away, ``s > 1`` coming closer; an error of the depth scales the rigid flow the same way. The
+search tries each ``s`` of a grid and one proposal flow (the network's, for motion in any other
+direction), samples the other keyframe along each hypothesis, and keeps, per pixel, the one whose
+absolute luma difference to the pixel's own image, averaged over a window, is lowest.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from drivingscene.geometry.flow import backward_warp
+
+_LUMA = (0.299, 0.587, 0.114)
+_OUTSIDE_COST = 1.0  # a sample outside the other image costs as much as the largest luma difference
+
+
+def luma(images: Tensor) -> Tensor:
+    """``[B, 1, H, W]`` luma of ``[B, 3, H, W]`` RGB in [0, 1]."""
+    weights = images.new_tensor(_LUMA).view(1, 3, 1, 1)
+    return (images * weights).sum(1, keepdim=True)
+
+
+def search_along_rigid(
+    image: Tensor,  # [B, C, H, W] the pixels' own image
+    other: Tensor,  # [B, C, H, W] the other keyframe, sampled at p + flow
+    rigid: Tensor,  # [B, H, W, 2] pixels
+    scales: Tensor,  # [S] multiples of the rigid flow to try
+    window: int,  # odd: box window (pixels) over which the cost is averaged
+    proposal: Tensor | None = None,  # [B, H, W, 2] one more hypothesis, tried as is
+    proposal_bonus: float = 0.0,  # subtracted from the proposal's cost: near ties go to it
+    static_bonus: float = 0.0,  # subtracted from the cost of s = 1 (a static world; needs 1 in ``scales``)
+) -> Tensor:
+    """Index ``[B, H, W]`` (long) of the winning hypothesis per pixel: ``i < S`` is
+    ``scales[i] * rigid``, ``S`` the proposal. Hypotheses are tried one after the other, so memory
+    stays that of one warp whatever ``S``; ties keep the earlier one."""
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window: expected an odd number of pixels >= 1, found {window}")
+    static = int((scales - 1.0).abs().argmin()) if len(scales) else -1
+    if static_bonus and (static < 0 or abs(float(scales[static]) - 1.0) > 1e-6):
+        raise ValueError("static_bonus: expected scales to contain 1 (the static hypothesis)")
+    hypotheses = [(i, rigid * s) for i, s in enumerate(scales.tolist())]
+    if proposal is not None:
+        hypotheses.append((len(hypotheses), proposal))
+    best_cost = best = None
+    for i, flow in hypotheses:
+        warped, inside = backward_warp(other, flow)
+        cost = (warped - image).abs().mean(1)
+        cost = torch.where(inside, cost, torch.full_like(cost, _OUTSIDE_COST))
+        cost = F.avg_pool2d(cost[:, None], window, stride=1, padding=window // 2, count_include_pad=False)[:, 0]
+        if i == len(scales):
+            cost = cost - proposal_bonus
+        elif i == static:
+            cost = cost - static_bonus
+        if best is None:
+            best_cost, best = cost, torch.zeros_like(cost, dtype=torch.long)
+        else:
+            better = cost < best_cost
+            best_cost = torch.where(better, cost, best_cost)
+            best = torch.where(better, torch.full_like(best, i), best)
+    return best
+
+
+def flow_from_choice(choice: Tensor, scales: Tensor, rigid: Tensor, proposal: Tensor | None = None) -> Tensor:
+    """The flow ``[B, H, W, 2]`` that ``choice`` ``[B, H, W]`` (from `search_along_rigid`, possibly
+    resized with nearest sampling) names, built from ``rigid`` and ``proposal`` of any size matching it."""
+    factor = torch.cat([scales.to(rigid), rigid.new_zeros(1)])[choice]
+    flow = rigid * factor[..., None]
+    if proposal is not None:
+        flow = torch.where((choice == len(scales))[..., None], proposal, flow)
+    return flow

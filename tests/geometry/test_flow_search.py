@@ -1,0 +1,91 @@
+"""The search along the rigid flow: finds the scale a region moved by, lets the proposal win where
+it explains the images, breaks ties towards the proposal, and composes the flow it names."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from drivingscene.geometry.flow_search import flow_from_choice, search_along_rigid
+
+SCALES = torch.tensor([-0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5])
+
+
+def _texture(height: int, width: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return F.avg_pool2d(torch.rand(1, 1, height, width, generator=g), 3, stride=1, padding=1)
+
+
+def test_each_region_gets_the_scale_of_the_rigid_flow_it_moved_by():
+    image = _texture(40, 64)
+    # Left half: the content moved by half the rigid flow (3 px; e.g. a car keeping half the
+    # ego's pace); right half: by all of it (6 px, static). other(p + s * rigid) == image(p).
+    other = image.roll(3, dims=-1)
+    other[..., 32:] = image.roll(6, dims=-1)[..., 32:]
+    rigid = torch.zeros(1, 40, 64, 2)
+    rigid[..., 0] = 6.0
+    choice = search_along_rigid(image, other, rigid, SCALES, window=5)
+    half, full = int((SCALES == 0.5).nonzero()), int((SCALES == 1.0).nonzero())
+    assert (choice[0, 4:-4, 4:24] == half).all()
+    assert (choice[0, 4:-4, 36:54] == full).all()
+    flow = flow_from_choice(choice, SCALES, rigid)
+    assert torch.equal(flow[0, 10, 10], torch.tensor([3.0, 0.0]))
+    assert torch.equal(flow[0, 10, 40], torch.tensor([6.0, 0.0]))
+
+
+def test_the_proposal_wins_where_only_it_explains_the_images_and_on_ties():
+    image = _texture(32, 48, seed=1)
+    other = image.roll(2, dims=-2)  # moved 2 px down: not along the (horizontal) rigid flow
+    rigid = torch.zeros(1, 32, 48, 2)
+    rigid[..., 0] = 5.0
+    proposal = torch.zeros(1, 32, 48, 2)
+    proposal[..., 1] = 2.0
+    choice = search_along_rigid(image, other, rigid, SCALES, 5, proposal)
+    assert (choice[0, 4:-4, 4:-8] == len(SCALES)).all()
+    torch.testing.assert_close(flow_from_choice(choice, SCALES, rigid, proposal)[0, 10, 10], torch.tensor([0.0, 2.0]))
+    # Without texture every hypothesis matches: the bonus hands the tie to the proposal, and
+    # without it the first hypothesis keeps it.
+    flat = torch.full((1, 1, 16, 16), 0.5)
+    rigid = torch.ones(1, 16, 16, 2)
+    assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, proposal_bonus=1e-3) == len(SCALES)).all()
+    assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3) == 0).all()
+
+
+def test_hypotheses_that_leave_the_image_lose():
+    image = _texture(24, 32, seed=2)
+    rigid = torch.zeros(1, 24, 32, 2)
+    rigid[..., 0] = 200.0  # every non-zero multiple lands outside a 32 px wide image
+    choice = search_along_rigid(image, image.flip(-1), rigid, SCALES, 3)
+    assert (choice == int((SCALES == 0).nonzero())).all()
+
+
+def test_a_choice_made_small_applies_to_the_full_size_flow():
+    choice = torch.tensor([[[0, 9], [6, 4]]])
+    rigid = torch.ones(1, 4, 4, 2)
+    proposal = torch.full((1, 4, 4, 2), 7.0)
+    big = F.interpolate(choice[:, None].float(), size=(4, 4), mode="nearest")[:, 0].long()
+    flow = flow_from_choice(big, SCALES, rigid, proposal)
+    assert flow[0, 0, 0, 0] == -0.5 and flow[0, 0, 3, 0] == 7.0 and flow[0, 3, 0, 0] == 1.0 and flow[0, 3, 3, 0] == 0.5
+
+
+@pytest.mark.parametrize("window", [0, 4, -3])
+def test_window_must_be_odd_and_positive(window):
+    with pytest.raises(ValueError, match="window"):
+        search_along_rigid(torch.zeros(1, 1, 8, 8), torch.zeros(1, 1, 8, 8), torch.zeros(1, 8, 8, 2), SCALES, window)
+
+
+def test_static_bonus_keeps_the_static_world_on_ties_and_needs_s_equal_1():
+    flat = torch.full((1, 1, 16, 16), 0.5)
+    rigid = torch.ones(1, 16, 16, 2)
+    static = int((SCALES == 1.0).nonzero())
+    choice = search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, 1e-3, static_bonus=2e-3)
+    assert (choice[0, :-3, :-3] == static).all()  # (near the far edges s = 1 leaves the image)
+    # A clear match elsewhere still wins over the bonus.
+    image = _texture(24, 32, seed=4)
+    rigid = torch.zeros(1, 24, 32, 2)
+    rigid[..., 0] = 4.0
+    choice = search_along_rigid(image, image, rigid, SCALES, 5, static_bonus=5e-3)
+    assert (choice[0, 3:-3, 3:-6] == int((SCALES == 0).nonzero())).all()
+    with pytest.raises(ValueError, match="contain 1"):
+        search_along_rigid(flat, flat, rigid[:, :16, :16], torch.tensor([0.0, 0.5]), 3, static_bonus=1e-3)
