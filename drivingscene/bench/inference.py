@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from drivingscene.bench.machine import current_rss_bytes, machine_description, peak_rss_bytes
@@ -19,6 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-amp", action="store_true")
+    p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
 
@@ -32,11 +34,13 @@ def _pair(size: str):
     return generate_pair(SynthConfig(height=height, width=width), 200000)
 
 
-def measure(model, size: str, runs: int, amp: bool, threads: int) -> dict:
+def measure(model, size: str, runs: int, amp: bool, threads: int, search: bool = True) -> dict:
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
 
     pair = _pair(size)
     options = InferenceOptions(amp=amp, threads=threads)
+    if not search:
+        options = replace(options, search=None)
     base = current_rss_bytes()
     reconstruct(model, pair, options)  # warm-up
     totals, parts = [], []
@@ -45,7 +49,8 @@ def measure(model, size: str, runs: int, amp: bool, threads: int) -> dict:
         recon = reconstruct(model, pair, options)
         totals.append(time.perf_counter() - tic)
         parts.append(recon.meta["timings"])
-    part = {k: statistics.median(p[k] for p in parts) for k in parts[0]}
+    part = {k: statistics.median(p.get(k, 0.0) for p in parts) for k in parts[0]}
+    part.setdefault("search_s", 0.0)
     return dict(
         size=size,
         median=statistics.median(totals),
@@ -70,18 +75,20 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     torch.set_num_threads(args.threads)
     model = load_model(args.weights, device=device)
-    rows = [measure(model, size, args.runs, not args.no_amp, args.threads) for size in args.sizes]
+    rows = [measure(model, size, args.runs, not args.no_amp, args.threads, not args.no_search) for size in args.sizes]
     lines = [
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}"
-        f"{'' if device.type == 'cpu' else ' --device ' + args.device}` on {machine_description()}"
+        f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}`"
+        f" on {machine_description()}"
         f"{_gpu_name(device)}; bf16 autocast {'off' if args.no_amp else 'on'}; median of {args.runs} runs after a warm-up.",
         "",
-        "| size (H×W) | total s (median) | best s | networks D+P s | flow (rigid + R + lift) s | assembly + sky s | Gaussians | peak RSS increase |",
-        "|---|---|---|---|---|---|---|---|",
+        "| size (H×W) | total s (median) | best s | networks D+P s | flow (rigid + R + search + lift) s | of which search s "
+        "| assembly + sky s | Gaussians | peak RSS increase |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['size']} | {r['median']:.3f} | {r['best']:.3f} | {r['static_s']:.3f} | {r['flow_s']:.3f} | "
+            f"| {r['size']} | {r['median']:.3f} | {r['best']:.3f} | {r['static_s']:.3f} | {r['flow_s']:.3f} | {r['search_s']:.3f} | "
             f"{r['assembly_s']:.3f} | {r['gaussians'] / 1e3:.0f}k | {r['peak_mib']:.0f} MiB |"
         )
     text = "\n".join(lines) + "\n"

@@ -29,6 +29,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.motion",
         "how moving objects move in a set of pairs: flow and its non-rigid part per camera (ground truth only)",
     ),
+    "search": (
+        "drivingscene.bench.search",
+        "choose the search along the rigid flow on validation pairs: PSNR change over static-only per setting",
+    ),
     "results": (
         "drivingscene.bench.results",
         "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)",

@@ -115,7 +115,10 @@ def reconstruct(
     t0 = time.perf_counter()
     flow = (flow_predictor or predict_flow)(model, batch, depth) if options.use_residual else None
     if flow is not None and flow_predictor is None and options.search is not None:
+        t1 = time.perf_counter()
         flow = search_motion(flow, batch, options.search, model.config.input_size)
+        _sync(device)
+        timings["search_s"] = time.perf_counter() - t1
     rigid = flow.rigid if flow is not None else None
     scene_flow = None
     if flow is not None:

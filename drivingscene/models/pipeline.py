@@ -244,7 +244,9 @@ def search_motion(
     if net_size != size:
         images, others = _resize(images, net_size, "area"), _resize(others, net_size, "area")
         to_net = rigid.new_tensor([net_size[1] / size[1], net_size[0] / size[0]])
-        rigid_net, total_net = (_resize(f.permute(0, 3, 1, 2), net_size, "bilinear").permute(0, 2, 3, 1) * to_net for f in (rigid, total))
+        rigid_net, total_net = (
+            _resize(f.permute(0, 3, 1, 2), net_size, "bilinear").permute(0, 2, 3, 1) * to_net for f in (rigid, total)
+        )
     scales = config.scales()
     proposal = total_net if config.use_network else None
     choice = search_along_rigid(

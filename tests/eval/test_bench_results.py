@@ -118,3 +118,25 @@ def test_extra_needs_name_and_weights(tmp_path, capsys):
 def test_missing_notes_file_fails_before_any_work(tmp_path, capsys):
     assert main(["bench", "results", "--data", str(tmp_path), "--notes", str(tmp_path / "nope.md")]) == 2
     assert "nope.md: --notes: expected a readable markdown file" in capsys.readouterr().err
+
+
+def test_search_settings_parse_into_the_config_and_bad_ones_fail_in_one_line(tmp_path, capsys):
+    from drivingscene.bench.search import DEFAULT_SETTINGS, parse_setting
+
+    config = parse_setting("window=7,static_bonus=0.02,use_network=false")
+    assert (config.window, config.static_bonus, config.use_network, config.scale_step) == (7, 0.02, False, 0.1)
+    assert all(parse_setting(s) for s in DEFAULT_SETTINGS)
+    for bad, expected in (("colour=3", "KEY one of"), ("window=x", "expected an integer"), ("window=4", "odd number")):
+        assert main(["bench", "search", "--data", str(tmp_path), "--setting", bad]) == 2
+        err = capsys.readouterr().err
+        assert expected in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("search", [True, False])
+def test_inference_benchmark_reports_the_search_share(tiny_weights, tmp_path, search):
+    out = tmp_path / "inference.md"
+    args = ["bench", "inference", "--sizes", "48x88", "--runs", "1", "--weights", str(tiny_weights), "--out", str(out)]
+    assert main(args + ([] if search else ["--no-search"])) == 0
+    row = out.read_text().splitlines()[-1].split(" | ")
+    assert row[0] == "| 48x88" and (float(row[5]) > 0) == search  # "of which search s"
+    assert ("--no-search" in out.read_text()) != search

@@ -89,3 +89,20 @@ def test_static_bonus_keeps_the_static_world_on_ties_and_needs_s_equal_1():
     assert (choice[0, 3:-3, 3:-6] == int((SCALES == 0).nonzero())).all()
     with pytest.raises(ValueError, match="contain 1"):
         search_along_rigid(flat, flat, rigid[:, :16, :16], torch.tensor([0.0, 0.5]), 3, static_bonus=1e-3)
+
+
+@pytest.mark.parametrize("window", [1, 3, 7])
+def test_box_mean_and_lean_warp_match_the_reference_ops(window):
+    from drivingscene.geometry.flow import backward_warp
+    from drivingscene.geometry.flow_search import _warp_luma, box_mean
+
+    g = torch.Generator().manual_seed(window)
+    x = torch.rand(3, 11, 17, generator=g)
+    reference = F.avg_pool2d(x[:, None], window, stride=1, padding=window // 2, count_include_pad=False)[:, 0]
+    torch.testing.assert_close(box_mean(x, window), reference, atol=1e-5, rtol=1e-5)
+    image = torch.rand(3, 1, 11, 17, generator=g)
+    flow = 8 * torch.randn(3, 11, 17, 2, generator=g)
+    warped, inside = _warp_luma(image, flow)
+    expected, expected_inside = backward_warp(image, flow)
+    torch.testing.assert_close(warped, expected)
+    assert torch.equal(inside, expected_inside)
