@@ -21,12 +21,13 @@ from drivingscene.errors import InputError
 # Settings compared by default: the window and the static bonus, over a narrow and the default
 # (wide) range of scales.
 DEFAULT_SETTINGS = [
+    "",  # the defaults
+    "use_network=false",
     "scale_min=-0.3,scale_max=1.3,window=5,static_bonus=0",
     "window=5,static_bonus=0.005",
     "window=5,static_bonus=0.01",
     "window=5,static_bonus=0.02",
-    "window=7,static_bonus=0.01",
-    "scale_step=0.25,window=7,static_bonus=0.01",
+    "scale_step=0.25",
 ]
 
 
@@ -69,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.eval.reconstruction import score_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+    from drivingscene.models.pipeline import MotionSearchConfig
     from drivingscene.train.data import list_pairs
 
     settings = [(s, parse_setting(s)) for s in (args.setting or DEFAULT_SETTINGS)]  # errors before any work
@@ -77,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     static = [score_reconstruction(reconstruct(model, p, InferenceOptions(use_residual=False)), p) for p in pairs]
     rows = []
     for name, search in [("R alone (no search)", None), *settings]:
+        name = name or "defaults"
         scores, seconds = [], []
         for pair in pairs:
             recon = reconstruct(model, pair, InferenceOptions(search=search))
@@ -90,10 +93,20 @@ def run(args: argparse.Namespace) -> int:
             f"| {np.median(seconds):.3f} |"
         )
         print(rows[-1], flush=True)
+    default = MotionSearchConfig()
+    defaults = ", ".join(f"{f.name}={getattr(default, f.name)}" for f in fields(default))
     cmd = f"drivingscene bench search --data {args.data} --count {args.count}"
     cmd += "".join(f" --setting '{s}'" for s in args.setting or [])
     text = "\n".join(
         [
+            "# The search along the rigid flow: choosing its settings",
+            "",
+            "At inference the model refines R's flow per pixel: among s x the rigid flow (s on a grid) and R's own flow, "
+            "it keeps the one along which the other keyframe matches the pixel best (`MotionSearchConfig` in "
+            "`drivingscene/models/pipeline.py`, `drivingscene/geometry/flow_search.py`; docs/results-notes.md says why). "
+            f"Defaults: {defaults}. Each row changes the named fields only. The settings were chosen here, on validation pairs; "
+            "docs/results.md reports the chosen one on the test pairs.",
+            "",
             f"Measured with `{cmd}` on {machine_description()}, {time.strftime('%Y-%m-%d')}: "
             f"{len(pairs)} pairs; PSNR change over static-only at the intermediate frames (dB).",
             "",

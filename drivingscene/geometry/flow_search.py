@@ -16,8 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from drivingscene.geometry.camera import pixel_grid
-from drivingscene.geometry.flow import inside_image
+from drivingscene.geometry.flow import backward_warp
 
 _LUMA = (0.299, 0.587, 0.114)
 _OUTSIDE_COST = 1.0  # a sample outside the other image costs as much as the largest luma difference
@@ -46,17 +45,6 @@ def _valid_count(size: int, pad: int, like: Tensor) -> Tensor:
     """How many of the window's positions fall inside ``[0, size)``, per position ``[size]``."""
     i = torch.arange(size, device=like.device)
     return ((i + pad).clamp(max=size - 1) - (i - pad).clamp(min=0) + 1).to(like.dtype)
-
-
-def _warp_luma(other: Tensor, flow: Tensor) -> tuple[Tensor, Tensor]:
-    """`backward_warp` of ``other`` ``[B, C, H, W]`` by ``flow`` ``[B, H, W, 2]``: the same
-    sampling, border padding and inside rule, without its generic overheads."""
-    height, width = flow.shape[1:3]
-    coords = pixel_grid(height, width, dtype=flow.dtype, device=flow.device) + flow
-    scale = flow.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
-    grid = (coords * scale - 1.0).to(other.dtype)
-    warped = F.grid_sample(other, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return warped, inside_image(coords, height, width)
 
 
 def search_along_rigid(
@@ -90,7 +78,7 @@ def search_along_rigid(
         flows = rigid[None] * factors[first:last, None, None, None, None]  # [n, B, H, W, 2]
         if last == count and proposal is not None:
             flows[-1] = proposal
-        warped, inside = _warp_luma(other.repeat(last - first, 1, 1, 1), flows.flatten(0, 1))
+        warped, inside = backward_warp(other.repeat(last - first, 1, 1, 1), flows.flatten(0, 1))
         cost = (warped.unflatten(0, (last - first, batch)) - image).abs().mean(2)  # [n, B, H, W]
         cost = cost.masked_fill_(~inside.unflatten(0, (last - first, batch)), _OUTSIDE_COST)
         cost = box_mean(cost.flatten(0, 1), window).unflatten(0, (last - first, batch))

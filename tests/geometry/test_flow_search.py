@@ -92,17 +92,9 @@ def test_static_bonus_keeps_the_static_world_on_ties_and_needs_s_equal_1():
 
 
 @pytest.mark.parametrize("window", [1, 3, 7])
-def test_box_mean_and_lean_warp_match_the_reference_ops(window):
-    from drivingscene.geometry.flow import backward_warp
-    from drivingscene.geometry.flow_search import _warp_luma, box_mean
+def test_box_mean_matches_average_pooling_cut_at_the_border(window):
+    from drivingscene.geometry.flow_search import box_mean
 
-    g = torch.Generator().manual_seed(window)
-    x = torch.rand(3, 11, 17, generator=g)
+    x = torch.rand(3, 11, 17, generator=torch.Generator().manual_seed(window))
     reference = F.avg_pool2d(x[:, None], window, stride=1, padding=window // 2, count_include_pad=False)[:, 0]
     torch.testing.assert_close(box_mean(x, window), reference, atol=1e-5, rtol=1e-5)
-    image = torch.rand(3, 1, 11, 17, generator=g)
-    flow = 8 * torch.randn(3, 11, 17, 2, generator=g)
-    warped, inside = _warp_luma(image, flow)
-    expected, expected_inside = backward_warp(image, flow)
-    torch.testing.assert_close(warped, expected)
-    assert torch.equal(inside, expected_inside)
