@@ -245,6 +245,16 @@ def test_sparse_lift_matches_the_dense_definition_and_passes_gradients():
         )
     flows.square().sum().backward()
     assert total.grad is not None and total.grad.abs().sum() > 0
+    # Pixels in any order (one matrix per pixel) give what sorted ones (one product per camera) give.
+    from drivingscene.geometry.scene_flow import scene_flow_at_pixels
+
+    index, row, col = masks[0].nonzero(as_tuple=True)
+    pixels = torch.stack([col, row], -1)
+    order = torch.randperm(len(index), generator=g)
+    args = (depth[0], depth[1], total[0].detach(), batch.intrinsics, c2l[0], c2l[1])
+    sorted_sf, _ = scene_flow_at_pixels(*args, index, pixels)
+    shuffled_sf, _ = scene_flow_at_pixels(*args, index[order], pixels[order])
+    torch.testing.assert_close(shuffled_sf, sorted_sf[order], atol=1e-5, rtol=1e-5)
     # The threshold is in pixels of the networks' input: networks at half this width -> 2 px here.
     _, half = lift_scene_flow(depth, total.detach(), residual, sky, batch, config, net_width=14)
     _, two_px = lift_scene_flow(depth, total.detach(), residual, sky, batch, LiftConfig(dynamic_threshold_px=2.0))
