@@ -23,11 +23,13 @@ from drivingscene.errors import InputError
 DEFAULT_SETTINGS = [
     "",  # the defaults
     "use_network=false",
-    "scale_min=-0.3,scale_max=1.3,window=5,static_bonus=0",
-    "window=5,static_bonus=0.005",
-    "window=5,static_bonus=0.01",
-    "window=5,static_bonus=0.02",
-    "scale_step=0.25",
+    "median_window=1",
+    "median_window=5",
+    "scale_min=-0.3,scale_max=1.3,window=5,static_bonus=0,median_window=1",
+    "window=5,static_bonus=0.005,median_window=1",
+    "window=5,static_bonus=0.01,median_window=1",
+    "window=5,static_bonus=0.02,median_window=1",
+    "scale_step=0.25,median_window=1",
 ]
 
 

@@ -12,6 +12,7 @@ absolute luma difference to the pixel's own image, averaged over a window, is lo
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -91,6 +92,26 @@ def search_along_rigid(
             best_cost = torch.where(better, low, best_cost)
             best = torch.where(better, arg + first, best)
     return best
+
+
+def median_of_choice(choice: Tensor, scales: Tensor, window: int) -> Tensor:
+    """``choice`` ``[B, H, W]`` with each scaled-rigid pick replaced by the median pick of its
+    ``window`` x ``window`` neighbourhood (proposal picks kept, and counted as s = 1 in the
+    median): a winner-takes-all choice is noisy where the cost is flat, moving objects are blobs.
+    The scales must be sorted, so that the median index is the index of the median s."""
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window: expected an odd number of pixels >= 1, found {window}")
+    if window == 1:
+        return choice
+    import cv2  # OpenCV's median filter of uint8 images: any odd window, replicated border
+
+    num_scales = len(scales)
+    if num_scales > 255 or not bool((scales[1:] > scales[:-1]).all()):
+        raise ValueError("scales: expected at most 255, sorted ascending")
+    static = int((scales - 1.0).abs().argmin())
+    picks = torch.where(choice == num_scales, static, choice).to(torch.uint8).cpu().numpy()
+    median = torch.from_numpy(np.stack([cv2.medianBlur(p, window) for p in picks])).to(choice.device).long()
+    return torch.where(choice == num_scales, choice, median)
 
 
 def flow_from_choice(choice: Tensor, scales: Tensor, rigid: Tensor, proposal: Tensor | None = None) -> Tensor:

@@ -25,7 +25,7 @@ from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency_at, inside_image, rigid_flow, sample_bilinear
-from drivingscene.geometry.flow_search import flow_from_choice, luma, search_along_rigid
+from drivingscene.geometry.flow_search import flow_from_choice, luma, median_of_choice, search_along_rigid
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels
 from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
@@ -73,6 +73,9 @@ class MotionSearchConfig:
     # hypothesis matches clearly better.
     network_bonus: float = 0.002
     static_bonus: float = 0.01
+    # Odd window (pixels at the networks' input size) of the median filter over the chosen scales
+    # (`median_of_choice`); 1: none.
+    median_window: int = 9
     # False: search among the scaled rigid flows only (diagnostic: the search without R).
     use_network: bool = True
 
@@ -82,8 +85,9 @@ class MotionSearchConfig:
                 "MotionSearchConfig: expected scale_step > 0 and scale_min <= 1 <= scale_max, found "
                 f"{self.scale_step}, {self.scale_min}, {self.scale_max}"
             )
-        if self.window < 1 or self.window % 2 == 0:
-            raise ValueError(f"MotionSearchConfig.window: expected an odd number >= 1, found {self.window}")
+        for name in ("window", "median_window"):
+            if getattr(self, name) < 1 or getattr(self, name) % 2 == 0:
+                raise ValueError(f"MotionSearchConfig.{name}: expected an odd number >= 1, found {getattr(self, name)}")
 
     def scales(self) -> Tensor:
         """The grid of s, with 1 on it exactly (the static hypothesis)."""
@@ -252,6 +256,7 @@ def search_motion(
     choice = search_along_rigid(
         images, others, rigid_net, scales, config.window, proposal, config.network_bonus, config.static_bonus
     )
+    choice = median_of_choice(choice, scales, config.median_window)
     if net_size != size:
         choice = F.interpolate(choice[:, None].float(), size=size, mode="nearest")[:, 0].long()
     searched = flow_from_choice(choice, scales, rigid, total if config.use_network else None)

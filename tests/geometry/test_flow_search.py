@@ -98,3 +98,18 @@ def test_box_mean_matches_average_pooling_cut_at_the_border(window):
     x = torch.rand(3, 11, 17, generator=torch.Generator().manual_seed(window))
     reference = F.avg_pool2d(x[:, None], window, stride=1, padding=window // 2, count_include_pad=False)[:, 0]
     torch.testing.assert_close(box_mean(x, window), reference, atol=1e-5, rtol=1e-5)
+
+
+def test_median_of_choice_removes_isolated_picks_and_keeps_proposal_picks():
+    from drivingscene.geometry.flow_search import median_of_choice
+
+    static, moving, proposal = int((SCALES == 1.0).nonzero()), int((SCALES == 0.0).nonzero()), len(SCALES)
+    choice = torch.full((1, 20, 20), static)
+    choice[0, 5:15, 5:15] = moving  # a blob: kept (away from its corners)
+    choice[0, 2, 17] = moving  # a lone pick: gone
+    choice[0, 17, 2] = proposal  # the proposal's pick: kept as is
+    out = median_of_choice(choice, SCALES, 3)
+    assert (out[0, 6:14, 6:14] == moving).all() and out[0, 2, 17] == static and out[0, 17, 2] == proposal
+    assert torch.equal(median_of_choice(choice, SCALES, 1), choice)
+    with pytest.raises(ValueError, match="sorted"):
+        median_of_choice(choice, SCALES.flip(0), 3)
