@@ -133,7 +133,7 @@ def _figure_link(args) -> str:
     rel = os.path.relpath(args.image, args.out.parent)
     return (
         f"![Test pair {args.image_pair}: the real intermediate frame and each method's render of it (PSNR on "
-        f"moving pixels); depth; non-rigid flow against R's residual]({rel})\n"
+        f"moving pixels); depth; non-rigid flow against the model's residual (R refined by the search)]({rel})\n"
     )
 
 
