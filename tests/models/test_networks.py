@@ -245,6 +245,20 @@ def test_sparse_lift_matches_the_dense_definition_and_passes_gradients():
         )
     flows.square().sum().backward()
     assert total.grad is not None and total.grad.abs().sum() > 0
+    # Many candidates: the dense path gives the same flows and masks.
+    import drivingscene.models.pipeline as pipeline
+
+    many = residual + 3.0 * (torch.rand(2, 3, 20, 28, 1, generator=g) < 0.5)
+    previous = pipeline.DENSE_LIFT_SHARE
+    try:
+        pipeline.DENSE_LIFT_SHARE = 1.0  # never dense
+        sparse = lift_scene_flow(depth, rigid + many, many, sky, batch, config)
+        pipeline.DENSE_LIFT_SHARE = 0.0  # always dense
+        dense = lift_scene_flow(depth, rigid + many, many, sky, batch, config)
+    finally:
+        pipeline.DENSE_LIFT_SHARE = previous
+    assert torch.equal(dense[1], sparse[1]) and 0 < sparse[1].sum() < sparse[1].numel()
+    torch.testing.assert_close(dense[0], sparse[0], atol=1e-5, rtol=1e-5)
     # Pixels in any order (one matrix per pixel) give what sorted ones (one product per camera) give.
     from drivingscene.geometry.scene_flow import scene_flow_at_pixels
 
