@@ -83,3 +83,30 @@ def test_reconstruct_device_errors_are_one_line(tmp_path, small_pair, capsys, de
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and expected in err
     assert not (tmp_path / "r.npz").exists()
+
+
+def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_pair):
+    """The shipped model: the searched flow is, per pixel, R's flow or a multiple of the rigid flow
+    on the search's grid; --no-search keeps R's; --static-only moves nothing."""
+    import numpy as np
+
+    from drivingscene.gaussians.recon import load_reconstruction
+    from drivingscene.models.pipeline import MotionSearchConfig
+
+    scene = save_frame_pair(synth_pair, tmp_path / "scene.npz")
+    recons = {}
+    for name, extra in (("full", []), ("r_alone", ["--no-search"]), ("static", ["--static-only"])):
+        assert main(["reconstruct", str(scene), "-o", str(tmp_path / f"{name}.npz"), *extra]) == 0
+        recons[name] = load_reconstruction(tmp_path / f"{name}.npz")
+    assert not recons["static"].gaussians.dynamic.any() and recons["full"].gaussians.dynamic.any()
+    full, alone = recons["full"], recons["r_alone"]
+    rigid = full.rigid_flow
+    total, r_total = rigid + full.residual_flow, rigid + alone.residual_flow
+    assert not np.allclose(total, r_total, atol=1e-2)
+    is_r = np.abs(total - r_total).max(-1) < 1e-2
+    grid = MotionSearchConfig().scales().numpy()
+    ratio = (total * rigid).sum(-1) / np.maximum((rigid * rigid).sum(-1), 1e-9)
+    s = grid[np.abs(ratio[..., None] - grid).argmin(-1)]
+    on_grid = np.abs(total - s[..., None] * rigid).max(-1) < 1e-2
+    assert (is_r | on_grid).all()
+    assert on_grid.mean() > 0.5  # most pixels keep a multiple of the rigid flow
