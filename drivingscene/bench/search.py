@@ -30,6 +30,8 @@ DEFAULT_SETTINGS = [
     "window=5,static_bonus=0.01,median_window=1",
     "window=5,static_bonus=0.02,median_window=1",
     "scale_step=0.25,median_window=1",
+    "scale_step=0.2",
+    "scale_step=0.25",
 ]
 
 
