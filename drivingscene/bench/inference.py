@@ -49,7 +49,7 @@ def measure(model, size: str, runs: int, amp: bool, threads: int, search: bool =
         recon = reconstruct(model, pair, options)
         totals.append(time.perf_counter() - tic)
         parts.append(recon.meta["timings"])
-    part = {k: statistics.median(p.get(k, 0.0) for p in parts) for k in parts[0]}
+    part = {k: statistics.median(p[k] for p in parts) for k in parts[0]}
     part.setdefault("search_s", 0.0)
     return dict(
         size=size,

@@ -29,6 +29,19 @@ def luma(images: Tensor) -> Tensor:
     return (images * weights).sum(1, keepdim=True)
 
 
+def _check_window(window: int) -> None:
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window: expected an odd number of pixels >= 1, found {window}")
+
+
+def _static_index(scales: Tensor) -> int:
+    """Index of s = 1 (the static hypothesis) in ``scales``, or -1 when it is not there."""
+    if not len(scales):
+        return -1
+    index = int((scales - 1.0).abs().argmin())
+    return index if abs(float(scales[index]) - 1.0) <= 1e-6 else -1
+
+
 def box_mean(x: Tensor, window: int) -> Tensor:
     """Mean of ``[B, H, W]`` over a ``window`` x ``window`` box cut at the image border (what
     ``avg_pool2d(..., count_include_pad=False)`` gives), by cumulative sums: ~6x faster on CPU."""
@@ -61,16 +74,16 @@ def search_along_rigid(
 ) -> Tensor:
     """Index ``[B, H, W]`` (long) of the winning hypothesis per pixel: ``i < S`` is
     ``scales[i] * rigid``, ``S`` the proposal. Exact ties keep the earlier hypothesis."""
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"window: expected an odd number of pixels >= 1, found {window}")
-    static = int((scales - 1.0).abs().argmin()) if len(scales) else -1
-    if static_bonus and (static < 0 or abs(float(scales[static]) - 1.0) > 1e-6):
+    _check_window(window)
+    static = _static_index(scales)
+    if static_bonus and static < 0:
         raise ValueError("static_bonus: expected scales to contain 1 (the static hypothesis)")
     count = len(scales) + (proposal is not None)
     bonus = torch.zeros(count)
-    bonus[static] += static_bonus if static >= 0 else 0.0
+    if static_bonus:
+        bonus[static] = static_bonus
     if proposal is not None:
-        bonus[-1] += proposal_bonus
+        bonus[-1] = proposal_bonus
     batch = image.shape[0]
     best_cost = best = None
     factors = torch.cat([scales.to(rigid), rigid.new_ones(int(proposal is not None))])
@@ -99,8 +112,7 @@ def median_of_choice(choice: Tensor, scales: Tensor, window: int) -> Tensor:
     ``window`` x ``window`` neighbourhood (proposal picks kept, and counted as s = 1 in the
     median): a winner-takes-all choice is noisy where the cost is flat, moving objects are blobs.
     The scales must be sorted, so that the median index is the index of the median s."""
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"window: expected an odd number of pixels >= 1, found {window}")
+    _check_window(window)
     if window == 1:
         return choice
     import cv2  # OpenCV's median filter of uint8 images: any odd window, replicated border
@@ -108,7 +120,9 @@ def median_of_choice(choice: Tensor, scales: Tensor, window: int) -> Tensor:
     num_scales = len(scales)
     if num_scales > 255 or not bool((scales[1:] > scales[:-1]).all()):
         raise ValueError("scales: expected at most 255, sorted ascending")
-    static = int((scales - 1.0).abs().argmin())
+    static = _static_index(scales)
+    if static < 0:
+        raise ValueError("scales: expected them to contain 1 (the static hypothesis)")
     picks = torch.where(choice == num_scales, static, choice).to(torch.uint8).cpu().numpy()
     median = torch.from_numpy(np.stack([cv2.medianBlur(p, window) for p in picks])).to(choice.device).long()
     return torch.where(choice == num_scales, choice, median)

@@ -143,6 +143,12 @@ def _resize(x: Tensor, size: tuple[int, int], mode: str) -> Tensor:
     return F.interpolate(x, size=size, mode=mode, **kwargs)
 
 
+def _resize_flow(flow: Tensor, size: tuple[int, int]) -> Tensor:
+    """Flow ``[B, 2, h, w]`` (pixels) resized bilinearly to ``size`` and its vectors rescaled to match."""
+    height, width = flow.shape[-2:]
+    return _resize(flow, size, "bilinear") * flow.new_tensor([size[1] / width, size[0] / height]).view(1, 2, 1, 1)
+
+
 def _scaled_intrinsics(intrinsics: Tensor, src: tuple[int, int], dst: tuple[int, int]) -> Tensor:
     return scale_intrinsics(intrinsics, dst[1] / src[1], dst[0] / src[0])
 
@@ -229,7 +235,7 @@ def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) ->
     if net_size != tuple(size):
         to_net = rigid_chw.new_tensor([net_size[1] / size[1], net_size[0] / size[0]]).view(1, 2, 1, 1)
         targets, sources = _resize(targets, net_size, "area"), _resize(sources, net_size, "area")
-        rigid_chw = _resize(rigid_chw, net_size, "bilinear") * to_net
+        rigid_chw = _resize_flow(rigid_chw, net_size)
     warped, _ = backward_warp(sources, rigid_chw.permute(0, 2, 3, 1))
     slots = model.camera_slots(batch.cam_to_ego).repeat(2)
     residuals = model.residual_flow(warped, targets, rigid_chw, slots, sources)
@@ -254,10 +260,7 @@ def search_motion(
     rigid_net, total_net = rigid, total
     if net_size != size:
         images, others = _resize(images, net_size, "area"), _resize(others, net_size, "area")
-        to_net = rigid.new_tensor([net_size[1] / size[1], net_size[0] / size[0]])
-        rigid_net, total_net = (
-            _resize(f.permute(0, 3, 1, 2), net_size, "bilinear").permute(0, 2, 3, 1) * to_net for f in (rigid, total)
-        )
+        rigid_net, total_net = (_resize_flow(f.permute(0, 3, 1, 2), net_size).permute(0, 2, 3, 1) for f in (rigid, total))
     scales = config.scales()
     proposal = total_net if config.use_network else None
     choice = search_along_rigid(
