@@ -25,3 +25,22 @@ def synth_pair():
     except DrivingSceneError as e:
         pytest.skip(f"no offscreen OpenGL context: {e}")
     return generate_pair(SynthConfig(height=64, width=112), 200000, renderer)
+
+
+@pytest.fixture(scope="session")
+def compiled_kernels():
+    """The optional compiled CPU kernels (built once per session, ~15 s the first time); skips,
+    with the reason, where they cannot be built (no C++ compiler or ninja)."""
+    from drivingscene.render import cpp
+
+    if cpp.load_extension() is None:
+        pytest.skip("C++ kernels unavailable (no C++ compiler/ninja or build failed; see the logged warning)")
+    return cpp
+
+
+@pytest.fixture(params=["torch", "cpp"])
+def kernel_backend(request):
+    """Both paths of a function with an optional compiled kernel; "cpp" is skipped where it cannot be built."""
+    if request.param == "cpp":
+        request.getfixturevalue("compiled_kernels")
+    return request.param

@@ -151,18 +151,20 @@ def gaussians_from_pixels(
     cam_to_world: Tensor,  # [V, 4, 4]
     colors: Tensor,  # [V, H, W, 3] RGB in [0, 1], or [V, H, W, K, 3] SH coefficients
     *,
-    keyframe: int,
+    keyframe: int | Tensor,  # or [V]: the keyframe of each view
     log_scales: Tensor | None = None,  # [V, H, W, 3] log metres, camera axes (default: surfels)
     quats: Tensor | None = None,  # [V, H, W, 4] w, x, y, z, camera axes (default: surfels)
     opacity_logits: Tensor | None = None,  # [V, H, W]
     flows: Tensor | None = None,  # [V, H, W, 3] world displacement to the other keyframe
     valid: Tensor | None = None,  # [V, H, W] bool; default depth > 0
     default_opacity: float = 0.95,
+    camera_ids: Tensor | None = None,  # [V] camera index of each view (default 0 .. V-1)
 ) -> Gaussians:
     """One Gaussian per valid pixel, in the world frame (differentiable in every input).
 
     Valid pixels are selected once (flat indices) and every attribute is computed or gathered
-    for them only."""
+    for them only. Both keyframes' views can come in one call (``keyframe`` and ``camera_ids``
+    per view): one pass, and no concatenation of two halves afterwards."""
     num_views, height, width = depth.shape
     if valid is None:
         valid = depth > 0
@@ -172,14 +174,15 @@ def gaussians_from_pixels(
         log_scales = surfel_log_scales if log_scales is None else log_scales
     idx = valid.flatten().nonzero().squeeze(1)  # row-major pixel order, as valid-mask indexing
     counts = valid.flatten(1).sum(1)
-    cameras = torch.repeat_interleave(torch.arange(num_views, device=depth.device), counts)
+    views = torch.repeat_interleave(torch.arange(num_views, device=depth.device), counts)
+    cameras = views if camera_ids is None else camera_ids.to(depth.device)[views]
 
     def pick(x: Tensor, tail: int) -> Tensor:  # [V, H, W, *tail dims] -> [N, *tail dims]
         return x.reshape(num_views * height * width, *x.shape[3 : 3 + tail]).index_select(0, idx)
 
     points = transform_points(cam_to_world, unproject(depth, intrinsics).flatten(1, 2))  # [V, HW, 3]
     means = pick(points.view(num_views, height, width, 3), 1)
-    cam_quats = matrix_to_quat(cam_to_world[:, :3, :3])[cameras]
+    cam_quats = matrix_to_quat(cam_to_world[:, :3, :3])[views]
     world_quats = quat_multiply(cam_quats, pick(quats, 1))
     sh = rgb_to_sh0(colors)[..., None, :] if colors.ndim == 4 else colors
     if opacity_logits is None:
@@ -192,6 +195,10 @@ def gaussians_from_pixels(
         opacity_logits=pick(opacity_logits, 0),
         sh=pick(sh, 2),
         flows=torch.zeros_like(means) if flows is None else pick(flows, 1),
-        keyframes=torch.full((n,), keyframe, dtype=torch.int64, device=depth.device),
+        keyframes=(
+            torch.full((n,), keyframe, dtype=torch.int64, device=depth.device)
+            if isinstance(keyframe, int)
+            else keyframe.to(device=depth.device, dtype=torch.int64)[views]
+        ),
         cameras=cameras,
     )

@@ -82,6 +82,6 @@ def _transform_by_view(transforms: Tensor, index: Tensor, points: Tensor) -> Ten
     """``points`` ``[P, 3]`` of views ``index`` ``[P]`` through ``transforms`` ``[V, 4, 4]``."""
     if len(index) > 1 and bool((index[1:] >= index[:-1]).all()):
         counts = torch.bincount(index, minlength=len(transforms)).tolist()
-        parts = [p @ t[:3, :3].T + t[:3, 3] for p, t in zip(points.split(counts), transforms)]
+        parts = [transform_points(t, p) for p, t in zip(points.split(counts), transforms)]
         return torch.cat(parts)
     return (transforms[index, :3, :3] @ points[:, :, None])[:, :, 0] + transforms[index, :3, 3]

@@ -113,10 +113,17 @@ def reconstruct(
     depth = static.depth.float()
     sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
     t0 = time.perf_counter()
-    flow = (flow_predictor or predict_flow)(model, batch, depth) if options.use_residual else None
-    if flow is not None and flow_predictor is None and options.search is not None:
+    search = options.search if flow_predictor is None else None
+    if not options.use_residual:
+        flow = None
+    elif flow_predictor is not None:
+        flow = flow_predictor(model, batch, depth)
+    else:  # with the search, R refines only down to the level whose flow the search proposes
+        level = search.proposal_level if search is not None else 0
+        flow = predict_flow(model, batch, depth, finest_level=level, all_levels=False)
+    if flow is not None and search is not None:
         t1 = time.perf_counter()
-        flow = search_motion(flow, batch, options.search, model.config.input_size)
+        flow = search_motion(flow, batch, search, model.config.input_size)
         _sync(device)
         timings["search_s"] = time.perf_counter() - t1
     rigid = flow.rigid if flow is not None else None

@@ -20,10 +20,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from drivingscene.gaussians.assembly import surfel_frames
-from drivingscene.gaussians.core import num_sh_coeffs, rgb_to_sh0
+from drivingscene.gaussians.assembly import FOOTPRINT, MIN_COS, THICKNESS, surfel_frames
+from drivingscene.gaussians.core import SH_C0, num_sh_coeffs, rgb_to_sh0
 from drivingscene.geometry.se3 import quat_multiply
 from drivingscene.models.blocks import ConvELU, upsample_to
+from drivingscene.render.cpp import load_op
 
 OPACITY_BIAS = 3.0
 
@@ -89,7 +90,15 @@ class GaussianHead(nn.Module):
         with torch.autocast(raw.device.type, enabled=False):
             # raw is often a channels-last view of an NCHW tensor: per-pixel math on its strided
             # last dimension is several times slower than one contiguous copy.
-            return self._activate(raw.float().contiguous(), images.float(), depth.float(), intrinsics.float())
+            raw, images, depth, intrinsics = raw.float().contiguous(), images.float(), depth.float(), intrinsics.float()
+            if not (torch.is_grad_enabled() and raw.requires_grad) and raw.device.type == "cpu":
+                op = load_op("activate_surfels")
+                if op is not None:  # the same arithmetic in one compiled pass (~10x faster), inference only
+                    log_scales, quats, opacity_logits, sh = op(
+                        depth.detach(), intrinsics, raw, images, FOOTPRINT, THICKNESS, MIN_COS, OPACITY_BIAS, SH_C0
+                    )
+                    return PixelGaussians(log_scales=log_scales, quats=quats, opacity_logits=opacity_logits, sh=sh)
+            return self._activate(raw, images, depth, intrinsics)
 
     def _activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:
         k = num_sh_coeffs(self.config.sh_degree)

@@ -68,10 +68,18 @@ class DrivingSceneModel(nn.Module):
         return depth, raw
 
     def residual_flow(
-        self, warped_source: Tensor, target: Tensor, rigid_flow: Tensor, slots: Tensor, source: Tensor | None = None
+        self,
+        warped_source: Tensor,
+        target: Tensor,
+        rigid_flow: Tensor,
+        slots: Tensor,
+        source: Tensor | None = None,
+        finest_level: int = 0,
+        all_levels: bool = True,
     ) -> list[Tensor]:
-        """Stage-2 network: residual flows ``[B, 2, H, W]`` per pyramid level, finest last."""
-        return self.flow_net(warped_source, target, rigid_flow, slots, source)
+        """Stage-2 network: residual flows ``[B, 2, H, W]`` per pyramid level, finest last
+        (`ResidualFlowNet.forward`)."""
+        return self.flow_net(warped_source, target, rigid_flow, slots, source, finest_level, all_levels)
 
     def camera_slots(self, cam_to_ego: Tensor) -> Tensor:
         """Residual-flow decoder index ``[V]`` for a rig ``[V, 4, 4]``."""

@@ -34,6 +34,7 @@ from drivingscene.geometry.flow import (
 )
 from drivingscene.geometry.flow_search import flow_from_choice, luma, median_of_choice, search_along_rigid
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels, scene_flow_from_optical_flow
+from drivingscene.geometry.se3 import rotate_vectors
 from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
 from drivingscene.models.model import DrivingSceneModel
@@ -85,6 +86,10 @@ class MotionSearchConfig:
     median_window: int = 9
     # False: search among the scaled rigid flows only (diagnostic: the search without R).
     use_network: bool = True
+    # R's pyramid level whose flow is the proposal: R stops refining there (0: its finest level,
+    # at 1/2 of its input size; 1: at 1/4, which skips the level that takes about half of R's
+    # time). On validation pairs level 1 scored within 0.005 dB of level 0 (docs/search.md).
+    proposal_level: int = 1
 
     def __post_init__(self):
         if not (self.scale_step > 0 and self.scale_min <= 1.0 <= self.scale_max):
@@ -92,6 +97,8 @@ class MotionSearchConfig:
                 "MotionSearchConfig: expected scale_step > 0 and scale_min <= 1 <= scale_max, found "
                 f"{self.scale_step}, {self.scale_min}, {self.scale_max}"
             )
+        if self.proposal_level < 0:
+            raise ValueError(f"MotionSearchConfig.proposal_level: expected >= 0, found {self.proposal_level}")
         for name in ("window", "median_window"):
             if getattr(self, name) < 1 or getattr(self, name) % 2 == 0:
                 raise ValueError(f"MotionSearchConfig.{name}: expected an odd number >= 1, found {getattr(self, name)}")
@@ -220,11 +227,15 @@ def rigid_flows_and_behind(depth: Tensor, batch: PairTensors) -> tuple[Tensor, T
     return torch.where(behind[..., None], torch.zeros_like(flow), flow), behind
 
 
-def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) -> FlowPrediction:
+def predict_flow(
+    model: DrivingSceneModel, batch: PairTensors, depth: Tensor, finest_level: int = 0, all_levels: bool = True
+) -> FlowPrediction:
     """Rigid flow from ``depth`` ``[2, V, H, W]`` and R's residual, both directions.
 
     The rigid flow is always computed at full size; R runs at the model's ``input_size`` on the
-    resized images and rigid flow, and its residual is resized (and rescaled) back.
+    resized images and rigid flow, and its residual is resized (and rescaled) back. R refines
+    down to its pyramid level ``finest_level`` (0: all levels); ``all_levels=False`` keeps only the
+    finest computed level's residual (inference: the training losses use every level).
     """
     size = batch.image_size
     net_size = tuple(model.config.input_size or size)
@@ -238,7 +249,7 @@ def predict_flow(model: DrivingSceneModel, batch: PairTensors, depth: Tensor) ->
         rigid_chw = _resize_flow(rigid_chw, net_size)
     warped, _ = backward_warp(sources, rigid_chw.permute(0, 2, 3, 1))
     slots = model.camera_slots(batch.cam_to_ego).repeat(2)
-    residuals = model.residual_flow(warped, targets, rigid_chw, slots, sources)
+    residuals = model.residual_flow(warped, targets, rigid_chw, slots, sources, finest_level, all_levels)
     if net_size != tuple(size):
         residuals = [_resize(r.float(), size, "bilinear") / to_net for r in residuals]
     residuals = [r.float().permute(0, 2, 3, 1).unflatten(0, (2, batch.num_views)) for r in residuals]
@@ -368,23 +379,25 @@ def assemble(
     if local_to_world is not None:
         cams = (local_to_world.double() @ cams.double()).to(cams.dtype)
         if scene_flow is not None:
-            scene_flow = scene_flow @ local_to_world[:3, :3].to(scene_flow.dtype).T
-    parts = []
-    for k in keyframes:
-        sl = slice(k * num_views, (k + 1) * num_views)
-        depth = static.depth[k]
-        parts.append(
-            gaussians_from_pixels(
-                depth,
-                batch.intrinsics,
-                cams[k],
-                p.sh[sl],
-                keyframe=k,
-                log_scales=p.log_scales[sl],
-                quats=p.quats[sl],
-                opacity_logits=p.opacity_logits[sl],
-                flows=None if scene_flow is None else scene_flow[k],
-                valid=~sky[k],
-            )
-        )
-    return Gaussians.cat(parts)
+            scene_flow = rotate_vectors(local_to_world[:3, :3].to(scene_flow.dtype), scene_flow)
+    # The requested keyframes' views as one batch of len(keyframes) * V views (one pass).
+    views = torch.cat([torch.arange(k * num_views, (k + 1) * num_views) for k in keyframes]).to(sky.device)
+    first, count = keyframes[0] * num_views, len(keyframes) * num_views
+    contiguous = list(keyframes) == list(range(keyframes[0], keyframes[0] + len(keyframes)))
+
+    def per_view(x: Tensor) -> Tensor:  # [2V, ...] (keyframe-major) -> the requested views
+        return x[first : first + count] if contiguous else x[views]
+
+    return gaussians_from_pixels(
+        per_view(static.depth.flatten(0, 1)),
+        batch.intrinsics.repeat(len(keyframes), 1, 1),
+        per_view(cams.flatten(0, 1)),
+        per_view(p.sh),
+        keyframe=views // num_views,
+        camera_ids=views % num_views,
+        log_scales=per_view(p.log_scales),
+        quats=per_view(p.quats),
+        opacity_logits=per_view(p.opacity_logits),
+        flows=None if scene_flow is None else per_view(scene_flow.flatten(0, 1)),
+        valid=~per_view(sky.flatten(0, 1)),
+    )

@@ -1,5 +1,6 @@
-"""Loader of the optional compiled CPU kernels: the rasterizer's pair finding (``csrc/find_pairs.cpp``)
-and the per-pixel surfel frames of the Gaussian assembly (``csrc/surfels.cpp``).
+"""Loader of the optional compiled CPU kernels: the rasterizer's pair finding (``csrc/find_pairs.cpp``),
+the per-pixel surfel frames of the Gaussian assembly (``csrc/surfels.cpp``), and the inference-time
+search along the rigid flow and residual-flow cost volume (``csrc/flow_search.cpp``).
 
 Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenMP, ninja) into
 ``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
@@ -23,7 +24,7 @@ import torch
 log = logging.getLogger(__name__)
 
 EXTENSION_NAME = "drivingscene_render"
-SOURCES = (Path(__file__).parent / "csrc" / "find_pairs.cpp", Path(__file__).parent / "csrc" / "surfels.cpp")
+SOURCES = tuple(Path(__file__).parent / "csrc" / name for name in ("find_pairs.cpp", "surfels.cpp", "flow_search.cpp"))
 CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")  # no FMA: must match the torch path's rounding
 
 

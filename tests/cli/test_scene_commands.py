@@ -86,12 +86,14 @@ def test_reconstruct_device_errors_are_one_line(tmp_path, small_pair, capsys, de
 
 
 def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_pair):
-    """The shipped model: the searched flow is, per pixel, R's flow or a multiple of the rigid flow
-    on the search's grid; --no-search keeps R's; --static-only moves nothing."""
+    """The shipped model: the searched flow is, per pixel, R's flow (refined down to the search's
+    proposal level) or a multiple of the rigid flow on the search's grid; --no-search keeps R's
+    (every level); --static-only moves nothing."""
     import numpy as np
 
     from drivingscene.gaussians.recon import load_reconstruction
-    from drivingscene.models.pipeline import MotionSearchConfig
+    from drivingscene.methods.feedforward import load_model, reconstruct
+    from drivingscene.models.pipeline import MotionSearchConfig, predict_flow
 
     scene = save_frame_pair(synth_pair, tmp_path / "scene.npz")
     recons = {}
@@ -103,7 +105,10 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     rigid = full.rigid_flow
     total, r_total = rigid + full.residual_flow, rigid + alone.residual_flow
     assert not np.allclose(total, r_total, atol=1e-2)
-    is_r = np.abs(total - r_total).max(-1) < 1e-2
+    level = MotionSearchConfig().proposal_level
+    proposal = reconstruct(load_model(), synth_pair, flow_predictor=lambda m, b, d: predict_flow(m, b, d, level))
+    assert not np.allclose(proposal.residual_flow, alone.residual_flow, atol=1e-2)  # R's finest level does change it
+    is_r = np.abs(total - (rigid + proposal.residual_flow)).max(-1) < 1e-2
     grid = MotionSearchConfig().scales().numpy()
     ratio = (total * rigid).sum(-1) / np.maximum((rigid * rigid).sum(-1), 1e-9)
     s = grid[np.abs(ratio[..., None] - grid).argmin(-1)]

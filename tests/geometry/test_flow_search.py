@@ -17,7 +17,7 @@ def _texture(height: int, width: int, seed: int = 0) -> torch.Tensor:
     return F.avg_pool2d(torch.rand(1, 1, height, width, generator=g), 3, stride=1, padding=1)
 
 
-def test_each_region_gets_the_scale_of_the_rigid_flow_it_moved_by():
+def test_each_region_gets_the_scale_of_the_rigid_flow_it_moved_by(kernel_backend):
     image = _texture(40, 64)
     # Left half: the content moved by half the rigid flow (3 px; e.g. a car keeping half the
     # ego's pace); right half: by all of it (6 px, static). other(p + s * rigid) == image(p).
@@ -25,7 +25,7 @@ def test_each_region_gets_the_scale_of_the_rigid_flow_it_moved_by():
     other[..., 32:] = image.roll(6, dims=-1)[..., 32:]
     rigid = torch.zeros(1, 40, 64, 2)
     rigid[..., 0] = 6.0
-    choice = search_along_rigid(image, other, rigid, SCALES, window=5)
+    choice = search_along_rigid(image, other, rigid, SCALES, window=5, backend=kernel_backend)
     half, full = int((SCALES == 0.5).nonzero()), int((SCALES == 1.0).nonzero())
     assert (choice[0, 4:-4, 4:24] == half).all()
     assert (choice[0, 4:-4, 36:54] == full).all()
@@ -34,29 +34,29 @@ def test_each_region_gets_the_scale_of_the_rigid_flow_it_moved_by():
     assert torch.equal(flow[0, 10, 40], torch.tensor([6.0, 0.0]))
 
 
-def test_the_proposal_wins_where_only_it_explains_the_images_and_on_ties():
+def test_the_proposal_wins_where_only_it_explains_the_images_and_on_ties(kernel_backend):
     image = _texture(32, 48, seed=1)
     other = image.roll(2, dims=-2)  # moved 2 px down: not along the (horizontal) rigid flow
     rigid = torch.zeros(1, 32, 48, 2)
     rigid[..., 0] = 5.0
     proposal = torch.zeros(1, 32, 48, 2)
     proposal[..., 1] = 2.0
-    choice = search_along_rigid(image, other, rigid, SCALES, 5, proposal)
+    choice = search_along_rigid(image, other, rigid, SCALES, 5, proposal, backend=kernel_backend)
     assert (choice[0, 4:-4, 4:-8] == len(SCALES)).all()
     torch.testing.assert_close(flow_from_choice(choice, SCALES, rigid, proposal)[0, 10, 10], torch.tensor([0.0, 2.0]))
     # Without texture every hypothesis matches: the bonus hands the tie to the proposal, and
     # without it the first hypothesis keeps it.
     flat = torch.full((1, 1, 16, 16), 0.5)
     rigid = torch.ones(1, 16, 16, 2)
-    assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, proposal_bonus=1e-3) == len(SCALES)).all()
-    assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3) == 0).all()
+    assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, proposal_bonus=1e-3, backend=kernel_backend) == len(SCALES)).all()
+    assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, backend=kernel_backend) == 0).all()
 
 
-def test_hypotheses_that_leave_the_image_lose():
+def test_hypotheses_that_leave_the_image_lose(kernel_backend):
     image = _texture(24, 32, seed=2)
     rigid = torch.zeros(1, 24, 32, 2)
     rigid[..., 0] = 200.0  # every non-zero multiple lands outside a 32 px wide image
-    choice = search_along_rigid(image, image.flip(-1), rigid, SCALES, 3)
+    choice = search_along_rigid(image, image.flip(-1), rigid, SCALES, 3, backend=kernel_backend)
     assert (choice == int((SCALES == 0).nonzero())).all()
 
 
@@ -75,20 +75,41 @@ def test_window_must_be_odd_and_positive(window):
         search_along_rigid(torch.zeros(1, 1, 8, 8), torch.zeros(1, 1, 8, 8), torch.zeros(1, 8, 8, 2), SCALES, window)
 
 
-def test_static_bonus_keeps_the_static_world_on_ties_and_needs_s_equal_1():
+def test_unknown_backend_is_refused():
+    with pytest.raises(ValueError, match="backend"):
+        search_along_rigid(torch.zeros(1, 1, 8, 8), torch.zeros(1, 1, 8, 8), torch.zeros(1, 8, 8, 2), SCALES, 3, backend="gpu")
+
+
+def test_compiled_search_picks_what_the_torch_path_picks(compiled_kernels):
+    """Random images and flows (most samples inside, some outside, both signs), two channels,
+    the proposal and both bonuses: the two paths agree wherever the best cost is not a near tie."""
+    g = torch.Generator().manual_seed(5)
+    image, other = torch.rand(3, 2, 30, 44, generator=g), torch.rand(3, 2, 30, 44, generator=g)
+    rigid, proposal = 6 * torch.randn(3, 30, 44, 2, generator=g), 4 * torch.randn(3, 30, 44, 2, generator=g)
+    scales = torch.arange(-5, 31) / 10.0
+    args = (image, other, rigid, scales, 5, proposal, 0.002, 0.01)
+    fast, slow = search_along_rigid(*args, backend="cpp"), search_along_rigid(*args, backend="torch")
+    assert fast.dtype == slow.dtype == torch.int64 and fast.shape == slow.shape == (3, 30, 44)
+    assert (fast == slow).float().mean() > 0.999
+    # Without the proposal, and a window of 1 (no filtering): the same again.
+    fast = search_along_rigid(image, other, rigid, scales, 1, backend="cpp")
+    assert (fast == search_along_rigid(image, other, rigid, scales, 1, backend="torch")).float().mean() > 0.999
+
+
+def test_static_bonus_keeps_the_static_world_on_ties_and_needs_s_equal_1(kernel_backend):
     flat = torch.full((1, 1, 16, 16), 0.5)
     rigid = torch.ones(1, 16, 16, 2)
     static = int((SCALES == 1.0).nonzero())
-    choice = search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, 1e-3, static_bonus=2e-3)
+    choice = search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, 1e-3, static_bonus=2e-3, backend=kernel_backend)
     assert (choice[0, :-3, :-3] == static).all()  # (near the far edges s = 1 leaves the image)
     # A clear match elsewhere still wins over the bonus.
     image = _texture(24, 32, seed=4)
     rigid = torch.zeros(1, 24, 32, 2)
     rigid[..., 0] = 4.0
-    choice = search_along_rigid(image, image, rigid, SCALES, 5, static_bonus=5e-3)
+    choice = search_along_rigid(image, image, rigid, SCALES, 5, static_bonus=5e-3, backend=kernel_backend)
     assert (choice[0, 3:-3, 3:-6] == int((SCALES == 0).nonzero())).all()
     with pytest.raises(ValueError, match="contain 1"):
-        search_along_rigid(flat, flat, rigid[:, :16, :16], torch.tensor([0.0, 0.5]), 3, static_bonus=1e-3)
+        search_along_rigid(flat, flat, rigid[:, :16, :16], torch.tensor([0.0, 0.5]), 3, static_bonus=1e-3, backend=kernel_backend)
 
 
 @pytest.mark.parametrize("window", [1, 3, 7])

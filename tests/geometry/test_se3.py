@@ -50,6 +50,17 @@ def test_transform_points_broadcasts():
     torch.testing.assert_close(out, (poses @ homog.transpose(1, 2)).transpose(1, 2)[..., :3])
 
 
+def test_rotate_vectors_and_transform_points_match_matrix_products_with_broadcasting():
+    from drivingscene.geometry.se3 import rotate_vectors
+
+    poses = _random_poses(4)
+    points = torch.randn(2, 4, 7, 3, dtype=torch.float64)  # leading dims broadcast against [4, 4, 4]
+    torch.testing.assert_close(rotate_vectors(poses[:, :3, :3], points), points @ poses[:, :3, :3].transpose(1, 2))
+    torch.testing.assert_close(transform_points(poses, points), points @ poses[:, :3, :3].transpose(1, 2) + poses[:, None, :3, 3])
+    single = torch.randn(5, 3, dtype=torch.float64)  # one matrix for every point
+    torch.testing.assert_close(rotate_vectors(poses[0, :3, :3], single), single @ poses[0, :3, :3].T)
+
+
 def test_slerp_halves_the_angle_and_takes_the_short_arc():
     axis_angle = 1.2
     q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)

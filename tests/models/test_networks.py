@@ -83,6 +83,38 @@ def test_cost_volume_peaks_at_the_true_shift():
     assert (dy - 3, dx - 3) == (1, -2)
 
 
+def test_compiled_cost_volume_matches_the_torch_path_and_gradients_keep_torch(compiled_kernels):
+    g = torch.Generator().manual_seed(3)
+    target, source = torch.randn(2, 5, 9, 13, generator=g), torch.randn(2, 5, 9, 13, generator=g)
+    with torch.no_grad():
+        fast = local_cost_volume(target, source, 2)  # no gradients: the compiled kernel
+    reference = local_cost_volume(target.requires_grad_(), source, 2)  # gradients: the torch path
+    assert reference.grad_fn is not None and fast.shape == reference.shape == (2, 25, 9, 13)
+    torch.testing.assert_close(fast, reference.detach(), atol=1e-6, rtol=1e-5)
+
+
+def test_residual_flow_can_stop_at_a_coarser_level(model):
+    """R refined down to 1/4 gives the flow its full run has at that level; all_levels=False
+    keeps only the finest computed level."""
+    torch.manual_seed(1)
+    flow_net = ResidualFlowNet(FlowConfig()).eval()
+    for p in flow_net.parameters():  # non-zero updates at every level
+        p.data.normal_(0, 0.05)
+    images = torch.rand(3, 3, 32, 48)
+    rigid = torch.randn(3, 2, 32, 48)
+    slots = torch.tensor([0, 1, 0])
+    with torch.no_grad():
+        full = flow_net(images, images.flip(0), rigid, slots)
+        coarse = flow_net(images, images.flip(0), rigid, slots, finest_level=1)
+        last = flow_net(images, images.flip(0), rigid, slots, finest_level=1, all_levels=False)
+    assert len(full) == 4 and len(coarse) == 3 and len(last) == 1
+    torch.testing.assert_close(coarse[-1], full[-2])
+    torch.testing.assert_close(last[0], full[-2])
+    assert (full[-1] - full[-2]).abs().max() > 1e-3  # the finest level does change the flow
+    with pytest.raises(ValueError, match="finest_level"):
+        flow_net(images, images.flip(0), rigid, slots, finest_level=4)
+
+
 def test_coarse_radius_widens_only_the_coarsest_cost_volume():
     wide = CameraDecoder(FlowConfig(radius=3, coarse_radius=6))
     assert FlowConfig(radius=3, coarse_radius=6).level_radii == [3, 3, 3, 6]
@@ -169,6 +201,45 @@ def test_assembly_excludes_sky_and_counts_pixels(model):
     world = assemble(static, batch, sky, flows, local_to_world=to_world)
     for name in ("means", "flows", "quats", "log_scales", "sh", "opacity_logits"):
         torch.testing.assert_close(getattr(world, name), getattr(local, name), atol=1e-4, rtol=1e-5)
+
+
+def test_compiled_activation_matches_the_torch_path(model, compiled_kernels):
+    """The Gaussian head's activation without gradients (one compiled pass) equals the torch
+    path, for SH degree 0 and 1; with gradients the torch path runs."""
+    from drivingscene.models.gaussian_head import GaussianHead, GaussianHeadConfig
+
+    g = torch.Generator().manual_seed(2)
+    depth = 2 + 50 * torch.rand(3, 6, 8, generator=g).repeat_interleave(5, 1).repeat_interleave(5, 2)
+    intrinsics = torch.tensor([[40.0, 0.2, 19.5], [0, 38.0, 14.5], [0, 0, 1]]).repeat(3, 1, 1)
+    images = torch.rand(3, 3, 30, 40, generator=g)
+    for degree in (0, 1):
+        head = GaussianHead((8, 8, 16, 16, 32), 8, GaussianHeadConfig(sh_degree=degree))
+        raw = 2 * torch.randn(3, 30, 40, head.num_out, generator=g)
+        with torch.no_grad():
+            fast = head.activate(raw, images, depth, intrinsics)
+        slow = head.activate(raw.requires_grad_(), images, depth, intrinsics)
+        assert slow.sh.grad_fn is not None
+        for name in ("log_scales", "quats", "opacity_logits", "sh"):
+            a, b = getattr(fast, name), getattr(slow, name).detach()
+            assert a.shape == b.shape, name
+            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5, msg=name)
+
+
+def test_assembly_of_both_keyframes_in_one_pass_equals_one_keyframe_at_a_time(model):
+    pair = make_pair(num_views=3, height=16, width=24)
+    batch = pair_to_tensors(pair)
+    with torch.no_grad():
+        static = predict_static(model, batch)
+    sky = torch.zeros(2, 3, 16, 24, dtype=torch.bool)
+    sky[1, 2, :4] = True
+    flows = torch.randn(2, 3, 16, 24, 3)
+    both = assemble(static, batch, sky, flows)
+    parts = [assemble(static, batch, sky, flows, keyframes=(k,)) for k in (0, 1)]
+    assert len(parts[1]) == 3 * 16 * 24 - 4 * 24
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "flows", "keyframes", "cameras"):
+        assert torch.equal(getattr(both, name), torch.cat([getattr(p, name) for p in parts])), name
+    assert torch.equal(parts[1].keyframes.unique(), torch.tensor([1]))
+    assert torch.equal(parts[1].cameras.unique(), torch.tensor([0, 1, 2]))
 
 
 def test_networks_run_at_the_training_size_and_outputs_come_back_full_size():
@@ -358,3 +429,5 @@ def test_search_keeps_the_flow_that_explains_the_images_at_full_size():
     assert (ratios[..., None] - grid).abs().amin(-1).max() < 1e-5
     with pytest.raises(ValueError, match="window"):
         MotionSearchConfig(window=2)
+    with pytest.raises(ValueError, match="proposal_level"):
+        MotionSearchConfig(proposal_level=-1)
