@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # System packages for offscreen/windowed OpenGL (Mesa llvmpipe through EGL/GLX), a virtual X
-# server for the viewer's tests, and screenshot/input tools. Installs only what is missing, and
+# server for the viewer's tests, screenshot/input tools, and g++ for the optional compiled CPU kernels. Installs only what is missing, and
 # only when run as root on a Debian/Ubuntu machine; otherwise it says what to install.
 set -euo pipefail
-PKGS="libgl1 libegl1 libgles2 libegl-mesa0 libglx-mesa0 libgl1-mesa-dri xvfb xauth xdotool imagemagick"
+PKGS="libgl1 libegl1 libgles2 libegl-mesa0 libglx-mesa0 libgl1-mesa-dri xvfb xauth xdotool imagemagick g++"
 missing=""
 for p in $PKGS; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"

@@ -7,10 +7,11 @@ results back.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.data.frame_pair import FramePair
@@ -29,6 +30,8 @@ class PairTensors:
     gt_depth: Tensor | None = None  # [2, V, H, W]
     gt_flow: Tensor | None = None  # [2, V, H, W, 2]
     gt_dynamic: Tensor | None = None  # [2, V, H, W] bool
+    # `resized_images`, per size (not an init field: `dataclasses.replace` starts a fresh cache)
+    _resized: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def num_views(self) -> int:
@@ -38,9 +41,25 @@ class PairTensors:
     def image_size(self) -> tuple[int, int]:
         return int(self.images.shape[-2]), int(self.images.shape[-1])
 
+    def resized_images(self, size: tuple[int, int]) -> Tensor:
+        """``images`` area-resized to ``size`` ``[2, V, 3, h, w]``, computed once per size (the
+        networks and the search all run on the images at the networks' input size)."""
+        size = (int(size[0]), int(size[1]))
+        if size == self.image_size:
+            return self.images
+        source, version, small = self._resized.get(size, (None, None, None))
+        if source is not self.images or version != self.images._version:  # new or changed images
+            small = F.interpolate(self.images.flatten(0, 1), size=size, mode="area").unflatten(0, self.images.shape[:2])
+            self._resized[size] = (self.images, self.images._version, small)
+        return small
+
     def to(self, device) -> PairTensors:
         return PairTensors(
-            **{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device) for f in fields(self)}
+            **{
+                f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device)
+                for f in fields(self)
+                if f.init
+            }
         )
 
 

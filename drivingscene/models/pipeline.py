@@ -176,7 +176,7 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPredic
         depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics)
         depth = depth_out.depth
     else:
-        small = _resize(images, net_size, "area").contiguous(memory_format=torch.channels_last)
+        small = batch.resized_images(net_size).flatten(0, 1).contiguous(memory_format=torch.channels_last)
         depth_out, raw = model.static_raw(small, _scaled_intrinsics(intrinsics, size, net_size))
         depth = 1.0 / _resize(1.0 / depth_out.depth.float()[:, None], size, "bilinear")[:, 0]
         # channels-last in, channels-last out: the upsampled [B, H, W, C] view is then contiguous
@@ -240,12 +240,12 @@ def predict_flow(
     size = batch.image_size
     net_size = tuple(model.config.input_size or size)
     rigid, behind = rigid_flows_and_behind(depth, batch)
-    targets = batch.images.flatten(0, 1)  # [2V, 3, H, W]
-    sources = batch.images.flip(0).flatten(0, 1)  # the other keyframe
+    images = batch.resized_images(net_size)
+    targets = images.flatten(0, 1)  # [2V, 3, h, w]
+    sources = images.flip(0).flatten(0, 1)  # the other keyframe
     rigid_chw = rigid.flatten(0, 1).permute(0, 3, 1, 2)
     if net_size != tuple(size):
         to_net = rigid_chw.new_tensor([net_size[1] / size[1], net_size[0] / size[0]]).view(1, 2, 1, 1)
-        targets, sources = _resize(targets, net_size, "area"), _resize(sources, net_size, "area")
         rigid_chw = _resize_flow(rigid_chw, net_size)
     warped, _ = backward_warp(sources, rigid_chw.permute(0, 2, 3, 1))
     slots = model.camera_slots(batch.cam_to_ego).repeat(2)
@@ -265,12 +265,12 @@ def search_motion(
     ``net_size`` (R's input size; default the images') and its choice is applied at full size."""
     size = tuple(batch.image_size)
     net_size = tuple(net_size or size)
-    images = luma(batch.images.flatten(0, 1))  # [2V, 1, H, W], keyframe-major
-    others = luma(batch.images.flip(0).flatten(0, 1))
+    small = batch.resized_images(net_size)
+    images = luma(small.flatten(0, 1))  # [2V, 1, h, w], keyframe-major
+    others = luma(small.flip(0).flatten(0, 1))
     rigid, total = flow.rigid.flatten(0, 1), flow.total.flatten(0, 1)
     rigid_net, total_net = rigid, total
     if net_size != size:
-        images, others = _resize(images, net_size, "area"), _resize(others, net_size, "area")
         rigid_net, total_net = (_resize_flow(f.permute(0, 3, 1, 2), net_size).permute(0, 2, 3, 1) for f in (rigid, total))
     scales = config.scales()
     proposal = total_net if config.use_network else None

@@ -220,3 +220,24 @@ def test_saved_files_get_normal_permissions(tmp_path, small_pair):
     finally:
         os.umask(umask)
     assert stat.S_IMODE(path.stat().st_mode) == 0o644
+
+
+def test_resized_images_are_area_resized_once_and_follow_the_images():
+    from dataclasses import replace
+
+    import torch
+    import torch.nn.functional as F
+
+    from drivingscene.data.tensors import pair_to_tensors
+
+    batch = pair_to_tensors(make_pair(num_views=2, height=16, width=24), with_gt=False, with_eval=False)
+    small = batch.resized_images((8, 12))
+    expected = F.interpolate(batch.images.flatten(0, 1), size=(8, 12), mode="area").unflatten(0, (2, 2))
+    assert torch.equal(small, expected)
+    assert batch.resized_images((8, 12)) is small  # computed once
+    assert batch.resized_images((16, 24)) is batch.images
+    other = replace(batch, images=batch.images.flip(-1))  # a new batch: a fresh cache
+    torch.testing.assert_close(other.resized_images((8, 12)), small.flip(-1))
+    batch.images.mul_(0.5)  # images changed in place: resized again
+    torch.testing.assert_close(batch.resized_images((8, 12)), expected * 0.5)
+    assert batch.to("cpu").resized_images((8, 12)).shape == (2, 2, 3, 8, 12)

@@ -25,8 +25,8 @@ inline Vec3 add(Vec3 a, Vec3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
 inline float dot(Vec3 a, Vec3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
 inline Vec3 cross(Vec3 a, Vec3 b) { return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x}; }
 inline Vec3 normalize(Vec3 a) {  // F.normalize: a / max(|a|, 1e-12)
-  const float n = std::max(std::sqrt(dot(a, a)), 1e-12f);
-  return {a.x / n, a.y / n, a.z / n};
+  const float inv = 1.0f / std::max(std::sqrt(dot(a, a)), 1e-12f);
+  return {a.x * inv, a.y * inv, a.z * inv};
 }
 inline float abs_sum(Vec3 a) { return std::fabs(a.x) + std::fabs(a.y) + std::fabs(a.z); }
 
@@ -119,9 +119,10 @@ void surfel_pixel(const float* depth, const Camera& k, int64_t height, int64_t w
   // r[i][j] is component i of column j.
   const float w = 0.5f * std::sqrt(std::max(1.0f + c0.x + c1.y + c2.z, 1e-12f));
   quat[0] = w;
-  quat[1] = (c1.z - c2.y) / (4 * w);
-  quat[2] = (c2.x - c0.z) / (4 * w);
-  quat[3] = (c0.y - c1.x) / (4 * w);
+  const float inv_4w = 1.0f / (4 * w);
+  quat[1] = (c1.z - c2.y) * inv_4w;
+  quat[2] = (c2.x - c0.z) * inv_4w;
+  quat[3] = (c0.y - c1.x) * inv_4w;
 }
 
 std::tuple<at::Tensor, at::Tensor> surfel_frames(const at::Tensor& depth_in, const at::Tensor& intrinsics_in,
@@ -197,7 +198,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> activate_surfels(
   float* op = opacity.data_ptr<float>();
   float* out_sh = sh.data_ptr<float>();
   const float fp = static_cast<float>(footprint), th = static_cast<float>(thickness), mc = static_cast<float>(min_cos);
-  const float bias = static_cast<float>(opacity_bias), c0 = static_cast<float>(sh_c0);
+  const float bias = static_cast<float>(opacity_bias), inv_c0 = static_cast<float>(1.0 / sh_c0);
   at::parallel_for(0, views * height, 16, [&](int64_t begin, int64_t end) {
     for (int64_t vr = begin; vr < end; ++vr) {
       const int64_t v = vr / height, row = vr % height;
@@ -212,8 +213,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> activate_surfels(
         for (int j = 0; j < 3; ++j) ls[3 * i + j] = base_s[j] + 2.0f * fast_tanh(x[j] / 2.0f);
         // normalize((1, 0, 0, 0) + raw[3:7]) as F.normalize: divided by max(norm, 1e-12)
         const float w2 = 1.0f + x[3], x2 = x[4], y2 = x[5], z2 = x[6];
-        const float norm = std::max(std::sqrt(w2 * w2 + x2 * x2 + y2 * y2 + z2 * z2), 1e-12f);
-        const float dw = w2 / norm, dx = x2 / norm, dy = y2 / norm, dz = z2 / norm;
+        const float inv = 1.0f / std::max(std::sqrt(w2 * w2 + x2 * x2 + y2 * y2 + z2 * z2), 1e-12f);
+        const float dw = w2 * inv, dx = x2 * inv, dy = y2 * inv, dz = z2 * inv;
         const float w1 = base_q[0], x1 = base_q[1], y1 = base_q[2], z1 = base_q[3];
         q[4 * i + 0] = w1 * dw - x1 * dx - y1 * dy - z1 * dz;
         q[4 * i + 1] = w1 * dx + x1 * dw + y1 * dz - z1 * dy;
@@ -224,7 +225,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> activate_surfels(
         const int64_t pixel = row * width + col;
         for (int j = 0; j < 3; ++j) {
           const float rgb = img[(v * 3 + j) * pixels + pixel] + 0.5f * fast_tanh(x[8 + j]);
-          shi[j] = (rgb - 0.5f) / c0;
+          shi[j] = (rgb - 0.5f) * inv_c0;
         }
         for (int64_t j = 3; j < 3 * coeffs; ++j) shi[j] = x[8 + j];
       }
