@@ -18,10 +18,12 @@ import numpy as np
 from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
 
-# Settings compared by default: the window and the static bonus, over a narrow and the default
-# (wide) range of scales.
+# Settings compared by default: how far R refines its proposal, the window and the static bonus
+# over a narrow and the default (wide) range of scales, and coarser grids of s.
 DEFAULT_SETTINGS = [
     "",  # the defaults
+    "proposal_level=0",
+    "proposal_level=2",
     "use_network=false",
     "median_window=1",
     "median_window=5",

@@ -87,16 +87,11 @@ def surfel_frames(
     ``render/csrc/surfels.cpp``, float32, ~10x faster), "torch", or "auto" (cpp for float32 CPU
     tensors where the extension builds, else torch). Both give the same Gaussians up to float rounding.
     """
-    if backend not in ("auto", "cpp", "torch"):
-        raise ValueError(f"surfel_frames: backend must be auto, cpp or torch, got {backend!r}")
-    if backend == "cpp" or (backend == "auto" and depth.device.type == "cpu" and depth.dtype == torch.float32):
-        from drivingscene.render.cpp import load_op
+    from drivingscene.render.cpp import select_op
 
-        op = load_op("surfel_frames")
-        if op is not None:
-            return op(depth.detach(), intrinsics.detach(), footprint, THICKNESS, MIN_COS)
-    if backend == "cpp":
-        raise RuntimeError("surfel_frames: the compiled kernel is unavailable (CUDA tensors or no C++ build)")
+    op = select_op("surfel_frames", backend, depth)
+    if op is not None:
+        return op(depth.detach(), intrinsics.detach(), footprint, THICKNESS, MIN_COS)
     return surfel_frames_torch(depth.detach(), intrinsics, footprint)
 
 

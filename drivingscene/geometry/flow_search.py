@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.geometry.flow import backward_warp
+from drivingscene.render.cpp import select_op
 
 _LUMA = (0.299, 0.587, 0.114)
 _OUTSIDE_COST = 1.0  # a sample outside the other image costs as much as the largest luma difference
@@ -80,8 +81,7 @@ def search_along_rigid(
     faster), "torch", or "auto" (cpp for float32 CPU tensors where the extension builds, else
     torch). Both pick the same hypotheses up to float rounding (near-exact ties may differ)."""
     _check_window(window)
-    if backend not in ("auto", "cpp", "torch"):
-        raise ValueError(f"search_along_rigid: backend must be auto, cpp or torch, got {backend!r}")
+    op = select_op("search_along_rigid", backend, image, other, rigid)
     static = _static_index(scales)
     if static_bonus and static < 0:
         raise ValueError("static_bonus: expected scales to contain 1 (the static hypothesis)")
@@ -91,7 +91,6 @@ def search_along_rigid(
         bonus[static] = static_bonus
     if proposal is not None:
         bonus[-1] = proposal_bonus
-    op = _compiled("search_along_rigid", backend, image, other, rigid)
     if op is not None:
         empty = rigid.new_zeros(0)
         return op(image, other, rigid, scales.float(), empty if proposal is None else proposal, bonus, window, _OUTSIDE_COST)
@@ -116,21 +115,6 @@ def search_along_rigid(
             best_cost = torch.where(better, low, best_cost)
             best = torch.where(better, arg + first, best)
     return best
-
-
-def _compiled(name: str, backend: str, *tensors: Tensor):
-    """The compiled op ``name`` for ``backend`` ("cpp" demands it, "auto" takes it for float32 CPU
-    tensors where the extension builds), or None for the torch path."""
-    if backend == "torch":
-        return None
-    if backend == "auto" and not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
-        return None
-    from drivingscene.render.cpp import load_op
-
-    op = load_op(name)
-    if op is None and backend == "cpp":
-        raise RuntimeError(f"{name}: the compiled kernel is unavailable (no C++ build; see the logged warning)")
-    return op
 
 
 def median_of_choice(choice: Tensor, scales: Tensor, window: int) -> Tensor:

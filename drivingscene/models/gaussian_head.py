@@ -24,7 +24,7 @@ from drivingscene.gaussians.assembly import FOOTPRINT, MIN_COS, THICKNESS, surfe
 from drivingscene.gaussians.core import SH_C0, num_sh_coeffs, rgb_to_sh0
 from drivingscene.geometry.se3 import quat_multiply
 from drivingscene.models.blocks import ConvELU, upsample_to
-from drivingscene.render.cpp import load_op
+from drivingscene.render.cpp import select_op
 
 OPACITY_BIAS = 3.0
 
@@ -91,9 +91,9 @@ class GaussianHead(nn.Module):
             # raw is often a channels-last view of an NCHW tensor: per-pixel math on its strided
             # last dimension is several times slower than one contiguous copy.
             raw, images, depth, intrinsics = raw.float().contiguous(), images.float(), depth.float(), intrinsics.float()
-            if not (torch.is_grad_enabled() and raw.requires_grad) and raw.device.type == "cpu":
-                op = load_op("activate_surfels")
-                if op is not None:  # the same arithmetic in one compiled pass (~10x faster), inference only
+            if not (torch.is_grad_enabled() and raw.requires_grad):
+                op = select_op("activate_surfels", "auto", raw, images, depth)
+                if op is not None:  # the same arithmetic in one compiled pass (~2x faster), inference only
                     log_scales, quats, opacity_logits, sh = op(
                         depth.detach(), intrinsics, raw, images, FOOTPRINT, THICKNESS, MIN_COS, OPACITY_BIAS, SH_C0
                     )

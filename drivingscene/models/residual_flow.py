@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from drivingscene.geometry.flow import backward_warp
+from drivingscene.render.cpp import select_op
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,7 @@ def local_cost_volume(target: Tensor, source: Tensor, radius: int) -> Tensor:
     Without gradients, float32 CPU tensors go through the compiled kernel
     (``render/csrc/flow_search.cpp``, 2-4x faster; the same values up to float rounding)."""
     if not (torch.is_grad_enabled() and (target.requires_grad or source.requires_grad)):
-        op = _compiled_cost_volume(target, source)
+        op = select_op("local_cost_volume", "auto", target, source)
         if op is not None:
             return op(target, source, radius)
     height, width = target.shape[-2:]
@@ -90,14 +91,6 @@ def local_cost_volume(target: Tensor, source: Tensor, radius: int) -> Tensor:
         for dx in range(2 * radius + 1):
             costs.append((target * padded[..., dy : dy + height, dx : dx + width]).mean(dim=1))
     return torch.stack(costs, dim=1)
-
-
-def _compiled_cost_volume(target: Tensor, source: Tensor):
-    if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (target, source)):
-        return None
-    from drivingscene.render.cpp import load_op
-
-    return load_op("local_cost_volume")
 
 
 class PyramidEncoder(nn.Module):

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 import torch
+from torch import Tensor
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +100,26 @@ def load_op(name: str) -> Callable | None:
     if load_extension() is None:
         return None
     return getattr(torch.ops.drivingscene_render, name)
+
+
+BACKENDS = ("auto", "cpp", "torch")
+
+
+def select_op(name: str, backend: str, *tensors: Tensor) -> Callable | None:
+    """The compiled op ``name`` a function with a torch path should use, or ``None`` for the torch path.
+
+    ``backend``: "torch" (never the op), "cpp" (the op, or a RuntimeError where it is unavailable),
+    or "auto" (the op for float32 CPU ``tensors`` where the extension builds)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"{name}: backend must be auto, cpp or torch, got {backend!r}")
+    if backend == "torch":
+        return None
+    if backend == "auto" and not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
+        return None
+    op = load_op(name)
+    if op is None and backend == "cpp":
+        raise RuntimeError(f"{name}: the compiled kernel is unavailable (CUDA tensors or no C++ build; see the logged warning)")
+    return op
 
 
 def _first_line(e: Exception) -> str:
