@@ -16,13 +16,16 @@ SIZES = ("96x176", "176x320", "352x640")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sizes", nargs="+", default=list(SIZES), metavar="HxW")
-    p.add_argument("--runs", type=int, default=5, help="timed runs per size after one warm-up")
+    p.add_argument("--runs", type=int, default=5, help="timed runs per size (after 2 warm-up runs)")
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-amp", action="store_true")
     p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
+
+
+WARMUP_RUNS = 2
 
 
 def _pair(size: str):
@@ -34,31 +37,44 @@ def _pair(size: str):
     return generate_pair(SynthConfig(height=height, width=width), 200000)
 
 
-def measure(model, size: str, runs: int, amp: bool, threads: int, search: bool = True) -> dict:
+def measure(model, sizes: list[str], runs: int, amp: bool, threads: int, search: bool = True) -> list[dict]:
+    """One row per size. The timed runs go round the sizes in turn, so that a shared machine's
+    slow spells fall on every size alike; each size is warmed up first (its peak memory is the
+    process's high-water mark then, above its memory before)."""
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
 
-    pair = _pair(size)
     options = InferenceOptions(amp=amp, threads=threads)
     if not search:
         options = replace(options, search=None)
-    base = current_rss_bytes()
-    reconstruct(model, pair, options)  # warm-up
-    totals, parts = [], []
+    pairs = {size: _pair(size) for size in sizes}
+    peak, totals, parts, count = {}, {s: [] for s in sizes}, {s: [] for s in sizes}, {}
+    for size in sizes:
+        base = current_rss_bytes()
+        for _ in range(WARMUP_RUNS):  # oneDNN builds its kernels for each new shape on the first calls
+            recon = reconstruct(model, pairs[size], options)
+        peak[size] = (peak_rss_bytes() - base) / 2**20
+        count[size] = len(recon.gaussians)
     for _ in range(runs):
-        tic = time.perf_counter()
-        recon = reconstruct(model, pair, options)
-        totals.append(time.perf_counter() - tic)
-        parts.append(recon.meta["timings"])
-    part = {k: statistics.median(p[k] for p in parts) for k in parts[0]}
-    part.setdefault("search_s", 0.0)
-    return dict(
-        size=size,
-        median=statistics.median(totals),
-        best=min(totals),
-        gaussians=len(recon.gaussians),
-        peak_mib=(peak_rss_bytes() - base) / 2**20,
-        **part,
-    )
+        for size in sizes:
+            tic = time.perf_counter()
+            recon = reconstruct(model, pairs[size], options)
+            totals[size].append(time.perf_counter() - tic)
+            parts[size].append(recon.meta["timings"])
+    rows = []
+    for size in sizes:
+        part = {k: statistics.median(p[k] for p in parts[size]) for k in parts[size][0]}
+        part.setdefault("search_s", 0.0)
+        rows.append(
+            dict(
+                size=size,
+                median=statistics.median(totals[size]),
+                best=min(totals[size]),
+                gaussians=count[size],
+                peak_mib=peak[size],
+                **part,
+            )
+        )
+    return rows
 
 
 def _gpu_name(device) -> str:
@@ -75,12 +91,16 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     torch.set_num_threads(args.threads)
     model = load_model(args.weights, device=device)
-    rows = [measure(model, size, args.runs, not args.no_amp, args.threads, not args.no_search) for size in args.sizes]
+    rows = measure(model, args.sizes, args.runs, not args.no_amp, args.threads, not args.no_search)
+    from drivingscene.render.cpp import load_extension
+
+    kernels = "on" if device.type == "cpu" and load_extension() is not None else "off: torch paths"
     lines = [
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}"
         f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}`"
         f" on {machine_description()}"
-        f"{_gpu_name(device)}; bf16 autocast {'off' if args.no_amp else 'on'}; median of {args.runs} runs after a warm-up.",
+        f"{_gpu_name(device)}; bf16 autocast {'off' if args.no_amp else 'on'}; compiled CPU kernels {kernels}; "
+        f"median of {args.runs} runs per size, taken in turn across the sizes after {WARMUP_RUNS} warm-up runs each.",
         "",
         "| size (H×W) | total s (median) | best s | networks D+P s | flow (rigid + R + search + lift) s | of which search s "
         "| assembly + sky s | Gaussians | peak RSS increase |",

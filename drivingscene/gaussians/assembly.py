@@ -19,7 +19,7 @@ from torch import Tensor
 
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
 from drivingscene.geometry.camera import unproject
-from drivingscene.geometry.se3 import matrix_to_quat, quat_multiply, transform_points
+from drivingscene.geometry.se3 import matrix_to_quat, matvec, quat_left_matrix, transform_points
 
 # Splat sigma in pixels in the source view. With the renderer's 0.3 px^2 low-pass a pixel's splat
 # has sigma ~0.65 px, which still closes the surface; larger footprints blur the input views
@@ -169,23 +169,24 @@ def gaussians_from_pixels(
         log_scales = surfel_log_scales if log_scales is None else log_scales
     idx = valid.flatten().nonzero().squeeze(1)  # row-major pixel order, as valid-mask indexing
     counts = valid.flatten(1).sum(1)
-    views = torch.repeat_interleave(torch.arange(num_views, device=depth.device), counts)
-    cameras = views if camera_ids is None else camera_ids.to(depth.device)[views]
+
+    def per_gaussian(per_view: Tensor) -> Tensor:  # [V, ...] -> [N, ...], each view's value repeated
+        return torch.repeat_interleave(per_view.to(depth.device), counts, dim=0)
 
     def pick(x: Tensor, tail: int) -> Tensor:  # [V, H, W, *tail dims] -> [N, *tail dims]
         return x.reshape(num_views * height * width, *x.shape[3 : 3 + tail]).index_select(0, idx)
 
     points = transform_points(cam_to_world, unproject(depth, intrinsics).flatten(1, 2))  # [V, HW, 3]
     means = pick(points.view(num_views, height, width, 3), 1)
-    cam_quats = matrix_to_quat(cam_to_world[:, :3, :3])[views]
-    world_quats = quat_multiply(cam_quats, pick(quats, 1))
+    # camera to world rotation applied to every pixel's quaternion (one product per view, then picked)
+    world_quats = matvec(quat_left_matrix(matrix_to_quat(cam_to_world[:, :3, :3]))[:, None, None], quats)
     sh = rgb_to_sh0(colors)[..., None, :] if colors.ndim == 4 else colors
     if opacity_logits is None:
         opacity_logits = torch.full_like(depth, torch.logit(torch.tensor(default_opacity)).item())
     n = idx.numel()
     return Gaussians(
         means=means,
-        quats=world_quats,
+        quats=pick(world_quats, 1),
         log_scales=pick(log_scales, 1),
         opacity_logits=pick(opacity_logits, 0),
         sh=pick(sh, 2),
@@ -193,7 +194,7 @@ def gaussians_from_pixels(
         keyframes=(
             torch.full((n,), keyframe, dtype=torch.int64, device=depth.device)
             if isinstance(keyframe, int)
-            else keyframe.to(device=depth.device, dtype=torch.int64)[views]
+            else per_gaussian(keyframe.long())
         ),
-        cameras=cameras,
+        cameras=per_gaussian(torch.arange(num_views) if camera_ids is None else camera_ids.long()),
     )

@@ -47,19 +47,36 @@ def invert_rigid(transforms: Tensor) -> Tensor:
 
 def transform_points(transforms: Tensor, points: Tensor) -> Tensor:
     """Apply ``[..., 4, 4]`` transforms to points ``[..., N, 3]`` (leading dims broadcast)."""
-    return _affine(transforms[..., None, :3, :3], transforms[..., None, :3, 3], points)
+    return matvec(transforms[..., None, :3, :3], points, transforms[..., None, :3, 3])
 
 
 def rotate_vectors(rotations: Tensor, vectors: Tensor) -> Tensor:
     """Apply ``[..., 3, 3]`` rotations (or any linear maps) to vectors ``[..., N, 3]`` (leading dims broadcast)."""
-    return _affine(rotations[..., None, :, :], None, vectors)
+    return matvec(rotations[..., None, :, :], vectors)
 
 
-def _affine(matrix: Tensor, offset: Tensor | None, points: Tensor) -> Tensor:
-    """``matrix @ p + offset`` for points ``[..., N, 3]``: a sum of three scaled columns (each a
-    fused multiply-add over the points), ~2.5x faster on CPU than a matrix product with K = 3."""
-    first = points[..., 0:1] * matrix[..., 0] if offset is None else torch.addcmul(offset, points[..., 0:1], matrix[..., 0])
-    return first.addcmul_(points[..., 1:2], matrix[..., 1]).addcmul_(points[..., 2:3], matrix[..., 2])
+def matvec(matrix: Tensor, vectors: Tensor, offset: Tensor | None = None) -> Tensor:
+    """``matrix @ v (+ offset)`` for vectors ``[..., K]`` and matrices ``[..., M, K]`` that
+    broadcast against them: a sum of K scaled columns, each a fused multiply-add over the vectors,
+    ~2.5x faster on CPU than a batched matrix product with K = 3 or 4."""
+    first = vectors[..., 0:1] * matrix[..., 0] if offset is None else torch.addcmul(offset, vectors[..., 0:1], matrix[..., 0])
+    for j in range(1, vectors.shape[-1]):
+        first = first.addcmul_(vectors[..., j : j + 1], matrix[..., j])
+    return first
+
+
+def quat_left_matrix(q: Tensor) -> Tensor:
+    """``[..., 4, 4]`` matrix L with ``L(q1) @ q2 == quat_multiply(q1, q2)`` (w, x, y, z)."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([w, -x, -y, -z], -1),
+            torch.stack([x, w, -z, y], -1),
+            torch.stack([y, z, w, -x], -1),
+            torch.stack([z, -y, x, w], -1),
+        ],
+        -2,
+    )
 
 
 def slerp(q0: Tensor, q1: Tensor, t: Tensor | float) -> Tensor:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
@@ -36,10 +37,29 @@ class ConvELU(nn.Module):
 
     def __init__(self, in_ch: int, out_ch: int):
         super().__init__()
-        self.conv = nn.Conv2d(in_ch, out_ch, 3, padding=1, padding_mode="replicate")
+        self.conv = ReplicateConv3x3(in_ch, out_ch)
 
     def forward(self, x: Tensor) -> Tensor:
         return F.elu(self.conv(x), inplace=True)
+
+
+class ReplicateConv3x3(nn.Conv2d):
+    """``nn.Conv2d(in_ch, out_ch, 3, padding=1, padding_mode="replicate")`` (the same parameters
+    and results) with its padding done by `replicate_pad1`."""
+
+    def __init__(self, in_ch: int, out_ch: int):
+        super().__init__(in_ch, out_ch, 3, padding=1, padding_mode="replicate")
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.conv2d(replicate_pad1(x), self.weight, self.bias, self.stride, 0, self.dilation, self.groups)
+
+
+def replicate_pad1(x: Tensor) -> Tensor:
+    """``F.pad(x, (1, 1, 1, 1), mode="replicate")`` for ``[B, C, H, W]``, by concatenating edge
+    rows and columns: the same values, several times faster on CPU for channels-last float32
+    input, where torch's replication pad takes a slow path (30 ms for a 12 x 32 x 96 x 176 map)."""
+    x = torch.cat([x[:, :, :1], x, x[:, :, -1:]], dim=2)
+    return torch.cat([x[..., :1], x, x[..., -1:]], dim=3)
 
 
 def upsample_to(x: Tensor, like: Tensor, mode: str = "nearest") -> Tensor:

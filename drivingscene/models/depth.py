@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from drivingscene.models.blocks import ConvELU, ResNetEncoder, upsample_to
+from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, ResNetEncoder, upsample_to
 
 INITIAL_DISPARITY_LOGIT = -3.0
 
@@ -57,7 +57,7 @@ class DepthDecoder(nn.Module):
             self.up1.append(ConvELU(dec_channels[i] + skip, dec_channels[i]))
             in_ch = dec_channels[i]
         self.heads = nn.ModuleList(
-            nn.Conv2d(dec_channels[s], 1, 3, padding=1, padding_mode="replicate") for s in range(num_scales)
+            ReplicateConv3x3(dec_channels[s], 1) for s in range(num_scales)
         )
         for head in self.heads:  # start near 10 m (sigmoid(-3) ~ 0.047), a street's typical depth
             nn.init.constant_(head.bias, INITIAL_DISPARITY_LOGIT)

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from drivingscene.gaussians.assembly import FOOTPRINT, MIN_COS, THICKNESS, surfel_frames
 from drivingscene.gaussians.core import SH_C0, num_sh_coeffs, rgb_to_sh0
 from drivingscene.geometry.se3 import quat_multiply
-from drivingscene.models.blocks import ConvELU, upsample_to
+from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, upsample_to
 from drivingscene.render.cpp import select_op
 
 OPACITY_BIAS = 3.0
@@ -57,7 +57,7 @@ class GaussianHead(nn.Module):
         self.full = nn.Sequential(ConvELU(full_in, ch[0]), ConvELU(ch[0], ch[0]))
         k = num_sh_coeffs(config.sh_degree)
         self.num_out = 3 + 4 + 1 + 3 * k
-        self.out = nn.Conv2d(ch[0], self.num_out, 3, padding=1, padding_mode="replicate")
+        self.out = ReplicateConv3x3(ch[0], self.num_out)
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
 

@@ -142,3 +142,4 @@ def test_inference_benchmark_reports_the_search_share(tiny_weights, tmp_path, se
     row = out.read_text().splitlines()[-1].split(" | ")
     assert row[0] == "| 48x88" and (float(row[5]) > 0) == search  # "of which search s"
     assert ("--no-search" in out.read_text()) != search
+    assert "compiled CPU kernels on" in out.read_text() or "compiled CPU kernels off" in out.read_text()

@@ -61,6 +61,14 @@ def test_rotate_vectors_and_transform_points_match_matrix_products_with_broadcas
     torch.testing.assert_close(rotate_vectors(poses[0, :3, :3], single), single @ poses[0, :3, :3].T)
 
 
+def test_quat_left_matrix_multiplies_quaternions():
+    from drivingscene.geometry.se3 import matvec, quat_left_matrix, quat_multiply
+
+    g = torch.Generator().manual_seed(4)
+    q1, q2 = torch.randn(5, 1, 4, generator=g, dtype=torch.float64), torch.randn(5, 7, 4, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(matvec(quat_left_matrix(q1), q2), quat_multiply(q1, q2))
+
+
 def test_slerp_halves_the_angle_and_takes_the_short_arc():
     axis_angle = 1.2
     q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
