@@ -89,7 +89,7 @@ def surfel_frames(
     """
     from drivingscene.render.cpp import select_op
 
-    op = select_op("surfel_frames", backend, depth)
+    op = select_op("surfel_frames", backend, depth.detach())  # not differentiable in depth either way
     if op is not None:
         return op(depth.detach(), intrinsics.detach(), footprint, THICKNESS, MIN_COS)
     return surfel_frames_torch(depth.detach(), intrinsics, footprint)

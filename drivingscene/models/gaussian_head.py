@@ -91,13 +91,12 @@ class GaussianHead(nn.Module):
             # raw is often a channels-last view of an NCHW tensor: per-pixel math on its strided
             # last dimension is several times slower than one contiguous copy.
             raw, images, depth, intrinsics = raw.float().contiguous(), images.float(), depth.float(), intrinsics.float()
-            if not (torch.is_grad_enabled() and raw.requires_grad):
-                op = select_op("activate_surfels", "auto", raw, images, depth)
-                if op is not None:  # the same arithmetic in one compiled pass (~2x faster), inference only
-                    log_scales, quats, opacity_logits, sh = op(
-                        depth.detach(), intrinsics, raw, images, FOOTPRINT, THICKNESS, MIN_COS, OPACITY_BIAS, SH_C0
-                    )
-                    return PixelGaussians(log_scales=log_scales, quats=quats, opacity_logits=opacity_logits, sh=sh)
+            op = select_op("activate_surfels", "auto", raw, images, depth)
+            if op is not None:  # the same arithmetic in one compiled pass (~2x faster), inference only
+                log_scales, quats, opacity_logits, sh = op(
+                    depth.detach(), intrinsics, raw, images, FOOTPRINT, THICKNESS, MIN_COS, OPACITY_BIAS, SH_C0
+                )
+                return PixelGaussians(log_scales=log_scales, quats=quats, opacity_logits=opacity_logits, sh=sh)
             return self._activate(raw, images, depth, intrinsics)
 
     def _activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:

@@ -80,10 +80,9 @@ def local_cost_volume(target: Tensor, source: Tensor, radius: int) -> Tensor:
 
     Without gradients, float32 CPU tensors go through the compiled kernel
     (``render/csrc/flow_search.cpp``, 2-4x faster; the same values up to float rounding)."""
-    if not (torch.is_grad_enabled() and (target.requires_grad or source.requires_grad)):
-        op = select_op("local_cost_volume", "auto", target, source)
-        if op is not None:
-            return op(target, source, radius)
+    op = select_op("local_cost_volume", "auto", target, source)
+    if op is not None:
+        return op(target, source, radius)
     height, width = target.shape[-2:]
     padded = F.pad(source, (radius, radius, radius, radius))
     costs = []

@@ -109,12 +109,15 @@ def select_op(name: str, backend: str, *tensors: Tensor) -> Callable | None:
     """The compiled op ``name`` a function with a torch path should use, or ``None`` for the torch path.
 
     ``backend``: "torch" (never the op), "cpp" (the op, or a RuntimeError where it is unavailable),
-    or "auto" (the op for float32 CPU ``tensors`` where the extension builds)."""
+    or "auto" (the op for float32 CPU ``tensors`` where the extension builds, unless one of them
+    needs a gradient: the compiled ops have no backward)."""
     if backend not in BACKENDS:
         raise ValueError(f"{name}: backend must be auto, cpp or torch, got {backend!r}")
     if backend == "torch":
         return None
     if backend == "auto" and not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
+        return None
+    if backend == "auto" and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         return None
     op = load_op(name)
     if op is None and backend == "cpp":

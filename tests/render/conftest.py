@@ -7,8 +7,6 @@ import math
 import pytest
 import torch
 
-from drivingscene.render import cpp
-
 
 def random_scene(num: int = 40, num_cams: int = 2, width: int = 32, height: int = 24, seed: int = 0, sh_degree=None):
     """Random Gaussians 3-7 m in front of ``num_cams`` nearby cameras, as ``rasterize`` keyword arguments."""
@@ -39,20 +37,15 @@ def random_scene(num: int = 40, num_cams: int = 2, width: int = 32, height: int 
 
 
 @pytest.fixture(scope="session")
-def cpp_op():
-    """The compiled find_pairs op (built once per session, ~15 s the first time); skips without a compiler."""
-    op = cpp.load_extension()
-    if op is None:
-        pytest.skip("C++ pair-finding step unavailable (no C++ compiler/ninja or build failed; see the logged warning)")
-    return op
+def cpp_op(compiled_kernels):
+    """The compiled find_pairs op (the kernels are built once per session; skipped without a compiler)."""
+    return compiled_kernels.load_extension()
 
 
-@pytest.fixture(params=["torch", "cpp"])
-def backend(request):
-    """Both fast paths; the C++ one is skipped (with the reason) where it cannot be built."""
-    if request.param == "cpp":
-        request.getfixturevalue("cpp_op")
-    return request.param
+@pytest.fixture
+def backend(kernel_backend):
+    """Both rasterizer paths, "torch" and "cpp" (`kernel_backend`)."""
+    return kernel_backend
 
 
 def max_contributors(scene: dict) -> int:
