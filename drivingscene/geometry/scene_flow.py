@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from drivingscene.geometry.camera import pixel_grid
-from drivingscene.geometry.se3 import transform_points
+from drivingscene.geometry.se3 import matvec, transform_points
 
 
 def _unproject_at(uv: Tensor, depth: Tensor, intrinsics: Tensor) -> Tensor:
@@ -84,4 +84,4 @@ def _transform_by_view(transforms: Tensor, index: Tensor, points: Tensor) -> Ten
         counts = torch.bincount(index, minlength=len(transforms)).tolist()
         parts = [transform_points(t, p) for p, t in zip(points.split(counts), transforms)]
         return torch.cat(parts)
-    return (transforms[index, :3, :3] @ points[:, :, None])[:, :, 0] + transforms[index, :3, 3]
+    return matvec(transforms[index, :3, :3], points, transforms[index, :3, 3])

@@ -115,6 +115,18 @@ def test_residual_flow_can_stop_at_a_coarser_level(model):
         flow_net(images, images.flip(0), rigid, slots, finest_level=4)
 
 
+def test_replicate_conv_equals_torch_replicate_padding_conv():
+    from drivingscene.models.blocks import ReplicateConv3x3
+
+    torch.manual_seed(3)
+    conv = ReplicateConv3x3(5, 4)
+    reference = torch.nn.Conv2d(5, 4, 3, padding=1, padding_mode="replicate")
+    reference.load_state_dict(conv.state_dict())
+    for shape in ((2, 5, 7, 9), (1, 5, 1, 1)):
+        x = torch.randn(shape).contiguous(memory_format=torch.channels_last)
+        assert torch.equal(conv(x), reference(x))
+
+
 def test_coarse_radius_widens_only_the_coarsest_cost_volume():
     wide = CameraDecoder(FlowConfig(radius=3, coarse_radius=6))
     assert FlowConfig(radius=3, coarse_radius=6).level_radii == [3, 3, 3, 6]
