@@ -13,7 +13,7 @@ from pathlib import Path
 
 from drivingscene.errors import InputError
 
-TERMS = ("loc", "smooth", "render", "warp", "consist", "flow_sup", "depth_sup")
+TERMS = ("loc", "smooth", "render", "warp", "consist", "flow_sup", "depth_sup", "search_sup")
 VAL_KEYS = ("psnr", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
 
 
@@ -109,9 +109,10 @@ def _row(name: str, config: dict, recs: list[dict]) -> str:
     dp_lr = "frozen" if config["stage"] == "dynamic" else config["lr"]
     weights = config.get("weights", {})
     flow_sup = weights.get("flow_sup", 0.0) if config["stage"] != "static" else "–"
+    search_sup = weights.get("search_sup", 0.0) if config["stage"] != "static" else "–"
     depth_sup = weights.get("depth_sup", 0.0) if config["stage"] != "dynamic" else "–"
     init = f"`{config['init']}`" if config.get("init") else "scratch"
-    cells = [name, config["stage"], steps, dp_lr, flow_lr, depth_sup, flow_sup, init, f"{wall_hours(recs):.1f} h"]
+    cells = [name, config["stage"], steps, dp_lr, flow_lr, depth_sup, flow_sup, search_sup, init, f"{wall_hours(recs):.1f} h"]
     return "| " + " | ".join(map(str, cells)) + f" | {config['data']} |"
 
 
@@ -119,13 +120,19 @@ def run(args: argparse.Namespace) -> int:
     runs = [(folder.name, *_read_run(folder)) for folder in args.runs]
     plot_curves(runs, args.figure)
     lines = [
-        "| run | stage | steps | lr D, P | lr R | depth supervision | flow supervision | init | wall time | data |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| run | stage | steps | lr D, P | lr R | depth supervision | flow supervision | search supervision | init "
+        "| wall time | data |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     lines += [_row(name, config, recs) for name, config, recs in runs]
     lines += ["", "Trained on (per run, from its `sessions.jsonl`):", ""]
     lines += [f"- {folder.name}: " + ("; ".join(machines(folder)) or "not recorded") for folder in args.runs]
-    lines += ["", "Validation (mean over the validation pairs, recorded during training):", ""]
+    lines += [
+        "",
+        "Validation (mean over the validation pairs, recorded during training; the networks alone, without the "
+        "inference-time search along the rigid flow):",
+        "",
+    ]
     lines += ["| run | step | " + " | ".join(VAL_KEYS) + " |", "|---|---|" + "---|" * len(VAL_KEYS)]
     for name, _, recs in runs:
         for r in recs:

@@ -29,6 +29,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="add W x L1 flow error against the pairs' ground-truth flow (synthetic pre-training of R; not in the paper)",
     )
     p.add_argument(
+        "--search-supervision",
+        type=float,
+        default=None,
+        metavar="W",
+        help="add W x L1 error of R's flow against the search along the rigid flow where the search overrides R "
+        "(self-supervised; not in the paper)",
+    )
+    p.add_argument(
         "--depth-supervision",
         type=float,
         default=None,
@@ -100,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
     for flag, field, value in (
         ("--flow-supervision", "flow_sup", args.flow_supervision),
         ("--depth-supervision", "depth_sup", args.depth_supervision),
+        ("--search-supervision", "search_sup", args.search_supervision),
     ):
         if value is not None:
             if not value >= 0:

@@ -29,6 +29,10 @@ class LossWeights:
     # Not in the paper (0 = its recipe): L1 of log depth against a synthetic pair's exact depth
     # (``--depth-supervision``), for the depth of moving objects that L_loc cannot teach.
     depth_sup: float = 0.0
+    # Not in the paper (0 = its recipe): L1 of R's flow against the search along the rigid flow
+    # (`search_motion`, no gradient) where the search overrides R and its flow is forward/backward
+    # consistent (``--search-supervision``). Self-supervised: needs no ground truth.
+    search_sup: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
 Stage 1 (static prior):  0.1 L_loc + 0.001 L_smooth + 0.01 L_render
 Stage 2 (dynamics):      0.02 L_warp + 1e-5 L_consist + 0.01 L_render
                          (+ optional L_depth_sup in stage 1 and L_flow_sup in stage 2, on synthetic
-                          ground truth, not in the paper)
+                          ground truth, and L_search_sup in stage 2, self-supervised; none in the paper)
 (weights in ``drivingscene.train.config.LossWeights``).
 """
 
@@ -139,6 +139,14 @@ def supervised_flow_loss(flow: Tensor, gt_flow: Tensor, dynamic: Tensor, valid: 
     (``dynamic``) and the mean over the rest count half each, so that the few percent of pixels on
     moving objects are not drowned by the static world. Not in the paper: for synthetic pairs."""
     return _half_moving_half_static((flow - gt_flow).abs().sum(-1) / flow.shape[-2], valid, dynamic)
+
+
+def search_distillation_loss(flow: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """L_search_sup: mean L1 end-point error of ``flow`` against the search's flow ``target`` (both
+    ``[B, H, W, 2]``, pixels; ``target`` carries no gradient), divided by the image width, over
+    ``mask`` (0 when it is empty). Not in the paper: it distils the inference-time search into R."""
+    err = (flow - target.detach()).abs().sum(-1) / flow.shape[-2]
+    return err[mask].mean() if bool(mask.any()) else err.new_zeros(())
 
 
 def supervised_depth_loss(depth: Tensor, gt_depth: Tensor, dynamic: Tensor, max_depth: float = 80.0) -> Tensor:

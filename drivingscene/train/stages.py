@@ -18,17 +18,20 @@ from torch import Tensor, nn
 from drivingscene.data.tensors import PairTensors
 from drivingscene.errors import InputError
 from drivingscene.geometry.camera import pixel_grid
-from drivingscene.geometry.flow import backward_warp, rigid_flow
+from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.oracle import fit_sky_from_pixels
 from drivingscene.models.model import DrivingSceneModel
 from drivingscene.models.pipeline import (
+    FlowPrediction,
     LiftConfig,
+    MotionSearchConfig,
     StaticPrediction,
     assemble,
     lift_scene_flow,
     predict_flow,
     predict_static,
+    search_motion,
     sky_mask,
 )
 from drivingscene.render.scene import render_gaussians
@@ -37,6 +40,7 @@ from drivingscene.train.losses import (
     consistency_loss,
     render_loss,
     reprojection_loss,
+    search_distillation_loss,
     smoothness_loss,
     supervised_depth_loss,
     supervised_flow_loss,
@@ -115,6 +119,7 @@ class TrainStep(nn.Module):
             "consist": w.consist,
             "flow_sup": w.flow_sup,
             "depth_sup": w.depth_sup,
+            "search_sup": w.search_sup,
         }
         loss = sum(weight[k] * v for k, v in terms.items() if k in weight)
         return loss, terms
@@ -190,7 +195,10 @@ class TrainStep(nn.Module):
             raise InputError("--flow-supervision: the training pairs carry no gt_flow (synthetic pairs do)")
         if supervise:
             gt_flow, gt_valid, gt_dynamic = _flow_targets(batch)
-        warp = sup = 0.0
+        distil = w.search_sup > 0
+        if distil:
+            searched, overridden = search_targets(flow, batch)
+        warp = sup = search = 0.0
         for level, residual in enumerate(flow.residuals):
             total = (flow.rigid + residual).flatten(0, 1)
             warped, inside = backward_warp(sources, total)
@@ -200,17 +208,35 @@ class TrainStep(nn.Module):
             warp = warp + warp_loss(warped, targets, inside, lpips, w.warp_ssim, w.warp_lpips) / scale
             if supervise:
                 sup = sup + supervised_flow_loss(total, gt_flow, gt_dynamic, gt_valid) / scale
+            if distil:
+                search = search + search_distillation_loss(total, searched, overridden) / scale
         total = flow.total
         consist = consistency_loss(total[0], total[1]) + consistency_loss(total[1], total[0])
         terms = {"warp": warp, "consist": consist}
         if supervise:
             terms["flow_sup"] = sup
+        if distil:
+            terms["search_sup"] = search
+            terms["search_px"] = overridden.float().mean()
         if step % self.config.render_every == 0:
             sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
             scene_flow, _ = lift_scene_flow(depth, total, flow.residual, sky, batch, TRAIN_LIFT)
             terms["render"] = self.render_term(static, batch, step, scene_flow)
         terms["residual_px"] = flow.residual.detach().norm(dim=-1).mean()
         return terms
+
+
+def search_targets(flow: FlowPrediction, batch: PairTensors, config: MotionSearchConfig | None = None) -> tuple[Tensor, Tensor]:
+    """The search's flow ``[2V, H, W, 2]`` from R's current flow (no gradient; the inference
+    search, `search_motion`, at the training pairs' size) and where it is a target for R
+    ``[2V, H, W]``: the search moved the flow by more than 1 px from R's, and its flows in the two
+    directions agree (forward/backward), which rejects most wrong picks."""
+    with torch.no_grad():
+        detached = FlowPrediction(rigid=flow.rigid, residuals=[flow.residuals[-1].detach()], warped_sources=flow.warped_sources)
+        searched = search_motion(detached, batch, config or MotionSearchConfig()).searched
+        consistent = torch.stack([forward_backward_consistency(searched[k], searched[1 - k]) for k in (0, 1)])
+        moved = (searched - detached.total).square().sum(-1) > 1.0
+    return searched.flatten(0, 1), (consistent & moved).flatten(0, 1)
 
 
 def _flow_targets(batch: PairTensors) -> tuple[Tensor, Tensor, Tensor]:

@@ -16,9 +16,10 @@ KEYS = ("psnr", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid"
 
 
 def validate(model: DrivingSceneModel, files: list[Path], config) -> dict[str, float]:
-    """Mean of the headline scores over ``files`` (no perceptual term, to stay cheap)."""
+    """Mean of the headline scores over ``files`` (no perceptual term, to stay cheap). The networks
+    alone: without the inference-time search along the rigid flow, which training does not change."""
     model.eval()
-    options = InferenceOptions(use_residual=config.stage != "static", amp=config.amp)
+    options = InferenceOptions(use_residual=config.stage != "static", amp=config.amp, search=None)
     sums: dict[str, list[float]] = {k: [] for k in KEYS}
     for path in files:
         pair = load_frame_pair(path)

@@ -11,6 +11,7 @@ from drivingscene.train.losses import (
     photometric_error,
     render_loss,
     reprojection_loss,
+    search_distillation_loss,
     smoothness_loss,
     supervised_depth_loss,
     supervised_flow_loss,
@@ -151,3 +152,46 @@ def test_supervised_depth_loss_is_log_error_balanced_and_skips_unknown_depth():
     pred.requires_grad_(True)
     supervised_depth_loss(pred * 1.5, gt, dynamic).backward()
     assert pred.grad[0, 3].abs().sum() == 0 and pred.grad[0, 1].abs().sum() > 0
+
+
+def test_search_distillation_loss_is_masked_l1_over_width_without_gradient_into_the_target():
+    flow = torch.zeros(1, 4, 10, 2, requires_grad=True)
+    target = torch.zeros(1, 4, 10, 2, requires_grad=True)
+    mask = torch.zeros(1, 4, 10, dtype=torch.bool)
+    assert search_distillation_loss(flow, target, mask) == 0  # nothing to learn from
+    with torch.no_grad():
+        target[0, 0, 0] = torch.tensor([3.0, -4.0])
+    mask[0, 0, :2] = True  # two target pixels: 7 px and 0 px off
+    loss = search_distillation_loss(flow, target, mask)
+    assert torch.isclose(loss, torch.tensor(7.0 / 2 / 10))
+    loss.backward()
+    assert target.grad is None or target.grad.abs().sum() == 0
+    assert flow.grad[0, 0, 0].abs().sum() > 0 and flow.grad[0, 1].abs().sum() == 0
+
+
+def test_search_targets_where_the_search_overrides_r():
+    """Both keyframes show the same texture while the rigid flow says 3 px (the content keeps pace
+    with the ego): where R followed the rigid flow, the search's zero flow is its target; where R
+    already found it, there is nothing to learn."""
+    from dataclasses import replace
+
+    import torch.nn.functional as F
+
+    from drivingscene.data.tensors import pair_to_tensors
+    from drivingscene.models.pipeline import FlowPrediction
+    from drivingscene.train.stages import search_targets
+    from tests.factories import make_pair
+
+    batch = pair_to_tensors(make_pair(num_views=2, height=24, width=32))
+    texture = F.avg_pool2d(torch.rand(2, 3, 24, 32, generator=torch.Generator().manual_seed(3)), 3, stride=1, padding=1)
+    batch = replace(batch, images=torch.stack([texture, texture]))
+    rigid = torch.zeros(2, 2, 24, 32, 2)
+    rigid[0, ..., 0], rigid[1, ..., 0] = 3.0, -3.0
+    follows_rigid = FlowPrediction(rigid=rigid, residuals=[torch.zeros_like(rigid)], warped_sources=torch.zeros(2, 2, 3, 24, 32))
+    target, mask = search_targets(follows_rigid, batch)
+    assert target.shape == (4, 24, 32, 2) and mask.shape == (4, 24, 32)
+    assert mask[:, 6:-6, 6:-6].all()  # interior: the search moved the flow by 3 px, both directions agree
+    assert target[:, 6:-6, 6:-6].abs().max() < 0.05
+    found = FlowPrediction(rigid=rigid, residuals=[-rigid], warped_sources=torch.zeros(2, 2, 3, 24, 32))
+    _, mask = search_targets(found, batch)
+    assert not mask.any()

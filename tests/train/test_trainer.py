@@ -209,8 +209,8 @@ def test_training_report_from_runs(data_dir, tmp_path):
     args = ["bench", "training", str(static), str(dynamic), "--figure", str(figure), "--out", str(out)]
     assert main(args) == 0
     text = out.read_text()
-    assert "| static | static | 3 | 0.0001 | frozen | 0.0 | – | scratch |" in text
-    assert "| dynamic | dynamic | 2 | frozen | 0.0005 | – | 0.0 |" in text
+    assert "| static | static | 3 | 0.0001 | frozen | 0.0 | – | – | scratch |" in text
+    assert "| dynamic | dynamic | 2 | frozen | 0.0005 | – | 0.0 | 0.0 |" in text
     assert "1 process(es) x 1 thread(s)" in text
     assert figure.stat().st_size > 1000
 
@@ -223,9 +223,10 @@ def test_flow_supervision_term_and_resume_keeps_the_runs_settings(data_dir, tmp_
     args += ["--lpips", "stlpips", "--ckpt-every", "2", "--no-progress"]
     tiny = tmp_path / "tiny.json"
     tiny.write_text(json.dumps(TrainConfig(model=TINY_MODEL, log_every=1).to_dict()))
-    assert main([*args, "--config", str(tiny), "--flow-supervision", "0.1", "--flow-lr", "5e-4"]) == 0
+    extra = ["--flow-supervision", "0.1", "--search-supervision", "0.05", "--flow-lr", "5e-4"]
+    assert main([*args, "--config", str(tiny), *extra]) == 0
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
-    assert all(r["flow_sup"] > 0 for r in records)
+    assert all(r["flow_sup"] > 0 and r["search_sup"] >= 0 and 0 <= r["search_px"] <= 1 for r in records)
     # --resume with no settings continues with the run's own (supervision, R's learning rate)
     assert (
         main(
@@ -246,10 +247,13 @@ def test_flow_supervision_term_and_resume_keeps_the_runs_settings(data_dir, tmp_
         == 0
     )
     saved = json.loads((out / "config.json").read_text())
-    assert saved["weights"]["flow_sup"] == 0.1 and saved["flow_lr"] == 5e-4 and saved["steps"] == 3
+    assert saved["weights"]["flow_sup"] == 0.1 and saved["weights"]["search_sup"] == 0.05
+    assert saved["flow_lr"] == 5e-4 and saved["steps"] == 3
     assert "flow_sup" in json.loads((out / "log.jsonl").read_text().splitlines()[-1])
     assert main([*args[:-1], "--out", str(tmp_path / "neg"), "--flow-supervision", "-1"]) == 2
     assert "--flow-supervision: expected a weight >= 0" in capsys.readouterr().err
+    assert main([*args[:-1], "--out", str(tmp_path / "neg"), "--search-supervision", "-1"]) == 2
+    assert "--search-supervision: expected a weight >= 0" in capsys.readouterr().err
 
 
 def test_depth_supervision_term_in_stage_one(data_dir, tmp_path):
