@@ -141,5 +141,22 @@ def test_inference_benchmark_reports_the_search_share(tiny_weights, tmp_path, se
     assert main(args + ([] if search else ["--no-search"])) == 0
     row = out.read_text().splitlines()[-1].split(" | ")
     assert row[0] == "| 48x88" and (float(row[5]) > 0) == search  # "of which search s"
+    assert float(row[8].split()[0]) > 0  # peak RSS of a fresh process's reconstruction (MiB)
     assert ("--no-search" in out.read_text()) != search
     assert "compiled CPU kernels on" in out.read_text() or "compiled CPU kernels off" in out.read_text()
+
+
+def test_peak_memory_of_a_spawned_process_does_not_inherit_the_parents():
+    """``ru_maxrss`` carries the parent's resident memory at the fork into a spawned process; the
+    per-size memory figures of `bench inference` come from such processes."""
+    import multiprocessing
+
+    import numpy as np
+
+    from drivingscene.bench.machine import current_rss_bytes, peak_rss_bytes
+
+    ballast = np.ones(400 * 2**20 // 8)  # 400 MiB, touched
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        child_peak = pool.apply(peak_rss_bytes)
+    assert current_rss_bytes() > 400 * 2**20 and ballast.sum() > 0
+    assert child_peak < current_rss_bytes() - 300 * 2**20
