@@ -8,6 +8,10 @@ from torch import Tensor
 from drivingscene.geometry.camera import pixel_grid, project, unproject
 from drivingscene.geometry.se3 import invert_rigid, transform_points
 
+# Forward/backward consistency (UnFlow): |f + b(p + f)|^2 < FB_ALPHA (|f|^2 + |b(p + f)|^2) + FB_BETA.
+FB_ALPHA = 0.01
+FB_BETA = 0.5
+
 
 def cams_to_world(cam_to_ego: Tensor, ego_to_world: Tensor) -> Tensor:
     """Camera poses ``[..., V, 4, 4]`` from the rig ``[V, 4, 4]`` and ego poses ``[..., 4, 4]``."""
@@ -58,8 +62,8 @@ def backward_warp(image: Tensor, flow: Tensor, mode: str = "bilinear") -> tuple[
 def forward_backward_consistency(
     flow_fw: Tensor,  # [B, H, W, 2] keyframe 0 -> 1 at keyframe-0 pixels
     flow_bw: Tensor,  # [B, H, W, 2] keyframe 1 -> 0 at keyframe-1 pixels
-    alpha: float = 0.01,
-    beta: float = 0.5,
+    alpha: float = FB_ALPHA,
+    beta: float = FB_BETA,
 ) -> Tensor:
     """Pixels whose forward flow is undone by the backward flow (UnFlow's test), ``[B, H, W]`` bool.
 
@@ -103,7 +107,7 @@ def inside_image(uv: Tensor, height: int, width: int) -> Tensor:
 
 
 def forward_backward_consistency_at(
-    flow_fw: Tensor, flow_bw: Tensor, index: Tensor, pixels: Tensor, alpha: float = 0.01, beta: float = 0.5
+    flow_fw: Tensor, flow_bw: Tensor, index: Tensor, pixels: Tensor, alpha: float = FB_ALPHA, beta: float = FB_BETA
 ) -> Tensor:
     """`forward_backward_consistency` at chosen pixels only: ``index`` ``[P]`` images, ``pixels``
     ``[P, 2]`` integer (u, v); flows ``[B, H, W, 2]``. Returns ``[P]`` bool."""

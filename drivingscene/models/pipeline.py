@@ -25,6 +25,8 @@ from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
 from drivingscene.geometry.flow import (
+    FB_ALPHA,
+    FB_BETA,
     backward_warp,
     forward_backward_consistency,
     forward_backward_consistency_at,
@@ -38,6 +40,7 @@ from drivingscene.geometry.se3 import rotate_vectors
 from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
 from drivingscene.models.model import DrivingSceneModel
+from drivingscene.render.cpp import select_op
 
 
 @dataclass(frozen=True)
@@ -324,6 +327,14 @@ def lift_scene_flow(
             moving |= behind[k]
         moving &= ~sky[k]
         if not check and moving.float().mean() > DENSE_LIFT_SHARE:  # cheaper at every pixel, same result
+            op = select_op("lift_dense", "auto", depth[k], depth[o], total[k], total[o], c2l)
+            if op is not None:  # the same in one compiled pass (render/csrc/lift.cpp), inference only
+                sf, dynamic = op(
+                    depth[k], depth[o], total[k], total[o], moving, batch.intrinsics, c2l[k], c2l[o], FB_ALPHA, FB_BETA
+                )
+                flows.append(sf)
+                masks.append(dynamic)
+                continue
             sf, valid = scene_flow_from_optical_flow(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o])
             dynamic = moving & valid & forward_backward_consistency(total[k].detach(), total[o].detach())
             flows.append(torch.where(dynamic[..., None], sf, torch.zeros_like(sf)))

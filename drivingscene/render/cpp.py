@@ -25,7 +25,7 @@ from torch import Tensor
 log = logging.getLogger(__name__)
 
 EXTENSION_NAME = "drivingscene_render"
-SOURCES = tuple(Path(__file__).parent / "csrc" / name for name in ("find_pairs.cpp", "surfels.cpp", "flow_search.cpp"))
+SOURCES = tuple(Path(__file__).parent / "csrc" / name for name in ("find_pairs.cpp", "surfels.cpp", "flow_search.cpp", "lift.cpp"))
 CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")  # no FMA: must match the torch path's rounding
 
 

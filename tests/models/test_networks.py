@@ -443,3 +443,37 @@ def test_search_keeps_the_flow_that_explains_the_images_at_full_size():
         MotionSearchConfig(window=2)
     with pytest.raises(ValueError, match="proposal_level"):
         MotionSearchConfig(proposal_level=-1)
+
+
+def test_compiled_dense_lift_matches_the_torch_path(compiled_kernels, monkeypatch):
+    """Nearly every pixel a candidate (the dense branch): smooth flows that the backward flow undoes
+    with noise added, so that some pixels fail the forward/backward check, and some depths 0 (invalid)."""
+    import drivingscene.models.pipeline as pipeline
+
+    batch = pair_to_tensors(make_pair(num_views=2, height=24, width=32))
+    g = torch.Generator().manual_seed(7)
+    depth = 2 + 20 * torch.rand(2, 2, 24, 32, generator=g)
+    depth[torch.rand(depth.shape, generator=g) < 0.05] = 0.0
+    shift = torch.tensor([3.0, -1.5])
+    noise = torch.randn(2, 2, 24, 32, 2, generator=g) * (torch.rand(2, 2, 24, 32, 1, generator=g) < 0.2)
+    total = torch.stack([shift.expand(2, 24, 32, 2), -shift.expand(2, 24, 32, 2)]) + 2 * noise
+    sky = torch.zeros(2, 2, 24, 32, dtype=torch.bool)
+    sky[:, :, :3] = True
+    chosen = []
+
+    def spy(name, *args):
+        op = select_op(name, *args)
+        chosen.append((name, op is not None))
+        return op
+
+    select_op = pipeline.select_op
+    monkeypatch.setattr(pipeline, "select_op", spy)
+    fast, fast_mask = lift_scene_flow(depth, total, total, sky, batch, LiftConfig())
+    assert chosen == [("lift_dense", True)] * 2
+    monkeypatch.setattr(pipeline, "select_op", lambda *args: None)
+    slow, slow_mask = lift_scene_flow(depth, total, total, sky, batch, LiftConfig())
+    assert 0.2 < slow_mask.float().mean() < 0.9  # both outcomes occur
+    assert (fast_mask == slow_mask).float().mean() > 0.999
+    both = fast_mask & slow_mask
+    torch.testing.assert_close(fast[both], slow[both], atol=1e-4, rtol=1e-4)
+    assert not fast[~fast_mask].any()  # static pixels do not move
