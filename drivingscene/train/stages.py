@@ -230,7 +230,8 @@ def search_targets(flow: FlowPrediction, batch: PairTensors, config: MotionSearc
     """The search's flow ``[2V, H, W, 2]`` from R's current flow (no gradient; the inference
     search, `search_motion`, at the training pairs' size) and where it is a target for R
     ``[2V, H, W]``: the search moved the flow by more than 1 px from R's, and its flows in the two
-    directions agree (forward/backward), which rejects most wrong picks."""
+    directions agree (forward/backward). The check rejects picks that the other direction does not
+    confirm, not wrong multiples of the rigid flow on flat texture (docs/training.md)."""
     with torch.no_grad():
         detached = FlowPrediction(rigid=flow.rigid, residuals=[flow.residuals[-1].detach()], warped_sources=flow.warped_sources)
         searched = search_motion(detached, batch, config or MotionSearchConfig()).searched
