@@ -1,128 +1,150 @@
 // Default surfel frames of per-pixel Gaussians (the optional compiled path of
 // drivingscene.gaussians.assembly.surfel_frames).
 //
-// One pass per pixel instead of ~100 full-image tensor operations: back-project, normal from the
-// smaller-step finite differences, the EWA footprint covariance in the tangent plane, its closed-form
-// eigen-decomposition, the capped scales and the axis-frame quaternion. The arithmetic follows the
-// torch path step by step (float32); the result is the same Gaussian up to float rounding (the
-// tests compare covariances). Not differentiable: both callers pass detached depth.
+// One pass per image row instead of ~100 full-image tensor operations: back-project, normal from
+// the smaller-step finite differences, the EWA footprint covariance in the tangent plane, its
+// closed-form eigen-decomposition, the capped scales and the axis-frame quaternion, vectorised over
+// the row's pixels. The arithmetic follows the torch path step by step (float32); the result is
+// the same Gaussian up to float rounding (the tests compare covariances). Not differentiable: both
+// callers pass detached depth.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
 #include <algorithm>
 #include <cmath>
+#include <vector>
 
 namespace {
-
-struct Vec3 {
-  float x, y, z;
-};
-
-inline Vec3 sub(Vec3 a, Vec3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
-inline Vec3 scale(Vec3 a, float s) { return {a.x * s, a.y * s, a.z * s}; }
-inline Vec3 add(Vec3 a, Vec3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-inline float dot(Vec3 a, Vec3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-inline Vec3 cross(Vec3 a, Vec3 b) { return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x}; }
-inline Vec3 normalize(Vec3 a) {  // F.normalize: a / max(|a|, 1e-12)
-  const float inv = 1.0f / std::max(std::sqrt(dot(a, a)), 1e-12f);
-  return {a.x * inv, a.y * inv, a.z * inv};
-}
-inline float abs_sum(Vec3 a) { return std::fabs(a.x) + std::fabs(a.y) + std::fabs(a.z); }
-
-// The finite difference with the smaller depth change (it does not cross a depth edge).
-inline Vec3 smaller_step(Vec3 forward, Vec3 backward) {
-  bool use_forward = std::fabs(forward.z) <= std::fabs(backward.z);
-  use_forward = (use_forward && abs_sum(forward) > 0) || abs_sum(backward) == 0;
-  return use_forward ? forward : backward;
-}
 
 struct Camera {
   float fx, fy, cx, cy, skew;
 };
 
-inline Vec3 point_at(const float* depth, const Camera& k, int64_t width, int64_t row, int64_t col) {
-  const float d = std::max(depth[row * width + col], 1e-3f);
-  const float y = (static_cast<float>(row) - k.cy) / k.fy;
-  const float x = (static_cast<float>(col) - k.cx - k.skew * y) / k.fx;
-  return {x * d, y * d, d};
+// The surfel frames of one image row, every column at once, written without branches so that the
+// compiler vectorises the column loop (-fno-math-errno -fno-trapping-math; the arithmetic and its
+// order are those of the torch path's steps, IEEE float32, no FMA): the quaternion
+// (w, x, y, z, each [width]), the two tangent scales before their logarithm and the pixel
+// footprint in metres (log_scale[2] = log(thickness * pixel)).
+struct RowOut {
+  std::vector<float> qw, qx, qy, qz, s_small, s_large, pixel;
+  std::vector<float> hx, hy, hz, ax, ay, az, bx, by, bz;  // camera points: this row (padded), above, below
+  explicit RowOut(int64_t width)
+      : qw(width), qx(width), qy(width), qz(width), s_small(width), s_large(width), pixel(width), hx(width + 2),
+        hy(width + 2), hz(width + 2), ax(width), ay(width), az(width), bx(width), by(width), bz(width) {}
+};
+
+// Camera points of image row `row` (clamped to the image) into x, y, z: the depth (at least 1e-3)
+// along the pixel's ray.
+inline void row_points(const float* depth, const Camera& k, int64_t height, int64_t width, int64_t row, float* x, float* y,
+                       float* z) {
+  const int64_t r = std::min(std::max<int64_t>(row, 0), height - 1);
+  const float* d = depth + r * width;
+  const float ry = (static_cast<float>(r) - k.cy) / k.fy;
+#pragma omp simd
+  for (int64_t col = 0; col < width; ++col) {
+    const float dc = std::max(d[col], 1e-3f);
+    const float rx = (static_cast<float>(col) - k.cx - k.skew * ry) / k.fx;
+    x[col] = rx * dc;
+    y[col] = ry * dc;
+    z[col] = dc;
+  }
 }
 
-void surfel_pixel(const float* depth, const Camera& k, int64_t height, int64_t width, int64_t row, int64_t col,
-                  float footprint, float thickness, float min_cos, float* quat, float* log_scale) {
-  const Vec3 p = point_at(depth, k, width, row, col);
-  const Vec3 right = point_at(depth, k, width, row, std::min(col + 1, width - 1));
-  const Vec3 left = point_at(depth, k, width, row, std::max<int64_t>(col - 1, 0));
-  const Vec3 down = point_at(depth, k, width, std::min(row + 1, height - 1), col);
-  const Vec3 up = point_at(depth, k, width, std::max<int64_t>(row - 1, 0), col);
-  const Vec3 dx = smaller_step(sub(right, p), sub(p, left));
-  const Vec3 dy = smaller_step(sub(down, p), sub(p, up));
-  Vec3 n = normalize(cross(dx, dy));
-  if (dot(n, p) > 0) n = scale(n, -1.0f);
-
-  const Vec3 helper = std::fabs(n.x) < 0.9f ? Vec3{1, 0, 0} : Vec3{0, 1, 0};
-  const Vec3 t1 = normalize(sub(helper, scale(n, dot(n, helper))));
-  const Vec3 t2 = cross(n, t1);
-
-  const float z = p.z;
-  const Vec3 j0 = {k.fx / z, 0.0f, -k.fx * p.x / (z * z)};
-  const Vec3 j1 = {0.0f, k.fy / z, -k.fy * p.y / (z * z)};
-  const float a00 = dot(j0, t1), a01 = dot(j0, t2), a10 = dot(j1, t1), a11 = dot(j1, t2);
-  float det = a00 * a11 - a01 * a10;
-  if (std::fabs(det) < 1e-12f) det = 1e-12f;
-  const float i00 = a11 / det, i01 = -a01 / det, i10 = -a10 / det, i11 = a00 / det;
+void surfel_row(const float* depth, const Camera& k, int64_t height, int64_t width, int64_t row, float footprint,
+                float min_cos, RowOut& o) {
+  row_points(depth, k, height, width, row, o.hx.data() + 1, o.hy.data() + 1, o.hz.data() + 1);
+  o.hx[0] = o.hx[1], o.hy[0] = o.hy[1], o.hz[0] = o.hz[1];  // columns clamped at the border
+  o.hx[width + 1] = o.hx[width], o.hy[width + 1] = o.hy[width], o.hz[width + 1] = o.hz[width];
+  row_points(depth, k, height, width, row - 1, o.ax.data(), o.ay.data(), o.az.data());
+  row_points(depth, k, height, width, row + 1, o.bx.data(), o.by.data(), o.bz.data());
+  const float* hx = o.hx.data();
+  const float* hy = o.hy.data();
+  const float* hz = o.hz.data();
   const float f2 = footprint * footprint;
-  const float a = f2 * (i00 * i00 + i01 * i01);
-  const float b = f2 * (i00 * i10 + i01 * i11);
-  const float c = f2 * (i10 * i10 + i11 * i11);
-  const float half_gap = std::sqrt(((a - c) / 2) * ((a - c) / 2) + b * b);
-  const float lam_large = (a + c) / 2 + half_gap;
-  const float lam_small = f2 * f2 / (det * det * lam_large);  // stable, unlike (a + c) / 2 - half_gap
-  // phi = atan2(2b, a - c) / 2, the direction of the large axis: its cosine and sine from the
-  // double angle's by the half-angle formulas, the one without cancellation first (no trig calls).
-  float cos_phi = 1.0f, sin_phi = 0.0f;
-  const float r = 2 * half_gap;
-  if (r > 0) {
+#pragma omp simd
+  for (int64_t col = 0; col < width; ++col) {
+    const float px = hx[col + 1], py = hy[col + 1], pz = hz[col + 1];
+    // the finite differences with the smaller depth change (smaller_step)
+    const float fx0 = hx[col + 2] - px, fy0 = hy[col + 2] - py, fz0 = hz[col + 2] - pz;
+    const float bx0 = px - hx[col], by0 = py - hy[col], bz0 = pz - hz[col];
+    const bool fwd_x = (std::fabs(fz0) <= std::fabs(bz0) && (std::fabs(fx0) + std::fabs(fy0) + std::fabs(fz0)) > 0) ||
+                       (std::fabs(bx0) + std::fabs(by0) + std::fabs(bz0)) == 0;
+    const float dxx = fwd_x ? fx0 : bx0, dxy = fwd_x ? fy0 : by0, dxz = fwd_x ? fz0 : bz0;
+    const float fx1 = o.bx[col] - px, fy1 = o.by[col] - py, fz1 = o.bz[col] - pz;
+    const float bx1 = px - o.ax[col], by1 = py - o.ay[col], bz1 = pz - o.az[col];
+    const bool fwd_y = (std::fabs(fz1) <= std::fabs(bz1) && (std::fabs(fx1) + std::fabs(fy1) + std::fabs(fz1)) > 0) ||
+                       (std::fabs(bx1) + std::fabs(by1) + std::fabs(bz1)) == 0;
+    const float dyx = fwd_y ? fx1 : bx1, dyy = fwd_y ? fy1 : by1, dyz = fwd_y ? fz1 : bz1;
+    // normal = normalize(cross(dx, dy)), facing the camera
+    float nx = dxy * dyz - dxz * dyy, ny = dxz * dyx - dxx * dyz, nz = dxx * dyy - dxy * dyx;
+    float inv = 1.0f / std::max(std::sqrt(nx * nx + ny * ny + nz * nz), 1e-12f);
+    nx = nx * inv, ny = ny * inv, nz = nz * inv;
+    const float flip = (nx * px + ny * py + nz * pz) > 0 ? -1.0f : 1.0f;
+    nx = nx * flip, ny = ny * flip, nz = nz * flip;
+    // tangent frame
+    const bool use_x = std::fabs(nx) < 0.9f;
+    const float gx = use_x ? 1.0f : 0.0f, gy = use_x ? 0.0f : 1.0f, gz = 0.0f;
+    const float nh = nx * gx + ny * gy + nz * gz;
+    float t1x = gx - nx * nh, t1y = gy - ny * nh, t1z = gz - nz * nh;
+    inv = 1.0f / std::max(std::sqrt(t1x * t1x + t1y * t1y + t1z * t1z), 1e-12f);
+    t1x = t1x * inv, t1y = t1y * inv, t1z = t1z * inv;
+    const float t2x = ny * t1z - nz * t1y, t2y = nz * t1x - nx * t1z, t2z = nx * t1y - ny * t1x;
+    // the EWA footprint in the tangent plane and its eigen-decomposition
+    const float z = pz;
+    const float j0x = k.fx / z, j0z = -k.fx * px / (z * z);
+    const float j1y = k.fy / z, j1z = -k.fy * py / (z * z);
+    const float a00 = j0x * t1x + 0.0f * t1y + j0z * t1z, a01 = j0x * t2x + 0.0f * t2y + j0z * t2z;
+    const float a10 = 0.0f * t1x + j1y * t1y + j1z * t1z, a11 = 0.0f * t2x + j1y * t2y + j1z * t2z;
+    float det = a00 * a11 - a01 * a10;
+    det = std::fabs(det) < 1e-12f ? 1e-12f : det;
+    const float i00 = a11 / det, i01 = -a01 / det, i10 = -a10 / det, i11 = a00 / det;
+    const float a = f2 * (i00 * i00 + i01 * i01);
+    const float b = f2 * (i00 * i10 + i01 * i11);
+    const float c = f2 * (i10 * i10 + i11 * i11);
+    const float half_gap = std::sqrt(((a - c) / 2) * ((a - c) / 2) + b * b);
+    const float lam_large = (a + c) / 2 + half_gap;
+    const float lam_small = f2 * f2 / (det * det * lam_large);
+    const float r = 2 * half_gap;
     const float cos2 = (a - c) / r, sin2 = 2 * b / r;
-    if (cos2 >= 0) {
-      cos_phi = std::sqrt((1 + cos2) / 2);
-      sin_phi = sin2 / (2 * cos_phi);
-    } else {
-      sin_phi = std::copysign(std::sqrt((1 - cos2) / 2), sin2);
-      cos_phi = std::fabs(sin2) / (2 * std::fabs(sin_phi));
-    }
+    const float cos_p = std::sqrt((1 + cos2) / 2);
+    const float sin_p = sin2 / (2 * cos_p);
+    const float sin_n = std::copysign(std::sqrt((1 - cos2) / 2), sin2);
+    const float cos_n = std::fabs(sin2) / (2 * std::fabs(sin_n));
+    const float cos_phi = r > 0 ? (cos2 >= 0 ? cos_p : cos_n) : 1.0f;
+    const float sin_phi = r > 0 ? (cos2 >= 0 ? sin_p : sin_n) : 0.0f;
+    const float pixel = footprint * z / (0.5f * (k.fx + k.fy));
+    const float cap = pixel / min_cos;
+    o.s_small[col] = std::min(std::sqrt(std::max(lam_small, 1e-12f)), cap);
+    o.s_large[col] = std::min(std::sqrt(std::max(lam_large, 1e-12f)), cap);
+    o.pixel[col] = pixel;
+    // the axis frame [d1 d2 n] (columns; d1 the large axis) to a quaternion
+    float d1x = t1x * -sin_phi + t2x * cos_phi, d1y = t1y * -sin_phi + t2y * cos_phi, d1z = t1z * -sin_phi + t2z * cos_phi;
+    inv = 1.0f / std::max(std::sqrt(d1x * d1x + d1y * d1y + d1z * d1z), 1e-12f);
+    d1x = d1x * inv, d1y = d1y * inv, d1z = d1z * inv;
+    const float d2x = ny * d1z - nz * d1y, d2y = nz * d1x - nx * d1z, d2z = nx * d1y - ny * d1x;
+    // of the four frames equal up to flipping two axes, the first with the largest trace
+    const float tr0 = d1x * 1.0f + d2y * 1.0f + nz * 1.0f;
+    const float tr1 = d1x * 1.0f + d2y * -1.0f + nz * -1.0f;
+    const float tr2 = d1x * -1.0f + d2y * 1.0f + nz * -1.0f;
+    const float tr3 = d1x * -1.0f + d2y * -1.0f + nz * 1.0f;
+    float s0 = 1.0f, s1 = 1.0f, s2 = 1.0f, best = tr0;
+    const bool b1 = tr1 > best;
+    best = b1 ? tr1 : best, s0 = b1 ? 1.0f : s0, s1 = b1 ? -1.0f : s1, s2 = b1 ? -1.0f : s2;
+    const bool b2 = tr2 > best;
+    best = b2 ? tr2 : best, s0 = b2 ? -1.0f : s0, s1 = b2 ? 1.0f : s1, s2 = b2 ? -1.0f : s2;
+    const bool b3 = tr3 > best;
+    s0 = b3 ? -1.0f : s0, s1 = b3 ? -1.0f : s1, s2 = b3 ? 1.0f : s2;
+    const float c0x = d1x * s0, c0y = d1y * s0, c0z = d1z * s0;
+    const float c1x = d2x * s1, c1y = d2y * s1, c1z = d2z * s1;
+    const float c2x = nx * s2, c2y = ny * s2, c2z = nz * s2;
+    const float w = 0.5f * std::sqrt(std::max(1.0f + c0x + c1y + c2z, 1e-12f));
+    const float inv_4w = 1.0f / (4 * w);
+    o.qw[col] = w;
+    o.qx[col] = (c1z - c2y) * inv_4w;
+    o.qy[col] = (c2x - c0z) * inv_4w;
+    o.qz[col] = (c0y - c1x) * inv_4w;
   }
-  const float pixel = footprint * z / (0.5f * (k.fx + k.fy));
-  const float cap = pixel / min_cos;
-  const float s_small = std::min(std::sqrt(std::max(lam_small, 1e-12f)), cap);
-  const float s_large = std::min(std::sqrt(std::max(lam_large, 1e-12f)), cap);
-  const Vec3 d1 = normalize(add(scale(t1, -sin_phi), scale(t2, cos_phi)));
-  const Vec3 d2 = cross(n, d1);
-  log_scale[0] = std::log(s_small);
-  log_scale[1] = std::log(s_large);
-  log_scale[2] = std::log(thickness * pixel);
-
-  // Axis frame [d1 d2 n] (columns) to a quaternion: of the four frames equal up to flipping two
-  // axes, the one with the largest trace, then the trace formula (as axes_to_quat).
-  static const float flips[4][3] = {{1, 1, 1}, {1, -1, -1}, {-1, 1, -1}, {-1, -1, 1}};
-  const float diag[3] = {d1.x, d2.y, n.z};
-  int best = 0;
-  float best_trace = -1e30f;
-  for (int f = 0; f < 4; ++f) {
-    const float tr = diag[0] * flips[f][0] + diag[1] * flips[f][1] + diag[2] * flips[f][2];
-    if (tr > best_trace) {
-      best_trace = tr;
-      best = f;
-    }
-  }
-  const Vec3 c0 = scale(d1, flips[best][0]), c1 = scale(d2, flips[best][1]), c2 = scale(n, flips[best][2]);
-  // r[i][j] is component i of column j.
-  const float w = 0.5f * std::sqrt(std::max(1.0f + c0.x + c1.y + c2.z, 1e-12f));
-  quat[0] = w;
-  const float inv_4w = 1.0f / (4 * w);
-  quat[1] = (c1.z - c2.y) * inv_4w;
-  quat[2] = (c2.x - c0.z) * inv_4w;
-  quat[3] = (c0.y - c1.x) * inv_4w;
 }
 
 std::tuple<at::Tensor, at::Tensor> surfel_frames(const at::Tensor& depth_in, const at::Tensor& intrinsics_in,
@@ -141,14 +163,18 @@ std::tuple<at::Tensor, at::Tensor> surfel_frames(const at::Tensor& depth_in, con
   float* s = log_scales.data_ptr<float>();
   const float fp = static_cast<float>(footprint), th = static_cast<float>(thickness), mc = static_cast<float>(min_cos);
   at::parallel_for(0, views * height, 16, [&](int64_t begin, int64_t end) {
+    RowOut o(width);
     for (int64_t vr = begin; vr < end; ++vr) {
       const int64_t v = vr / height, row = vr % height;
       const float* k9 = kk + 9 * v;
       const Camera cam{k9[0], k9[4], k9[2], k9[5], k9[1]};
-      const float* dv = d + v * height * width;
+      surfel_row(d + v * height * width, cam, height, width, row, fp, mc, o);
       for (int64_t col = 0; col < width; ++col) {
         const int64_t i = vr * width + col;
-        surfel_pixel(dv, cam, height, width, row, col, fp, th, mc, q + 4 * i, s + 3 * i);
+        q[4 * i] = o.qw[col], q[4 * i + 1] = o.qx[col], q[4 * i + 2] = o.qy[col], q[4 * i + 3] = o.qz[col];
+        s[3 * i] = std::log(o.s_small[col]);
+        s[3 * i + 1] = std::log(o.s_large[col]);
+        s[3 * i + 2] = std::log(th * o.pixel[col]);
       }
     }
   });
@@ -200,15 +226,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> activate_surfels(
   const float fp = static_cast<float>(footprint), th = static_cast<float>(thickness), mc = static_cast<float>(min_cos);
   const float bias = static_cast<float>(opacity_bias), inv_c0 = static_cast<float>(1.0 / sh_c0);
   at::parallel_for(0, views * height, 16, [&](int64_t begin, int64_t end) {
+    RowOut o(width);
     for (int64_t vr = begin; vr < end; ++vr) {
       const int64_t v = vr / height, row = vr % height;
       const float* k9 = kk + 9 * v;
       const Camera cam{k9[0], k9[4], k9[2], k9[5], k9[1]};
-      const float* dv = d + v * pixels;
+      surfel_row(d + v * pixels, cam, height, width, row, fp, mc, o);
       for (int64_t col = 0; col < width; ++col) {
         const int64_t i = vr * width + col;
-        float base_q[4], base_s[3];
-        surfel_pixel(dv, cam, height, width, row, col, fp, th, mc, base_q, base_s);
+        const float base_q[4] = {o.qw[col], o.qx[col], o.qy[col], o.qz[col]};
+        const float base_s[3] = {std::log(o.s_small[col]), std::log(o.s_large[col]), std::log(th * o.pixel[col])};
         const float* x = r + channels * i;
         for (int j = 0; j < 3; ++j) ls[3 * i + j] = base_s[j] + 2.0f * fast_tanh(x[j] / 2.0f);
         // normalize((1, 0, 0, 0) + raw[3:7]) as F.normalize: divided by max(norm, 1e-12)
