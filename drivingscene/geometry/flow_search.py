@@ -77,7 +77,7 @@ def search_along_rigid(
     """Index ``[B, H, W]`` (long) of the winning hypothesis per pixel: ``i < S`` is
     ``scales[i] * rigid``, ``S`` the proposal. Exact ties keep the earlier hypothesis.
 
-    ``backend``: "cpp" (the compiled one-pass kernel in ``render/csrc/flow_search.cpp``, ~6x
+    ``backend``: "cpp" (the compiled one-pass kernel in ``render/csrc/flow.cpp``, ~6x
     faster), "torch", or "auto" (cpp for float32 CPU tensors where the extension builds, else
     torch). Both pick the same hypotheses up to float rounding (near-exact ties may differ)."""
     _check_window(window)

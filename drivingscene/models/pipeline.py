@@ -328,7 +328,7 @@ def lift_scene_flow(
         moving &= ~sky[k]
         if not check and moving.float().mean() > DENSE_LIFT_SHARE:  # cheaper at every pixel, same result
             op = select_op("lift_dense", "auto", depth[k], depth[o], total[k], total[o], c2l)
-            if op is not None:  # the same in one compiled pass (render/csrc/lift.cpp), inference only
+            if op is not None:  # the same in one compiled pass (render/csrc/flow.cpp), inference only
                 sf, dynamic = op(
                     depth[k], depth[o], total[k], total[o], moving, batch.intrinsics, c2l[k], c2l[o], FB_ALPHA, FB_BETA
                 )

@@ -79,7 +79,7 @@ def local_cost_volume(target: Tensor, source: Tensor, radius: int) -> Tensor:
     to ``radius`` pixels, averaged over channels.
 
     Without gradients, float32 CPU tensors go through the compiled kernel
-    (``render/csrc/flow_search.cpp``, 2-4x faster; the same values up to float rounding)."""
+    (``render/csrc/flow.cpp``, 2-4x faster; the same values up to float rounding)."""
     op = select_op("local_cost_volume", "auto", target, source)
     if op is not None:
         return op(target, source, radius)

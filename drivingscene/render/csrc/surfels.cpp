@@ -147,6 +147,28 @@ void surfel_row(const float* depth, const Camera& k, int64_t height, int64_t wid
   }
 }
 
+// Runs body(v, row, o) for the image rows [begin, end) of views x height rows, with `o` holding
+// the row's surfel frames (`surfel_row`); one row buffer per call (per thread).
+template <typename Body>
+void for_surfel_rows(const float* depth, const float* intrinsics, int64_t height, int64_t width, float footprint,
+                     float min_cos, int64_t begin, int64_t end, Body body) {
+  RowOut o(width);
+  for (int64_t vr = begin; vr < end; ++vr) {
+    const int64_t v = vr / height, row = vr % height;
+    const float* k9 = intrinsics + 9 * v;
+    const Camera cam{k9[0], k9[4], k9[2], k9[5], k9[1]};
+    surfel_row(depth + v * height * width, cam, height, width, row, footprint, min_cos, o);
+    body(v, row, o);
+  }
+}
+
+// The surfel's log scales at column `col` of a row: the two tangent axes and the thickness.
+inline void surfel_log_scales(const RowOut& o, int64_t col, float thickness, float* out) {
+  out[0] = std::log(o.s_small[col]);
+  out[1] = std::log(o.s_large[col]);
+  out[2] = std::log(thickness * o.pixel[col]);
+}
+
 std::tuple<at::Tensor, at::Tensor> surfel_frames(const at::Tensor& depth_in, const at::Tensor& intrinsics_in,
                                                  double footprint, double thickness, double min_cos) {
   TORCH_CHECK(depth_in.dim() == 3, "surfel_frames: depth must be [V, H, W]");
@@ -163,20 +185,13 @@ std::tuple<at::Tensor, at::Tensor> surfel_frames(const at::Tensor& depth_in, con
   float* s = log_scales.data_ptr<float>();
   const float fp = static_cast<float>(footprint), th = static_cast<float>(thickness), mc = static_cast<float>(min_cos);
   at::parallel_for(0, views * height, 16, [&](int64_t begin, int64_t end) {
-    RowOut o(width);
-    for (int64_t vr = begin; vr < end; ++vr) {
-      const int64_t v = vr / height, row = vr % height;
-      const float* k9 = kk + 9 * v;
-      const Camera cam{k9[0], k9[4], k9[2], k9[5], k9[1]};
-      surfel_row(d + v * height * width, cam, height, width, row, fp, mc, o);
+    for_surfel_rows(d, kk, height, width, fp, mc, begin, end, [&](int64_t v, int64_t row, const RowOut& o) {
       for (int64_t col = 0; col < width; ++col) {
-        const int64_t i = vr * width + col;
+        const int64_t i = (v * height + row) * width + col;
         q[4 * i] = o.qw[col], q[4 * i + 1] = o.qx[col], q[4 * i + 2] = o.qy[col], q[4 * i + 3] = o.qz[col];
-        s[3 * i] = std::log(o.s_small[col]);
-        s[3 * i + 1] = std::log(o.s_large[col]);
-        s[3 * i + 2] = std::log(th * o.pixel[col]);
+        surfel_log_scales(o, col, th, s + 3 * i);
       }
-    }
+    });
   });
   return {quats, log_scales};
 }
@@ -226,16 +241,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> activate_surfels(
   const float fp = static_cast<float>(footprint), th = static_cast<float>(thickness), mc = static_cast<float>(min_cos);
   const float bias = static_cast<float>(opacity_bias), inv_c0 = static_cast<float>(1.0 / sh_c0);
   at::parallel_for(0, views * height, 16, [&](int64_t begin, int64_t end) {
-    RowOut o(width);
-    for (int64_t vr = begin; vr < end; ++vr) {
-      const int64_t v = vr / height, row = vr % height;
-      const float* k9 = kk + 9 * v;
-      const Camera cam{k9[0], k9[4], k9[2], k9[5], k9[1]};
-      surfel_row(d + v * pixels, cam, height, width, row, fp, mc, o);
+    for_surfel_rows(d, kk, height, width, fp, mc, begin, end, [&](int64_t v, int64_t row, const RowOut& o) {
       for (int64_t col = 0; col < width; ++col) {
-        const int64_t i = vr * width + col;
+        const int64_t i = (v * height + row) * width + col;
         const float base_q[4] = {o.qw[col], o.qx[col], o.qy[col], o.qz[col]};
-        const float base_s[3] = {std::log(o.s_small[col]), std::log(o.s_large[col]), std::log(th * o.pixel[col])};
+        float base_s[3];
+        surfel_log_scales(o, col, th, base_s);
         const float* x = r + channels * i;
         for (int j = 0; j < 3; ++j) ls[3 * i + j] = base_s[j] + 2.0f * fast_tanh(x[j] / 2.0f);
         // normalize((1, 0, 0, 0) + raw[3:7]) as F.normalize: divided by max(norm, 1e-12)
@@ -256,7 +267,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> activate_surfels(
         }
         for (int64_t j = 3; j < 3 * coeffs; ++j) shi[j] = x[8 + j];
       }
-    }
+    });
   });
   return {log_scales, quats, opacity, sh};
 }
