@@ -13,7 +13,7 @@ import sys
 from drivingscene import __version__
 from drivingscene.cli.common import OneLineParser, run_reporting_errors
 
-COMMAND_MODULES = ("scene", "synth", "export", "recon", "train", "bench")
+COMMAND_MODULES = ("scene", "importers", "synth", "export", "recon", "train", "bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

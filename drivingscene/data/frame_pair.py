@@ -41,6 +41,11 @@ class FramePair:
     eval_timestamps: np.ndarray | None = None  # [M] float64, seconds
     eval_ego_to_world: np.ndarray | None = None  # [M, 4, 4] float64
     eval_dynamic: np.ndarray | None = None  # [M, V, H, W] bool
+    valid_mask: np.ndarray | None = None  # [V, H, W] bool, False: not the world (ego body, hood)
+    camera_ego_to_world: np.ndarray | None = None  # [2, V, 4, 4] float64, ego pose at each image's capture
+    camera_timestamps: np.ndarray | None = None  # [2, V] float64, seconds, each image's capture time
+    eval_camera_ego_to_world: np.ndarray | None = None  # [M, V, 4, 4] float64
+    eval_camera_timestamps: np.ndarray | None = None  # [M, V] float64, seconds
 
     @property
     def num_views(self) -> int:
@@ -67,6 +72,32 @@ class FramePair:
     def seconds(self, t: np.ndarray | float) -> np.ndarray:
         """Map normalised time t to seconds."""
         return self.timestamps[0] + np.asarray(t, dtype=np.float64) * self.duration
+
+    def camera_ego_poses(self) -> np.ndarray:
+        """``[2, V, 4, 4]`` float64 ego pose at each keyframe image's capture: ``camera_ego_to_world``,
+        else the keyframe's ``ego_to_world`` for every camera."""
+        if self.camera_ego_to_world is not None:
+            return self.camera_ego_to_world
+        return np.broadcast_to(self.ego_to_world[:, None], (2, self.num_views, 4, 4))
+
+    def eval_camera_ego_poses(self) -> np.ndarray:
+        """``[M, V, 4, 4]`` float64 ego pose at each intermediate image's capture (as `camera_ego_poses`)."""
+        if self.eval_camera_ego_to_world is not None:
+            return self.eval_camera_ego_to_world
+        return np.broadcast_to(self.eval_ego_to_world[:, None], (self.num_eval, self.num_views, 4, 4))
+
+    def eval_camera_times(self) -> np.ndarray:
+        """``[M, V]`` normalised capture time of each intermediate image."""
+        seconds = self.eval_camera_timestamps
+        if seconds is None:
+            seconds = np.broadcast_to(self.eval_timestamps[:, None], (self.num_eval, self.num_views))
+        return self.normalised_time(seconds)
+
+    def world_mask(self) -> np.ndarray:
+        """``[V, H, W]`` bool: pixels that see the world (``valid_mask``, all True without one)."""
+        if self.valid_mask is None:
+            return np.ones((self.num_views, *self.image_size), dtype=bool)
+        return self.valid_mask
 
     def has(self, key: str) -> bool:
         return getattr(self, key, None) is not None
@@ -108,7 +139,7 @@ class FramePair:
                 out[f.name] = value
             elif f.name == "camera_names":
                 out[f.name] = tuple(value[i] for i in idx)
-            elif f.name in ("intrinsics", "cam_to_ego"):
+            elif f.name in ("intrinsics", "cam_to_ego", "valid_mask"):
                 out[f.name] = value[idx]
             else:
                 out[f.name] = value[:, idx]

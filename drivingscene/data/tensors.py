@@ -30,6 +30,8 @@ class PairTensors:
     gt_depth: Tensor | None = None  # [2, V, H, W]
     gt_flow: Tensor | None = None  # [2, V, H, W, 2]
     gt_dynamic: Tensor | None = None  # [2, V, H, W] bool
+    valid_mask: Tensor | None = None  # [V, H, W] bool: pixels that see the world (None: all)
+    eval_camera_times: Tensor | None = None  # [M, V] normalised capture time of each intermediate image
     # `resized_images`, per size (not an init field: `dataclasses.replace` starts a fresh cache)
     _resized: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
@@ -70,8 +72,9 @@ def _images(array: np.ndarray) -> Tensor:
 
 def pair_to_tensors(pair: FramePair, *, with_gt: bool = True, with_eval: bool = True) -> PairTensors:
     world_to_local = np.linalg.inv(pair.ego_to_world[0])
+    # each image's own capture pose (cameras of a keyframe need not be simultaneous)
     cam_to_ego = pair.cam_to_ego.astype(np.float64)
-    cam_to_local = world_to_local[None, None] @ pair.ego_to_world[:, None] @ cam_to_ego[None]
+    cam_to_local = world_to_local[None, None] @ pair.camera_ego_poses() @ cam_to_ego[None]
     out = PairTensors(
         images=_images(pair.images),
         intrinsics=torch.from_numpy(pair.intrinsics.astype(np.float32)),
@@ -80,10 +83,13 @@ def pair_to_tensors(pair: FramePair, *, with_gt: bool = True, with_eval: bool = 
         local_to_world=torch.from_numpy(pair.ego_to_world[0].copy()),
     )
     if with_eval and pair.num_eval:
-        eval_c2l = world_to_local[None, None] @ pair.eval_ego_to_world[:, None] @ cam_to_ego[None]
+        eval_c2l = world_to_local[None, None] @ pair.eval_camera_ego_poses() @ cam_to_ego[None]
         out.eval_images = _images(pair.eval_images)
         out.eval_cam_to_local = torch.from_numpy(eval_c2l.astype(np.float32))
         out.eval_times = torch.from_numpy(pair.normalised_time(pair.eval_timestamps).astype(np.float32))
+        out.eval_camera_times = torch.from_numpy(pair.eval_camera_times().astype(np.float32))
+    if pair.valid_mask is not None:
+        out.valid_mask = torch.from_numpy(pair.valid_mask)
     if with_gt:
         if pair.gt_depth is not None:
             out.gt_depth = torch.from_numpy(pair.gt_depth)

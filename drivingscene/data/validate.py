@@ -42,10 +42,18 @@ OPTIONAL = {
     "eval_timestamps": KeySpec("float64", ("M",), "intermediate times"),
     "eval_ego_to_world": KeySpec("float64", ("M", 4, 4), "ego poses at intermediate times"),
     "eval_dynamic": KeySpec("bool", ("M", "V", "H", "W"), "moving-object mask at intermediate times"),
+    "valid_mask": KeySpec("bool", ("V", "H", "W"), "pixels that see the world (False: ego body, hood, mounts)"),
+    "camera_ego_to_world": KeySpec("float64", (2, "V", 4, 4), "ego pose when each keyframe image was taken"),
+    "camera_timestamps": KeySpec("float64", (2, "V"), "when each keyframe image was taken"),
+    "eval_camera_ego_to_world": KeySpec("float64", ("M", "V", 4, 4), "ego pose when each intermediate image was taken"),
+    "eval_camera_timestamps": KeySpec("float64", ("M", "V"), "when each intermediate image was taken"),
 }
 REQUIRED_KEYS = tuple(REQUIRED)
 OPTIONAL_KEYS = tuple(OPTIONAL)
 EVAL_KEYS = ("eval_images", "eval_timestamps", "eval_ego_to_world")
+# Per-image capture poses and times (cameras of one frame need not be simultaneous); each needs
+# the key it refines.
+EVAL_PER_CAMERA_KEYS = ("eval_camera_ego_to_world", "eval_camera_timestamps")
 
 ROTATION_TOL = {"float32": 1e-4, "float64": 1e-6}
 
@@ -186,6 +194,15 @@ def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
             out.append(Problem(source, "eval_timestamps", f"increasing times within [{ts[0]:.6g}, {ts[1]:.6g}]", _fmt_array(et)))
     if "eval_ego_to_world" in arrays:
         out += check_rigid("eval_ego_to_world", arrays["eval_ego_to_world"], source)
+    for key in ("camera_ego_to_world", "eval_camera_ego_to_world"):
+        if key in arrays:
+            out += check_rigid(key, arrays[key], source)
+    for key in ("camera_timestamps", "eval_camera_timestamps"):
+        if key in arrays and not np.all(np.isfinite(arrays[key])):
+            out.append(Problem(source, key, "finite times in seconds", "NaN or inf"))
+    if "valid_mask" in arrays and not arrays["valid_mask"].reshape(dims["V"], -1).any(axis=1).all():
+        empty = [int(i) for i in np.flatnonzero(~arrays["valid_mask"].reshape(dims["V"], -1).any(axis=1))]
+        out.append(Problem(source, "valid_mask", "at least one valid pixel per camera", f"cameras {empty} fully masked"))
     return out
 
 
@@ -220,6 +237,9 @@ def validate_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> 
         problems.append(
             Problem(source, "eval_dynamic", "present only with eval_images, eval_timestamps, eval_ego_to_world", "it alone")
         )
+    for key in EVAL_PER_CAMERA_KEYS:
+        if key in arrays and "eval_images" not in arrays:
+            problems.append(Problem(source, key, "present only with eval_images, eval_timestamps, eval_ego_to_world", "it alone"))
     present_eval = [k for k in EVAL_KEYS if k in arrays]
     if present_eval and len(present_eval) != len(EVAL_KEYS):
         for key in set(EVAL_KEYS) - set(present_eval):
