@@ -141,8 +141,8 @@ def camera_yaw_deg(cam_to_ego: np.ndarray) -> np.ndarray:
 def order_around_car(cam_to_ego: np.ndarray) -> np.ndarray:
     """Camera indices ordered as the nuScenes rig: from the front clockwise seen from above
     (front, front-right, back-right, back, back-left, front-left)."""
-    clockwise = np.remainder(-camera_yaw_deg(cam_to_ego), 360.0)
-    clockwise[clockwise > 359.0] -= 360.0  # a front camera a hair left of straight ahead stays first
+    # a camera up to 30 deg left of straight ahead still comes first (the front camera)
+    clockwise = np.remainder(30.0 - camera_yaw_deg(cam_to_ego), 360.0)
     return np.argsort(clockwise, kind="stable")
 
 

@@ -1,0 +1,283 @@
+"""DDAD scenes in TRI's DGP layout -> frame pair (``drivingscene import ddad``).
+
+A DGP scene folder holds ``scene_<hash>.json`` (samples, each a list of datum keys; every datum a
+camera image or a LiDAR sweep with the sensor's pose in the world), ``calibration/<key>.json``
+(per sensor: intrinsics and sensor-to-vehicle extrinsics), ``rgb/<CAMERA>/<time>.jpg`` and
+``point_cloud/<LIDAR>/<time>.npz`` (points in the sensor frame). Vehicle frame: x forward, y left,
+z up; camera frames: OpenCV axes.
+
+- Each image's ego pose is its camera's pose times the inverse extrinsics (``camera_ego_to_world``);
+  the pair's ``ego_to_world`` is the front camera's (the first in order around the car).
+- Times: DDAD names files by capture time in 1e-7 s ticks; those are used when the names are
+  integers (the ISO strings in some published test scenes are off by a factor), else the ISO time.
+- LiDAR: each sample's sweep, sensor -> world -> each camera, projected into sparse ``gt_depth``.
+- ``valid_mask``: the DDAD vehicle's body, hood, mirrors and roof as seen by its cameras, as
+  polygons per camera name (`EGO_BODY_POLYGONS`) in normalised image coordinates.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.data.importers.common import Fit, lidar_depth, order_around_car, read_rgb, rigid_from_quaternion
+from drivingscene.errors import InputError
+
+# The DDAD vehicle's own body in each camera, (x / W, y / H) polygon vertices, drawn with a margin
+# of about 1 % of the image height on the published DDAD rig (1936x1216 images). CAMERA_01 (front,
+# long lens) sees none of the car. Parts of the body mirror the street: they are not the world.
+EGO_BODY_POLYGONS: dict[str, list[list[tuple[float, float]]]] = {
+    "CAMERA_05": [  # front-left: door and mirror along the bottom
+        [(0.0, 0.95), (0.2, 0.92), (0.4, 0.875), (0.5, 0.845), (0.62, 0.85), (0.8, 0.865), (0.93, 0.84), (1.0, 0.845),
+         (1.0, 1.0), (0.0, 1.0)],
+    ],
+    "CAMERA_06": [  # front-right: mirror at the bottom left, door along the bottom
+        [(0.0, 0.88), (0.12, 0.89), (0.3, 0.895), (0.4, 0.865), (0.5, 0.855), (0.6, 0.88), (0.8, 0.93), (1.0, 0.975),
+         (1.0, 1.0), (0.0, 1.0)],
+    ],
+    "CAMERA_07": [  # back-left: the rear door and wing (reflective), roof pillar top left
+        [(0.0, 0.605), (0.3, 0.655), (0.5, 0.705), (0.7, 0.765), (0.9, 0.845), (1.0, 0.885), (1.0, 1.0), (0.0, 1.0)],
+        [(0.0, 0.0), (0.29, 0.0), (0.21, 0.055), (0.11, 0.12), (0.0, 0.17)],
+    ],
+    "CAMERA_08": [  # back-right: the rear door and wing, roof pillar top right
+        [(0.0, 0.955), (0.2, 0.875), (0.4, 0.785), (0.5, 0.755), (0.6, 0.725), (0.8, 0.665), (1.0, 0.605), (1.0, 1.0),
+         (0.0, 1.0)],
+        [(0.64, 0.0), (1.0, 0.0), (1.0, 0.34), (0.95, 0.23), (0.85, 0.13), (0.75, 0.06)],
+    ],
+    "CAMERA_09": [  # back: the boot lid, and the roof edge along the top
+        [(0.0, 0.9), (0.1, 0.85), (0.3, 0.8), (0.5, 0.78), (0.7, 0.8), (0.85, 0.85), (1.0, 0.92), (1.0, 1.0), (0.0, 1.0)],
+        [(0.33, 0.0), (0.9, 0.0), (0.88, 0.045), (0.35, 0.04)],
+    ],
+}
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
+
+
+def ego_body_mask(name: str, size: tuple[int, int]) -> np.ndarray:
+    """bool ``[H, W]``: True where camera ``name`` of the DDAD rig sees the world (not the car)."""
+    height, width = size
+    mask = np.zeros((height, width), np.uint8)
+    for polygon in EGO_BODY_POLYGONS.get(name, []):
+        pts = np.round(np.array(polygon) * [width, height] - 0.5).astype(np.int32)
+        cv2.fillPoly(mask, [pts], 1)
+    return mask == 0
+
+
+@dataclass(frozen=True)
+class _Datum:
+    name: str
+    kind: str  # "image" or "point_cloud"
+    path: Path
+    sensor_to_world: np.ndarray  # [4, 4]
+    seconds: float
+
+
+def _load_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: could not read it ({e})") from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: expected JSON, found a syntax error at line {e.lineno} column {e.colno}") from None
+
+
+def _pose(value: dict, where: str) -> np.ndarray:
+    try:
+        r, t = value["rotation"], value["translation"]
+        return rigid_from_quaternion([r["qw"], r["qx"], r["qy"], r["qz"]], [t["x"], t["y"], t["z"]])
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"{where}: expected a pose {{rotation: qw qx qy qz, translation: x y z}}, found {value!r:.80} ({e})") from None
+
+
+def _seconds(filename: str, iso: str, where: str) -> float:
+    stem = Path(filename).stem
+    if stem.isdigit() and len(stem) >= 15:
+        return int(stem) * 1e-7
+    try:
+        return datetime.fromisoformat(iso.replace("Z", "+00:00")).timestamp()
+    except (AttributeError, ValueError):
+        raise InputError(f"{where}: expected an ISO 8601 timestamp, found {iso!r}") from None
+
+
+def _scene_file(scene_dir: Path) -> Path:
+    if not scene_dir.is_dir():
+        raise InputError(f"{scene_dir}: expected a DGP scene folder (scene_*.json, calibration/, rgb/), found {'a file' if scene_dir.exists() else 'nothing'}")
+    files = sorted(scene_dir.glob("scene*.json"))
+    if len(files) != 1:
+        found = "none" if not files else ", ".join(f.name for f in files)
+        raise InputError(f"{scene_dir}: expected one scene_*.json, found {found}")
+    return files[0]
+
+
+def _sample_data(scene_dir: Path, scene: dict, index: int, source: Path) -> tuple[dict[str, _Datum], str]:
+    """Datums of sample ``index`` by sensor name, and its calibration key."""
+    samples = scene.get("samples")
+    if not isinstance(samples, list) or not samples:
+        raise InputError(f"{source}: samples: expected a non-empty list, found {type(samples).__name__}")
+    if not 0 <= index < len(samples):
+        raise InputError(f"{source}: samples[{index}]: expected an index in 0..{len(samples) - 1} (the scene has {len(samples)} samples)")
+    data = {d.get("key"): d for d in scene.get("data", [])}
+    out = {}
+    for key in samples[index].get("datum_keys", []):
+        if key not in data:
+            raise InputError(f"{source}: samples[{index}].datum_keys: expected keys of entries in data, found unknown {key}")
+        d = data[key]
+        where = f"{source}: data[{key}]"
+        try:
+            kind = next(k for k in ("image", "point_cloud") if k in d["datum"])
+            body, name = d["datum"][kind], d["id"]["name"]
+            filename, iso = body["filename"], d["id"].get("timestamp", "")
+        except (KeyError, StopIteration, TypeError):
+            raise InputError(f"{where}: expected datum.image or datum.point_cloud with filename and id.name") from None
+        out[name] = _Datum(name, kind, scene_dir / filename, _pose(body.get("pose"), f"{where}.pose"), _seconds(filename, iso, where))
+    return out, samples[index].get("calibration_key", "")
+
+
+def _calibration(scene_dir: Path, key: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per sensor name: (intrinsics [3, 3], sensor_to_vehicle [4, 4])."""
+    path = scene_dir / "calibration" / f"{key}.json"
+    cal = _load_json(path)
+    try:
+        names, intrinsics, extrinsics = cal["names"], cal["intrinsics"], cal["extrinsics"]
+    except (KeyError, TypeError):
+        raise InputError(f"{path}: expected names, intrinsics and extrinsics lists") from None
+    if not len(names) == len(intrinsics) == len(extrinsics):
+        raise InputError(f"{path}: expected names, intrinsics, extrinsics of equal length, found {len(names)}, {len(intrinsics)}, {len(extrinsics)}")
+    out = {}
+    for i, (name, k, e) in enumerate(zip(names, intrinsics, extrinsics)):
+        try:
+            mat = np.array([[k["fx"], k.get("skew", 0.0), k["cx"]], [0.0, k["fy"], k["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64)
+        except (KeyError, TypeError):
+            raise InputError(f"{path}: intrinsics[{i}] ({name}): expected fx, fy, cx, cy") from None
+        if any(abs(float(k.get(c, 0.0) or 0.0)) > 1e-9 for c in DISTORTION_KEYS) or k.get("fisheye"):
+            raise InputError(
+                f"{path}: intrinsics[{i}] ({name}): expected undistorted pinhole images, found distortion coefficients "
+                "(undistort the images first, or import them with `drivingscene import rig`, which undistorts)"
+            )
+        out[name] = (mat, _pose(e, f"{path}: extrinsics[{i}] ({name})"))
+    return out
+
+
+def _lidar_points(path: Path) -> np.ndarray:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            points = z["data"] if "data" in z else z[z.files[0]]
+    except FileNotFoundError:
+        raise InputError(f"{path}: LiDAR file not found") from None
+    except (OSError, ValueError, KeyError, IndexError) as e:
+        raise InputError(f"{path}: expected an .npz with a [N, 3+] point array 'data', found unreadable data ({e})") from None
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise InputError(f"{path}: data: expected shape [N, 3+] (x, y, z, ...), found {list(points.shape)}")
+    return points[:, :3]
+
+
+@dataclass
+class _Frame:
+    images: np.ndarray  # [V, H, W, 3] uint8
+    camera_ego_to_world: np.ndarray  # [V, 4, 4]
+    camera_seconds: np.ndarray  # [V]
+    depth: np.ndarray | None  # [V, H, W]
+    fits: list[Fit]  # per camera: its image onto the output size
+
+
+def _camera_names(datums: dict[str, _Datum], calibration: dict, source: Path) -> list[str]:
+    names = [n for n, d in datums.items() if d.kind == "image"]
+    if not names:
+        raise InputError(f"{source}: samples: expected camera images (datum.image), found none")
+    missing = [n for n in names if n not in calibration]
+    if missing:
+        raise InputError(f"{source}: calibration: expected intrinsics and extrinsics for {', '.join(missing)}, found none")
+    order = order_around_car(np.stack([calibration[n][1] for n in names]))
+    return [names[i] for i in order]
+
+
+def _frame(datums: dict[str, _Datum], names: list[str], calibration: dict, size, fit: str, source: Path) -> _Frame:
+    images, egos, seconds, depths, fits = [], [], [], [], []
+    lidar = next((d for d in datums.values() if d.kind == "point_cloud"), None)
+    points = None if lidar is None else _lidar_points(lidar.path)
+    for name in names:
+        if name not in datums:
+            raise InputError(f"{source}: samples: expected an image of {name} in every sample, found none in one")
+        d = datums[name]
+        k, cam_to_ego = calibration[name]
+        image = read_rgb(d.path)
+        f = Fit.make(image.shape[:2], size or image.shape[:2], fit)
+        fits.append(f)
+        images.append(f.image(image))
+        egos.append(d.sensor_to_world @ np.linalg.inv(cam_to_ego))
+        seconds.append(d.seconds)
+        if points is not None:
+            to_cam = np.linalg.inv(d.sensor_to_world) @ lidar.sensor_to_world
+            depths.append(lidar_depth(points, to_cam, f.intrinsics(k), f.dst))
+    shapes = {im.shape for im in images}
+    if len(shapes) > 1:
+        raise InputError(f"{source}: rgb: cameras have different image sizes {sorted(shapes)}; pass --res HxW")
+    depth = None if points is None else np.stack(depths)
+    return _Frame(np.stack(images), np.stack(egos), np.array(seconds), depth, fits)
+
+
+def import_ddad(
+    scene_dir: str | Path,
+    samples: tuple[int, int] = (0, 1),
+    eval_samples: tuple[int, ...] = (),
+    size: tuple[int, int] | None = (176, 320),
+    fit: str = "crop",
+    mask: bool = True,
+) -> FramePair:
+    """Two samples of a DGP scene as a frame pair, with samples between them as eval frames."""
+    scene_dir = Path(scene_dir)
+    source = _scene_file(scene_dir)
+    scene = _load_json(source)
+    i, j = samples
+    if i == j:
+        raise InputError(f"--samples: expected two different samples, found {i} {j}")
+    first, cal_key = _sample_data(scene_dir, scene, i, source)
+    calibration = _calibration(scene_dir, cal_key)
+    names = _camera_names(first, calibration, source)
+    frames = [_frame(first, names, calibration, size, fit, source)]
+    frames.append(_frame(_sample_data(scene_dir, scene, j, source)[0], names, calibration, size, fit, source))
+    fits = frames[0].fits
+    intrinsics = np.stack([f.intrinsics(calibration[n][0]) for f, n in zip(fits, names)]).astype(np.float32)
+    cam_to_ego = np.stack([calibration[n][1] for n in names]).astype(np.float32)
+    times = np.array([f.camera_seconds[0] for f in frames])
+    if not times[1] > times[0]:
+        raise InputError(f"--samples: expected sample {j} after sample {i}, found times {times[0]:.4f} and {times[1]:.4f} s")
+    valid = np.stack([f.mask(ego_body_mask(n, f.src)) if mask else f.valid() for f, n in zip(fits, names)])
+    out = dict(
+        images=np.stack([f.images for f in frames]),
+        intrinsics=intrinsics,
+        cam_to_ego=cam_to_ego,
+        ego_to_world=np.stack([f.camera_ego_to_world[0] for f in frames]),
+        timestamps=times,
+        camera_names=tuple(names),
+        camera_ego_to_world=np.stack([f.camera_ego_to_world for f in frames]),
+        camera_timestamps=np.stack([f.camera_seconds for f in frames]),
+    )
+    if not valid.all():
+        out["valid_mask"] = valid
+    if all(f.depth is not None for f in frames):  # no LiDAR depth on the car's own body
+        out["gt_depth"] = np.where(valid[None], np.stack([f.depth for f in frames]), 0.0).astype(np.float32)
+    if eval_samples:
+        out.update(_eval_frames(scene_dir, scene, eval_samples, names, calibration, size, fit, source, times))
+    return FramePair(**out)
+
+
+def _eval_frames(scene_dir, scene, eval_samples, names, calibration, size, fit, source, times) -> dict[str, np.ndarray]:
+    frames = [_frame(_sample_data(scene_dir, scene, s, source)[0], names, calibration, size, fit, source) for s in eval_samples]
+    seconds = np.array([f.camera_seconds[0] for f in frames])
+    if np.any(seconds <= times[0]) or np.any(seconds >= times[1]) or np.any(np.diff(seconds) <= 0):
+        raise InputError(f"--eval: expected samples strictly between the two keyframes in increasing order, found {list(eval_samples)}")
+    return dict(
+        eval_images=np.stack([f.images for f in frames]),
+        eval_timestamps=seconds,
+        eval_ego_to_world=np.stack([f.camera_ego_to_world[0] for f in frames]),
+        eval_camera_ego_to_world=np.stack([f.camera_ego_to_world for f in frames]),
+        eval_camera_timestamps=np.stack([f.camera_seconds for f in frames]),
+    )
