@@ -102,7 +102,7 @@ def test_synthetic_dgp_folder_imports(tmp_path):
     assert pair.valid_mask[0].all() and not pair.valid_mask[1].all()  # the back camera sees the boot lid
     assert import_ddad(tmp_path / "scene", (0, 1), size=None, mask=False).valid_mask is None
     assert pair.duration == pytest.approx(0.1)
-    assert np.allclose(pair.ego_to_world[1, :3, 3], [1, 0, 0])
+    assert np.allclose(pair.ego_to_world[1, :3, 3] - pair.ego_to_world[0, :3, 3], [1, 0, 0])
     # the camera's ego pose: its world pose times the inverse extrinsics (here the camera pose is identity)
     assert np.allclose(pair.camera_ego_to_world[0, 0] @ pair.cam_to_ego[0], np.eye(4), atol=1e-6)
 
