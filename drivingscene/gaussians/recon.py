@@ -54,6 +54,7 @@ OPTIONAL = {
     "rigid_flow": KeySpec("float32", (2, "V", "H", "W", 2), "rigid flow, pixels"),
     "residual_flow": KeySpec("float32", (2, "V", "H", "W", 2), "residual (non-rigid) flow, pixels"),
     "meta": KeySpec("str", (), "JSON: method, source, timings"),
+    "valid_mask": KeySpec("bool", ("V", "H", "W"), "pixels that see the world (False: ego body, hood)"),
 }
 PER_CAMERA = ("images", "depth", "rigid_flow", "residual_flow")
 
@@ -75,12 +76,14 @@ class Reconstruction:
     depth: np.ndarray | None = None  # [2, V, H, W] float32
     rigid_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32
     residual_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32
+    valid_mask: np.ndarray | None = None  # [V, H, W] bool: the input pixels that see the world
     meta: dict = field(default_factory=dict)
 
     @classmethod
     def from_pair(cls, pair: FramePair, gaussians: Gaussians, **kwargs) -> Reconstruction:
         """Wrap Gaussians with the rig and poses of ``pair`` (and its images unless given)."""
         kwargs.setdefault("images", pair.images)
+        kwargs.setdefault("valid_mask", pair.valid_mask)
         return cls(
             gaussians=gaussians,
             intrinsics=pair.intrinsics,
@@ -150,6 +153,8 @@ def recon_to_arrays(recon: Reconstruction) -> dict[str, np.ndarray]:
         arrays["sky_sh"] = recon.sky_sh.detach().cpu().float().numpy()
     if recon.hidden is not None:
         arrays["hidden"] = recon.hidden.cpu().numpy().astype(bool)
+    if recon.valid_mask is not None:
+        arrays["valid_mask"] = np.asarray(recon.valid_mask, dtype=bool)
     for key in PER_CAMERA:
         value = getattr(recon, key)
         if value is not None:
@@ -221,6 +226,7 @@ def recon_from_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -
         image_size=(int(arrays["image_size"][0]), int(arrays["image_size"][1])),
         sky_sh=t(arrays["sky_sh"]) if "sky_sh" in arrays else None,
         hidden=t(arrays["hidden"]) if "hidden" in arrays else None,
+        valid_mask=arrays.get("valid_mask"),
         meta=json.loads(str(arrays.get("meta", "{}"))),
         **{k: arrays[k] for k in PER_CAMERA if k in arrays},
     )

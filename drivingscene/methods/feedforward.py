@@ -112,6 +112,11 @@ def reconstruct(
     timings["static_s"] = time.perf_counter() - start
     depth = static.depth.float()
     sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
+    # Pixels that do not see the world (ego body, hood: valid_mask) make no Gaussian, do not move
+    # and do not colour the sky: from here on they are treated like sky, except in the sky fit.
+    sky_pixels = sky if batch.valid_mask is None else sky & batch.valid_mask
+    if batch.valid_mask is not None:
+        sky = sky | ~batch.valid_mask
     t0 = time.perf_counter()
     search = options.search if flow_predictor is None else None
     if not options.use_residual:
@@ -138,7 +143,7 @@ def reconstruct(
     t0 = time.perf_counter()
     gaussians = assemble(static, batch, sky, scene_flow, local_to_world=batch.local_to_world)
     sky_sh = fit_sky_from_pixels(
-        batch.images, sky, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics
+        batch.images, sky_pixels, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics
     )
     _sync(device)
     timings["assembly_s"] = time.perf_counter() - t0

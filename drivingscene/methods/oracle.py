@@ -74,7 +74,11 @@ def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refin
     depth = batch.gt_depth
     sky = depth <= 0
     c2w = _world_cameras(batch)
-    sky_sh = fit_sky_from_pixels(batch.images, sky, c2w, batch.intrinsics)
+    if batch.valid_mask is not None:  # the ego's body is neither sky nor a Gaussian
+        sky_sh = fit_sky_from_pixels(batch.images, sky & batch.valid_mask, c2w, batch.intrinsics)
+        sky = sky | ~batch.valid_mask
+    else:
+        sky_sh = fit_sky_from_pixels(batch.images, sky, c2w, batch.intrinsics)
     parts = []
     for k in (0, 1):
         flows = torch.from_numpy(pair.gt_scene_flow[k]) if use_scene_flow else None

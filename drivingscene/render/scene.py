@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -53,19 +54,34 @@ def render_gaussians(
 
 
 def render_eval_frames(recon, pair, blend: str = "all", **raster_kwargs) -> Tensor:
-    """Renders ``[M, V, H, W, 3]`` of a reconstruction at the scene's intermediate frames, with the
-    rig placed at the exact ego poses recorded for those frames (not interpolated)."""
+    """Renders ``[M, V, H, W, 3]`` of a reconstruction at the scene's intermediate frames, each
+    camera at the exact ego pose and time recorded for its image (not interpolated)."""
     if pair.num_eval == 0:
         raise InputError("the scene has no intermediate frames (eval_images) to render")
     height, width = recon.image_size
     cam_to_ego = torch.from_numpy(recon.cam_to_ego).double()
     k = torch.from_numpy(recon.intrinsics).float()
     g = recon.visible()
+    egos = torch.from_numpy(np.ascontiguousarray(pair.eval_camera_ego_poses()))  # [M, V, 4, 4]
+    times = pair.eval_camera_times()  # [M, V]
     frames = []
-    for m, t in enumerate(pair.normalised_time(pair.eval_timestamps)):
-        cam_to_world = torch.from_numpy(pair.eval_ego_to_world[m]) @ cam_to_ego
-        out = render_gaussians(
-            g, float(t), invert_rigid(cam_to_world), k, height, width, sky_sh=recon.sky_sh, blend=blend, **raster_kwargs
-        )
-        frames.append(out.colors.clamp(0, 1))
+    for m in range(pair.num_eval):
+        world_to_cam = invert_rigid(egos[m] @ cam_to_ego)
+        # cameras taken at one time render together; otherwise each at its own time
+        groups = [list(range(len(times[m])))] if np.ptp(times[m]) == 0 else [[v] for v in range(len(times[m]))]
+        colors = torch.empty(len(times[m]), height, width, 3)
+        for views in groups:
+            out = render_gaussians(
+                g,
+                float(times[m][views[0]]),
+                world_to_cam[views],
+                k[views],
+                height,
+                width,
+                sky_sh=recon.sky_sh,
+                blend=blend,
+                **raster_kwargs,
+            )
+            colors[views] = out.colors.clamp(0, 1)
+        frames.append(colors)
     return torch.stack(frames)

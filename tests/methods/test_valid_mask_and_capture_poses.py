@@ -1,0 +1,84 @@
+"""Pixels that are not the world (valid_mask) and images that are not simultaneous (per-image
+capture poses and times), through the model, the oracle, the recon file and the eval renders."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from drivingscene.data.tensors import pair_to_tensors
+from drivingscene.gaussians.recon import load_reconstruction, save_reconstruction
+from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+from drivingscene.methods.oracle import oracle_reconstruction
+from drivingscene.render.scene import render_eval_frames, render_gaussians
+from drivingscene.geometry.se3 import invert_rigid
+
+
+def _bottom_mask(pair, rows: int) -> np.ndarray:
+    mask = np.ones((pair.num_views, *pair.image_size), bool)
+    mask[0, -rows:] = False  # camera 0 sees its "hood"
+    return mask
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+def test_no_gaussian_from_a_masked_pixel(synth_pair, model, tmp_path):
+    options = InferenceOptions(amp=False)
+    plain = reconstruct(model, synth_pair, options)
+    mask = _bottom_mask(synth_pair, 12)
+    masked = reconstruct(model, replace(synth_pair, valid_mask=mask), options)
+    # the networks do not see the mask: the same depth, so the same sky; every non-sky masked pixel
+    # of camera 0 (both keyframes) loses its Gaussian and nothing else changes in the other cameras
+    sky = plain.depth == 0
+    lost = int((~mask[None] & ~sky).sum())
+    assert lost > 0
+    per_cam = [int((g.cameras == 0).sum()) for g in (plain.gaussians, masked.gaussians)]
+    assert per_cam[0] - per_cam[1] == lost
+    others = [int((g.cameras != 0).sum()) for g in (plain.gaussians, masked.gaussians)]
+    assert others[0] == others[1]
+    assert (masked.depth[:, 0, -12:] == 0).all() and (masked.residual_flow[:, 0, -12:] == 0).all()
+    # the mask travels with the reconstruction file
+    loaded = load_reconstruction(save_reconstruction(masked, tmp_path / "r.npz"))
+    assert np.array_equal(loaded.valid_mask, mask)
+
+
+def test_oracle_skips_masked_pixels(synth_pair):
+    plain = oracle_reconstruction(synth_pair, refine=0)
+    mask = _bottom_mask(synth_pair, 8)
+    masked = oracle_reconstruction(replace(synth_pair, valid_mask=mask), refine=0)
+    lost = int((~mask[None] & (synth_pair.gt_depth > 0)).sum())
+    assert len(plain.gaussians) - len(masked.gaussians) == lost
+
+
+def test_capture_poses_place_each_camera(small_pair):
+    """A camera whose image was taken 1 m further along is placed 1 m further along."""
+    egos = np.repeat(small_pair.ego_to_world[:, None], small_pair.num_views, axis=1).copy()
+    egos[1, 2, 0, 3] += 1.0  # camera 2 at keyframe 1: the ego had moved 1 m more along world x
+    shifted = pair_to_tensors(replace(small_pair, camera_ego_to_world=egos))
+    base = pair_to_tensors(small_pair)
+    delta = (shifted.cam_to_local - base.cam_to_local).abs()
+    assert delta[1, 2, 0, 3] == pytest.approx(1.0) and float(delta.sum()) == pytest.approx(1.0)
+
+
+def test_eval_frames_render_each_camera_at_its_own_time(synth_pair):
+    recon = oracle_reconstruction(synth_pair, refine=0)
+    m = synth_pair.num_eval
+    seconds = np.repeat(synth_pair.eval_timestamps[:, None], synth_pair.num_views, axis=1).copy()
+    seconds[:, 1] = synth_pair.timestamps[0] + 0.2 * synth_pair.duration  # camera 1 fired early
+    pair = replace(synth_pair, eval_camera_timestamps=seconds)
+    frames = render_eval_frames(recon, pair)
+    assert frames.shape == (m, synth_pair.num_views, *synth_pair.image_size, 3)
+    # camera 1 equals a render at t = 0.2; the others are unchanged
+    c2w = torch.from_numpy(synth_pair.eval_ego_to_world[0]) @ torch.from_numpy(recon.cam_to_ego).double()
+    k = torch.from_numpy(recon.intrinsics).float()
+    h, w = synth_pair.image_size
+    single = render_gaussians(recon.visible(), 0.2, invert_rigid(c2w[1:2]), k[1:2], h, w, sky_sh=recon.sky_sh)
+    assert torch.allclose(frames[0, 1], single.colors[0].clamp(0, 1), atol=1e-6)
+    same = render_eval_frames(recon, synth_pair)
+    assert torch.equal(frames[:, 0], same[:, 0]) and not torch.equal(frames[:, 1], same[:, 1])
