@@ -62,7 +62,7 @@ def render_eval_frames(recon, pair, blend: str = "all", **raster_kwargs) -> Tens
     cam_to_ego = torch.from_numpy(recon.cam_to_ego).double()
     k = torch.from_numpy(recon.intrinsics).float()
     g = recon.visible()
-    egos = torch.from_numpy(np.ascontiguousarray(pair.eval_camera_ego_poses()))  # [M, V, 4, 4]
+    egos = torch.from_numpy(np.array(pair.eval_camera_ego_poses()))  # [M, V, 4, 4] (a copy: may be a broadcast view)
     times = pair.eval_camera_times()  # [M, V]
     frames = []
     for m in range(pair.num_eval):
