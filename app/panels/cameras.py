@@ -54,16 +54,30 @@ def flow_scale(viewer: Viewer, kind: str) -> float:
     return cache[key]
 
 
+MASK_TINT = np.array([255, 0, 255])  # pixels that do not see the world (valid_mask False)
+
+
+def with_mask(viewer: Viewer, rgb: np.ndarray, v: int) -> np.ndarray:
+    """``rgb`` with camera ``v``'s masked pixels (ego body, hood: not the world) tinted magenta."""
+    mask = viewer.doc.recon.valid_mask
+    if mask is None or mask[v].all():
+        return rgb
+    out = rgb.copy()
+    off = ~mask[v]
+    out[off] = (0.45 * out[off] + 0.55 * MASK_TINT).astype(np.uint8)
+    return out
+
+
 def map_rgb(viewer: Viewer, kind: str, keyframe: int, v: int) -> np.ndarray | None:
     raw = raw_map(viewer, kind, keyframe, v)
     if raw is None:
         return None
     if kind == "images":
-        return raw
+        return with_mask(viewer, raw, v)
     if kind == "depth":
         near, far = viewer.view.depth_range
-        return depth_to_rgb(raw, vmin=near, vmax=far)
-    return flow_to_rgb(raw, flow_scale(viewer, kind))
+        return with_mask(viewer, depth_to_rgb(raw, vmin=near, vmax=far), v)
+    return with_mask(viewer, flow_to_rgb(raw, flow_scale(viewer, kind)), v)
 
 
 def _texture(viewer: Viewer, kind: str, keyframe: int, v: int):
@@ -79,6 +93,9 @@ def value_text(viewer: Viewer, kind: str, keyframe: int, v: int, u: int, row: in
     name = viewer.doc.recon.camera_names[v]
     where = f"{name} k{keyframe} ({u}, {row})"
     value = raw[row, u]
+    mask = viewer.doc.recon.valid_mask
+    if mask is not None and not mask[v, row, u]:
+        return f"{where}  masked: not the world (ego body / hood), no Gaussian"
     if kind == "images":
         return f"{where}  RGB {value[0]} {value[1]} {value[2]}"
     if kind == "depth":
@@ -158,6 +175,9 @@ def _legend(viewer: Viewer, kind: str) -> None:
         imgui.text_disabled("black: sky / none")
     else:
         imgui.text_disabled("input images")
+    if viewer.doc.recon.valid_mask is not None:
+        imgui.text_colored(imgui.ImVec4(1.0, 0.3, 1.0, 1.0), "magenta: masked")
+        imgui.text_disabled("(ego body, no Gaussian)")
     imgui.end_group()
 
 

@@ -11,10 +11,10 @@ import torch
 
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.gaussians.recon import load_reconstruction, save_reconstruction
+from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
 from drivingscene.methods.oracle import oracle_reconstruction
 from drivingscene.render.scene import render_eval_frames, render_gaussians
-from drivingscene.geometry.se3 import invert_rigid
 
 
 def _bottom_mask(pair, rows: int) -> np.ndarray:
