@@ -33,6 +33,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.search",
         "choose the search along the rigid flow on validation pairs: PSNR change over static-only per setting",
     ),
+    "real": (
+        "drivingscene.bench.real",
+        "the model on real frames (from `drivingscene import`): depth vs LiDAR, re-rendered and in-between views vs baselines",
+    ),
     "results": (
         "drivingscene.bench.results",
         "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)",
