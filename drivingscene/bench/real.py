@@ -1,0 +1,383 @@
+"""``drivingscene bench real``: the model on real frames (docs/real-data.md).
+
+For each scene file (made with ``drivingscene import ...``), with the same inputs for every method:
+
+- depth against LiDAR (``gt_depth``), per camera, metric and median-scaled (monodepth2's errors,
+  0.1-80 m, pixels outside ``valid_mask`` ignored);
+- the input views re-rendered at the keyframes (PSNR / SSIM against the inputs): how well the
+  Gaussians explain what they were made from;
+- the real in-between frames (``eval_*``) rendered at their capture poses and times, against the
+  real images (PSNR / SSIM / perceptual distance), next to two trivial baselines with no geometry:
+  "copy the nearest keyframe" and "blend the two keyframes" (`drivingscene.eval.baselines`);
+- the share of dynamic Gaussians, and seconds per pair.
+
+Nothing of the real data goes into the report but numbers and the figures written beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from drivingscene.bench.machine import machine_description
+from drivingscene.errors import InputError
+
+FULL, STATIC = "DrivingScene", "DrivingScene, static-only (no residual flow)"
+COPY, BLEND = "copy the nearest keyframe", "blend the two keyframes"
+BASELINES = (COPY, BLEND)
+DEPTH_COLS = (("abs_rel", "AbsRel", "{:.3f}"), ("sq_rel", "SqRel", "{:.3f}"), ("rmse", "RMSE (m)", "{:.2f}"), ("a1", "δ<1.25", "{:.3f}"))
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenes", type=Path, nargs="+", metavar="SCENE", help="scene.npz files from `drivingscene import`")
+    p.add_argument("--names", nargs="+", default=None, metavar="NAME", help="a label per scene (default: file names)")
+    p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
+    amp = p.add_mutually_exclusive_group()
+    amp.add_argument("--amp", dest="amp", action="store_true", default=None, help="force bf16 autocast")
+    amp.add_argument("--no-amp", dest="amp", action="store_false", help="force float32")
+    p.add_argument("--repeats", type=int, default=3, help="timed reconstructions per scene after a warm-up (default 3)")
+    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
+    p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/real-data.md)")
+    p.add_argument("--json", type=Path, default=None, help="also write every score as JSON")
+    p.add_argument("--images", type=Path, default=None, help="folder for the side-by-side figures (e.g. docs/images/real)")
+
+
+@dataclass
+class SceneScores:
+    name: str
+    summary: dict  # cameras, size, gap, ego motion
+    depth: dict[str, dict[str, list[float]]] = field(default_factory=dict)  # "metric"/"median" -> metric -> [V]
+    keyframes: dict[str, dict[str, list[float]]] = field(default_factory=dict)  # method -> metric -> [V]
+    novel: dict[str, dict[str, list[float]]] = field(default_factory=dict)  # method -> metric -> [V]
+    dynamic_share: dict[str, float] = field(default_factory=dict)
+    seconds: dict[str, list[float]] = field(default_factory=dict)
+    camera_names: list[str] = field(default_factory=list)
+    figure: str | None = None  # markdown link to the side-by-side figure
+
+
+def _per_camera(values: torch.Tensor, num_views: int) -> list[float]:
+    """``[T * V]`` per-image values -> per-camera means over T (NaN images skipped)."""
+    v = values.double().reshape(-1, num_views)
+    out = []
+    for col in v.T:
+        col = col[~torch.isnan(col)]
+        out.append(float(col.mean()) if col.numel() else math.nan)
+    return out
+
+
+def image_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, perceptual, num_views: int) -> dict:
+    """Per-camera PSNR / SSIM (/ perceptual) of images ``[T, V, H, W, 3]`` in [0, 1] over ``mask``
+    ``[T, V, H, W]`` (None: every pixel), averaged over T per camera."""
+    from drivingscene.eval.metrics import lpips_distance, psnr, ssim
+
+    p = pred.flatten(0, 1).permute(0, 3, 1, 2).float()
+    t = target.flatten(0, 1).permute(0, 3, 1, 2).float()
+    m = None if mask is None else mask.flatten(0, 1)
+    out = {"psnr": _per_camera(psnr(p, t, m), num_views), "ssim": _per_camera(ssim(p, t, m), num_views)}
+    if perceptual is not None:
+        out["lpips"] = _per_camera(lpips_distance(p, t, m, metric=perceptual), num_views)
+    return out
+
+
+def _images(array: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(array)).float() / 255.0
+
+
+def depth_scores(recon, pair) -> dict[str, dict[str, list[float]]]:
+    """Per camera, both keyframes averaged: metric and median-scaled depth errors against LiDAR."""
+    from drivingscene.eval.metrics import depth_metrics
+
+    pred = torch.from_numpy(recon.depth).flatten(0, 1)
+    gt = torch.from_numpy(pair.gt_depth).flatten(0, 1)
+    mask = torch.from_numpy(np.broadcast_to(pair.world_mask()[None], pair.gt_depth.shape).copy()).flatten(0, 1)
+    out = {}
+    for kind, scaled in (("metric", False), ("median", True)):
+        m = depth_metrics(pred, gt, mask, median_scaling=scaled)
+        out[kind] = {name: _per_camera(getattr(m, name), pair.num_views) for name, _, _ in DEPTH_COLS}
+        out[kind]["scale"] = _per_camera(m.scale, pair.num_views)
+    pred_med = [float(np.median(recon.depth[:, v][pair.gt_depth[:, v] > 0])) for v in range(pair.num_views)]
+    gt_med = [float(np.median(pair.gt_depth[:, v][pair.gt_depth[:, v] > 0])) for v in range(pair.num_views)]
+    out["medians"] = {"pred": pred_med, "lidar": gt_med}
+    return out
+
+
+def render_keyframes(recon, pair) -> torch.Tensor:
+    """``[2, V, H, W, 3]``: the reconstruction at t = 0 and 1 from the input cameras' capture poses."""
+    from drivingscene.geometry.se3 import invert_rigid
+    from drivingscene.render.scene import render_gaussians
+
+    height, width = pair.image_size
+    cams = torch.from_numpy(np.array(pair.camera_ego_poses())) @ torch.from_numpy(pair.cam_to_ego).double()
+    k = torch.from_numpy(pair.intrinsics).float()
+    g = recon.visible()
+    frames = [
+        render_gaussians(g, float(t), invert_rigid(cams[t]), k, height, width, sky_sh=recon.sky_sh).colors.clamp(0, 1)
+        for t in (0, 1)
+    ]
+    return torch.stack(frames)
+
+
+def _methods(args):
+    from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+
+    model = load_model(args.weights)
+    base = InferenceOptions() if args.amp is None else replace(InferenceOptions(), amp=args.amp)
+    static = replace(base, use_residual=False)
+    return [(FULL, lambda pair: reconstruct(model, pair, base)), (STATIC, lambda pair: reconstruct(model, pair, static))]
+
+
+def _summary(pair) -> dict:
+    rel = np.linalg.inv(pair.ego_to_world[0]) @ pair.ego_to_world[1]
+    return {
+        "cameras": pair.num_views,
+        "size": f"{pair.image_size[1]}x{pair.image_size[0]}",
+        "gap_s": round(pair.duration, 4),
+        "ego_motion_m": round(float(np.linalg.norm(rel[:3, 3])), 3),
+        "eval_frames": pair.num_eval,
+        "lidar": pair.gt_depth is not None,
+        "masked_share": round(float(1 - pair.world_mask().mean()), 4),
+    }
+
+
+def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[SceneScores, dict]:
+    """Every score of one scene; also returns the reconstructions and renders for the figure."""
+    from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
+    from drivingscene.render.scene import render_eval_frames
+
+    s = SceneScores(name, _summary(pair), camera_names=list(pair.camera_names))
+    world = torch.from_numpy(pair.world_mask())
+
+    def masks(count: int) -> torch.Tensor | None:  # every pixel when the scene has no valid_mask
+        return None if pair.valid_mask is None else world[None].expand(count, *world.shape)
+
+    keyframe_mask = masks(2)
+    renders = {}
+    for method, fn in methods:
+        recon = fn(pair)  # warm-up (kernels built, caches filled)
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            recon = fn(pair)
+            times.append(time.perf_counter() - start)
+        s.seconds[method] = times
+        g = recon.visible()
+        s.dynamic_share[method] = float(g.dynamic.float().mean()) if len(g) else 0.0
+        if recon.depth is not None and pair.gt_depth is not None and FULL == method:
+            s.depth = depth_scores(recon, pair)
+        rendered = render_keyframes(recon, pair)
+        s.keyframes[method] = image_scores(rendered, _images(pair.images), keyframe_mask, None, pair.num_views)
+        renders[method] = {"recon": recon, "keyframes": rendered}
+        if pair.num_eval:
+            frames = render_eval_frames(recon, pair)
+            renders[method]["eval"] = frames
+            s.novel[method] = image_scores(frames, _images(pair.eval_images), masks(pair.num_eval), perceptual, pair.num_views)
+    if pair.num_eval:
+        mask = masks(pair.num_eval)
+        for method, frames in ((COPY, copy_nearest_frames(pair)), (BLEND, blend_frames(pair))):
+            renders[method] = {"eval": frames}
+            s.novel[method] = image_scores(frames, _images(pair.eval_images), mask, perceptual, pair.num_views)
+    return s, renders
+
+
+def _mean(values: list[float]) -> float:
+    vals = [v for v in values if not math.isnan(v)]
+    return sum(vals) / len(vals) if vals else math.nan
+
+
+def _fmt(value: float, fmt: str) -> str:
+    return "–" if value is None or math.isnan(value) else fmt.format(value)
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
+
+
+def losers(novel: dict[str, dict[str, list[float]]], key: str = "psnr") -> set[str]:
+    """Methods (not baselines) whose mean ``key`` is below the better trivial baseline's."""
+    base = [_mean(novel[b][key]) for b in BASELINES if b in novel]
+    if not base:
+        return set()
+    best = max(base)
+    return {m for m, scores in novel.items() if m not in BASELINES and _mean(scores[key]) < best}
+
+
+def _novel_rows(novel: dict, lpips_name: str, per_camera: list[str] | None = None) -> tuple[list[str], list[list[str]]]:
+    lose = losers(novel)
+    header = ["method", "PSNR", "SSIM", lpips_name]
+    rows = []
+    for method, scores in novel.items():
+        cells = [_fmt(_mean(scores["psnr"]), "{:.2f}"), _fmt(_mean(scores["ssim"]), "{:.3f}"), _fmt(_mean(scores.get("lpips", [math.nan])), "{:.3f}")]
+        label = method + (" — loses to a trivial baseline" if method in lose else "")
+        if method in lose:
+            label, cells = f"**{label}**", [f"**{c}**" for c in cells]
+        if per_camera is not None:
+            cells += [_fmt(v, "{:.2f}") for v in scores["psnr"]]
+        rows.append([label] + cells)
+    if per_camera is not None:
+        header += [f"PSNR {c}" for c in per_camera]
+    return header, rows
+
+
+def _scene_section(s: SceneScores, lpips_name: str, figure: str | None) -> str:
+    info = s.summary
+    out = [
+        f"### {s.name}\n",
+        f"{info['cameras']} cameras, {info['size']}, keyframes {info['gap_s']} s apart, ego moved {info['ego_motion_m']} m, "
+        f"{info['eval_frames']} real in-between frame(s), {100 * info['masked_share']:.1f} % of the pixels masked (ego body).\n",
+    ]
+    cams = s.camera_names
+    if s.depth:
+        out.append("Depth against LiDAR (both keyframes), per camera:\n")
+        header = ["", *cams, "mean"]
+        rows = []
+        for kind, label in (("metric", "metric"), ("median", "median-scaled")):
+            for key, name, fmt in DEPTH_COLS:
+                vals = s.depth[kind][key]
+                rows.append([f"{name} ({label})", *[_fmt(v, fmt) for v in vals], _fmt(_mean(vals), fmt)])
+        med = s.depth["medians"]
+        rows.append(["median depth, model (m)", *[_fmt(v, "{:.1f}") for v in med["pred"]], ""])
+        rows.append(["median depth, LiDAR (m)", *[_fmt(v, "{:.1f}") for v in med["lidar"]], ""])
+        out.append(_table(header, rows))
+    out.append("Input views re-rendered at the keyframes (PSNR against the inputs), per camera:\n")
+    rows = [[m, *[_fmt(v, "{:.2f}") for v in sc["psnr"]], _fmt(_mean(sc["psnr"]), "{:.2f}"), _fmt(_mean(sc["ssim"]), "{:.3f}")] for m, sc in s.keyframes.items()]
+    out.append(_table(["method", *cams, "mean PSNR", "mean SSIM"], rows))
+    if s.novel:
+        out.append("The real in-between frame, rendered at its capture poses and times:\n")
+        header, rows = _novel_rows(s.novel, lpips_name, cams)
+        out.append(_table(header, rows))
+    if figure:
+        out.append(figure)
+    return "\n".join(out)
+
+
+def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: str, precision: str) -> str:
+    head = [
+        "# DrivingScene on real frames\n",
+        f"Regenerated by `{command}` on {machine}; networks in {precision}. Scenes come from "
+        "`drivingscene import` (docs/importing.md); real data is read from outside the repository and never stored in it.\n",
+        "Depth is scored against LiDAR projected into each camera (0.1-80 m; pixels of the ego's own body excluded), "
+        "metric and median-scaled per image. Novel views: the real frame between the keyframes (held out from the "
+        "input), each camera rendered at its recorded pose and time, against two baselines that use no geometry: "
+        f"*{COPY}* and *{BLEND}*. A method that loses to the better baseline is in **bold**. "
+        f"Perceptual metric: {lpips_name}.\n",
+        "## Summary\n",
+    ]
+    rows = []
+    for s in scenes:
+        full = s.novel.get(FULL, {})
+        best_base = max((_mean(s.novel[b]["psnr"]) for b in BASELINES if b in s.novel), default=math.nan)
+        lose = FULL in losers(s.novel)
+        psnr = _fmt(_mean(full.get("psnr", [math.nan])), "{:.2f}")
+        rows.append(
+            [
+                s.name,
+                _fmt(_mean(s.depth["metric"]["abs_rel"]), "{:.3f}") if s.depth else "–",
+                _fmt(_mean(s.depth["median"]["abs_rel"]), "{:.3f}") if s.depth else "–",
+                _fmt(_mean(s.keyframes[FULL]["psnr"]), "{:.2f}"),
+                f"**{psnr}**" if lose else psnr,
+                _fmt(best_base, "{:.2f}"),
+                f"{100 * s.dynamic_share[FULL]:.1f} %",
+                f"{_mean(s.seconds[FULL]):.2f}",
+            ]
+        )
+    header = ["scene", "depth AbsRel", "AbsRel (median-scaled)", "keyframe re-render PSNR", "in-between PSNR", "best baseline PSNR", "dynamic Gaussians", "s / pair"]
+    return "\n".join(head) + _table(header, rows) + "\n## Per scene and camera\n\n" + "\n".join(
+        _scene_section(s, lpips_name, s.figure) for s in scenes
+    )
+
+
+def _u8(x: torch.Tensor) -> np.ndarray:
+    return np.round(x.clamp(0, 1).numpy() * 255).astype(np.uint8)
+
+
+def figure(pair, renders: dict, path: Path) -> Path:
+    """Side by side per camera: input (masked pixels tinted), the model's render of the real
+    in-between frame (or of keyframe 0), the real frame, the blend baseline; depth next to LiDAR."""
+    import cv2
+
+    from drivingscene.viz import contact_sheet, depth_to_rgb, save_png
+
+    recon = renders[FULL]["recon"]
+    rows, labels = [], []
+    for v, name in enumerate(pair.camera_names):
+        shown = pair.images[0, v].copy()
+        if pair.valid_mask is not None:
+            off = ~pair.valid_mask[v]
+            shown[off] = (0.4 * shown[off] + 0.6 * np.array([255, 0, 255])).astype(np.uint8)
+        lidar = pair.gt_depth[0, v] if pair.gt_depth is not None else np.zeros(pair.image_size, np.float32)
+        valid = lidar[lidar > 0]
+        lo, hi = (float(np.percentile(valid, 2)), float(np.percentile(valid, 98))) if valid.size else (None, None)
+        dilated = cv2.dilate(lidar, np.ones((3, 3), np.uint8))  # sparse points drawn 3x3 so they show
+        depth = [depth_to_rgb(recon.depth[0, v], vmin=lo, vmax=hi), depth_to_rgb(dilated, vmin=lo, vmax=hi)]
+        if pair.num_eval:
+            cells = [shown, _u8(renders[FULL]["eval"][0, v]), pair.eval_images[0, v], _u8(renders[BLEND]["eval"][0, v])]
+            names = [f"{name} input t=0", "DrivingScene, t=eval", "real frame", "blend baseline"]
+        else:
+            cells = [shown, _u8(renders[FULL]["keyframes"][0, v])]
+            names = [f"{name} input t=0", "DrivingScene re-render"]
+        rows.append(cells + depth)
+        labels.append(names + ["model depth", "LiDAR depth"])
+    return save_png(path, contact_sheet(rows, labels))
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+def run(args: argparse.Namespace) -> int:
+    import os
+    import sys
+
+    from drivingscene.data.frame_pair import load_frame_pair
+    from drivingscene.eval.lpips import load_perceptual
+
+    if args.names is not None and len(args.names) != len(args.scenes):
+        raise InputError(f"--names: expected one name per scene ({len(args.scenes)}), found {len(args.names)}")
+    if args.repeats < 1:
+        raise InputError(f"--repeats: expected at least 1, found {args.repeats}")
+    pairs = [load_frame_pair(p) for p in args.scenes]  # every file checked before the long part
+    names = args.names or [p.stem for p in args.scenes]
+    methods = _methods(args)
+    perceptual = load_perceptual(args.lpips)
+    scenes, flat = [], {}
+    for pair, name in zip(pairs, names):
+        s, renders = score_scene(pair, name, methods, perceptual, args.repeats)
+        if args.images is not None:
+            path = figure(pair, renders, args.images / f"{_slug(name)}.png")
+            if args.out is not None:
+                rel = os.path.relpath(path, args.out.parent)
+                s.figure = f"![{name}: input, render, real frame, blend baseline; model depth, LiDAR]({rel})\n"
+        scenes.append(s)
+        flat[name] = {k: v for k, v in vars(s).items() if k != "figure"}
+        print(f"{name}: scored", file=sys.stderr)
+    precision = _precision(args)
+    command = "drivingscene bench real " + " ".join(str(p) for p in args.scenes)
+    text = report(scenes, perceptual.name, command, machine_description(), precision)
+    if args.out is not None:
+        from drivingscene.data.npz import atomic_write
+
+        atomic_write(args.out, lambda f: f.write(text.encode()))
+        print(f"{args.out}: written")
+    else:
+        print(text)
+    if args.json is not None:
+        from drivingscene.data.npz import atomic_write
+
+        atomic_write(args.json, lambda f: f.write(json.dumps(flat, indent=1, sort_keys=True).encode()))
+    return 0
+
+
+def _precision(args) -> str:
+    try:
+        from drivingscene.precision import describe_precision  # the per-machine choice (issue: any CPU)
+    except ImportError:
+        return "bf16 autocast" if args.amp is not False else "float32"
+    return describe_precision(torch.device("cpu")) if args.amp is None else ("bf16 autocast (forced)" if args.amp else "float32 (forced)")
