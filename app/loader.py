@@ -93,7 +93,9 @@ def reconstruct_pair(pair: FramePair, source: Path | None, method: str, weights:
             raise MissingWeightsError(f"{path}: model weights not found{hint}", pair, source)
         progress(None, "loading the model")
         model = load_model(path)
-        progress(None, f"running the model on {pair.num_views} cameras")
+        from drivingscene.precision import describe_precision  # DRIVINGSCENE_AMP=1/0 forces
+
+        progress(None, f"running the model on {pair.num_views} cameras, {describe_precision(next(model.parameters()).device)}")
         recon = reconstruct(model, pair)
     seconds = time.perf_counter() - start
     return Loaded(

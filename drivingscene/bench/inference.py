@@ -24,7 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=int, default=5, help="timed runs per size (after 2 warm-up runs)")
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--no-amp", action="store_true")
+    from drivingscene.cli.recon import add_amp_arguments
+
+    add_amp_arguments(p)  # default: bf16 autocast where the CPU/GPU does bf16 natively, else float32
     p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
@@ -141,15 +143,19 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     torch.set_num_threads(args.threads)
     model = load_model(args.weights, device=device)
-    rows = measure(model, args.sizes, args.runs, not args.no_amp, args.threads, not args.no_search, args.weights, args.device)
+    from drivingscene.precision import cpu_flags_summary, describe_precision, resolve_amp
+
+    amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
+    rows = measure(model, args.sizes, args.runs, amp, args.threads, not args.no_search, args.weights, args.device)
     from drivingscene.render.cpp import load_extension
 
     kernels = "on" if device.type == "cpu" and load_extension() is not None else "off: torch paths"
     lines = [
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}"
-        f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}`"
-        f" on {machine_description()}"
-        f"{_gpu_name(device)}; bf16 autocast {'off' if args.no_amp else 'on'}; compiled CPU kernels {kernels}; "
+        f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}"
+        f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}`"
+        f" on {machine_description(cpu_flags_summary())}"
+        f"{_gpu_name(device)}; precision: {describe_precision(device, args.amp)}; compiled CPU kernels {kernels}; "
         f"median of {args.runs} runs per size, taken in turn across the sizes after {WARMUP_RUNS} warm-up runs each; "
         "peak RSS: one reconstruction in a fresh process, above its memory with the model and the pair loaded "
         "/ that process's whole peak.",

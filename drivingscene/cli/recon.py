@@ -10,6 +10,20 @@ from drivingscene.cli.common import check_output, positive_int
 from drivingscene.errors import InputError
 
 
+def add_amp_arguments(p: argparse.ArgumentParser) -> None:
+    """``--amp`` / ``--no-amp`` into ``args.amp``: True, False, or None (default: decided per
+    machine, drivingscene/precision.py)."""
+    amp = p.add_mutually_exclusive_group()
+    amp.add_argument(
+        "--amp",
+        dest="amp",
+        action="store_true",
+        default=None,
+        help="force bf16 autocast for the networks (default: where the CPU/GPU does bf16 natively, else float32)",
+    )
+    amp.add_argument("--no-amp", dest="amp", action="store_false", help="force float32 networks")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("reconstruct", help="reconstruct a scene.npz with the model into recon.npz")
     p.add_argument("scene", type=Path, metavar="SCENE")
@@ -20,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--no-search", action="store_true", help="R's flow as it is, without the search along the rigid flow (ablation)"
     )
     p.add_argument("--threads", type=positive_int, default=None)
-    p.add_argument("--no-amp", action="store_true", help="float32 networks (default: bf16 autocast on CPU)")
+    add_amp_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_reconstruct)
@@ -84,6 +98,7 @@ def _report(recon, path: Path) -> None:
     g = recon.gaussians
     timings = recon.meta.get("timings", {})
     total = f", {timings['total_s']:.3f} s" if "total_s" in timings else ""
+    total += f" ({recon.meta['precision']})" if "precision" in recon.meta else ""
     print(f"{path}: {len(g)} Gaussians ({int(g.dynamic.sum())} dynamic), {recon.num_views} cameras{total}")
 
 
@@ -96,7 +111,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     pair = load_frame_pair(args.scene)
     model = load_model(args.weights, device=device)
-    options = InferenceOptions(use_residual=not args.static_only, amp=not args.no_amp, threads=args.threads)
+    options = InferenceOptions(use_residual=not args.static_only, amp=args.amp, threads=args.threads)
     if args.no_search:
         options = replace(options, search=None)
     recon = reconstruct(model, pair, options)

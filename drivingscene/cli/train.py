@@ -8,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from drivingscene.cli.common import positive_int
+from drivingscene.cli.recon import add_amp_arguments
 from drivingscene.errors import InputError
 
 
@@ -50,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--val-every", type=positive_int, default=None)
     p.add_argument("--ckpt-every", type=positive_int, default=None)
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default=None)
-    p.add_argument("--no-amp", action="store_true", help="float32 networks (default: bf16 autocast)")
+    add_amp_arguments(p)  # --amp / --no-amp; default: bf16 autocast where the CPU does bf16 natively
     p.add_argument("--config", type=Path, default=None, help="JSON config to start from (e.g. a run's config.json)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--no-progress", action="store_true")
@@ -130,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         val_every=args.val_every,
         ckpt_every=args.ckpt_every,
         lpips=args.lpips,
-        amp=False if args.no_amp else None,
+        amp=args.amp,
     )
     path = train(config, resume=args.resume, show_progress=not args.no_progress)
     print(f"weights: {path}")

@@ -35,6 +35,7 @@ from drivingscene.models.pipeline import (
     search_motion,
     sky_mask,
 )
+from drivingscene.precision import resolve_amp
 from drivingscene.resources import asset_path
 
 DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
@@ -46,7 +47,9 @@ class InferenceOptions:
     lift: LiftConfig = LiftConfig()
     # R's flow refined by a photometric search along the rigid flow (models/pipeline.py); None: R alone
     search: MotionSearchConfig | None = MotionSearchConfig()
-    amp: bool = True  # bf16 autocast for D and P on CPU (R runs in float32: faster there, see training-notes)
+    # bf16 autocast for D and P (R runs in float32: faster there, see training-notes). None: where the
+    # hardware does bf16 natively (drivingscene.precision: float32 on an AVX2-only CPU); True/False: forced.
+    amp: bool | None = None
     threads: int | None = None
 
 
@@ -102,11 +105,11 @@ def reconstruct(
     if options.threads:
         torch.set_num_threads(options.threads)
     device = next(model.parameters()).device
+    use_amp = resolve_amp(options.amp, device)  # decided once per machine (cached), not timed
     timings = {}
     start = time.perf_counter()
     batch = pair_to_tensors(pair, with_gt=False, with_eval=False).to(device)
-    amp = torch.autocast(device.type, dtype=torch.bfloat16, enabled=options.amp)
-    with amp:
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
         static = predict_static(model, batch)
     _sync(device)
     timings["static_s"] = time.perf_counter() - start
@@ -163,5 +166,6 @@ def reconstruct(
         meta={
             "method": "drivingscene" if options.use_residual else "drivingscene-static",
             "timings": {k: round(v, 4) for k, v in timings.items()},
+            "precision": "bf16 autocast" if use_amp else "float32",
         },
     )

@@ -50,7 +50,11 @@ class TrainConfig:
     batch_pairs: int = 1  # frame pairs per step and process (the paper: batch 1)
     seed: int = 0
     threads: int = 2
-    amp: bool = True  # bf16 autocast for the networks (the rasterizer stays float32)
+    # bf16 autocast for the networks (the rasterizer stays float32). None: where the CPU does bf16
+    # natively (drivingscene.precision), True/False: forced. `train` resolves it; the run's
+    # config.json records the choice made and, in ``amp_auto``, whether it was the machine's.
+    amp: bool | None = None
+    amp_auto: bool = False  # set by `resolve_precision`: ``amp`` was decided for the machine, not forced
     lpips: str = "auto"  # perceptual metric: auto | lpips | stlpips
     render_every: int = 1  # L_render on every n-th step (it is the most expensive term)
     log_every: int = 10
@@ -76,8 +80,23 @@ class TrainConfig:
         data = dict(data)
         weights = LossWeights(**data.pop("weights", {}))
         model = ModelConfig.from_dict(data.pop("model", {}))
+        if "amp_auto" in data:  # a resolved config: an automatic choice is made again where it is loaded
+            data["amp"] = None if data.pop("amp_auto") else data.get("amp")
+        elif data.get("amp") is True:  # saved before the choice was automatic: True was the default
+            data["amp"] = None
         known = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in known}, weights=weights, model=model)
 
     def with_overrides(self, **kwargs) -> TrainConfig:
         return replace(self, **{k: v for k, v in kwargs.items() if v is not None})
+
+    def resolve_precision(self) -> TrainConfig:
+        """The config with ``amp`` decided for this machine's CPU where it is None (auto)."""
+        if self.amp is not None and not self.amp_auto:
+            return self
+        from drivingscene.precision import auto_amp, env_amp
+
+        forced = env_amp()  # DRIVINGSCENE_AMP
+        if forced is not None:
+            return replace(self, amp=forced, amp_auto=False)
+        return replace(self, amp=auto_amp("cpu"), amp_auto=True)

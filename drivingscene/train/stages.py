@@ -34,6 +34,7 @@ from drivingscene.models.pipeline import (
     search_motion,
     sky_mask,
 )
+from drivingscene.precision import resolve_amp
 from drivingscene.render.scene import render_gaussians
 from drivingscene.train.config import TrainConfig
 from drivingscene.train.losses import (
@@ -93,11 +94,12 @@ class TrainStep(nn.Module):
         super().__init__()
         self.model = model
         self.config = config
-        self.perceptual = Bf16Metric(perceptual) if perceptual is not None and config.amp else perceptual
+        self.amp = resolve_amp(config.amp, "cpu")  # `train` passes it resolved; None: this machine's choice
+        self.perceptual = Bf16Metric(perceptual) if perceptual is not None and self.amp else perceptual
 
     def forward(self, batch: PairTensors, step: int) -> tuple[Tensor, dict[str, Tensor]]:
         stage = self.config.stage
-        amp = torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.config.amp)
+        amp = torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.amp)
         terms: dict[str, Tensor] = {}
         if stage == "dynamic":
             self.model.depth_net.eval()

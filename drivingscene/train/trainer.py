@@ -6,7 +6,8 @@
 
 Every ``ckpt_every`` steps the weights, optimiser state and RNG state are saved atomically
 (safetensors + JSON); ``--resume`` continues from the last complete checkpoint after a kill.
-Logs are JSON lines in ``OUT/log.jsonl``; the resolved config is ``OUT/config.json``.
+Logs are JSON lines in ``OUT/log.jsonl``; the resolved config is ``OUT/config.json`` (with the
+precision chosen for this machine: ``amp``, and ``amp_auto`` when it was not forced).
 """
 
 from __future__ import annotations
@@ -111,7 +112,7 @@ def with_data_size(config: TrainConfig, files: list[Path]) -> TrainConfig:
 def train(config: TrainConfig, resume: bool = False, show_progress: bool = True) -> Path:
     """Run (or resume) a training job; returns the exported weights path."""
     files = list_pairs(config.data)
-    config = with_data_size(config, files)
+    config = with_data_size(config, files).resolve_precision()  # amp: bf16 where the CPU does it natively
     rank, world = _distributed()
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed + rank)
@@ -200,6 +201,7 @@ def _record_session(out: Path, start: int, world: int, config: TrainConfig) -> N
         "torch": torch.__version__,
         "threads": config.threads,
         "processes": world,
+        "amp": config.amp,
     }
     with open(out / "sessions.jsonl", "a") as f:
         f.write(json.dumps(record) + "\n")
