@@ -37,7 +37,8 @@ clean-venv:
 
 # The model on the real DDAD development scene (../shared/real, never copied into the repo):
 # import the pairs 0->1, 1->2 and 0->2 (sample 1 held out as the real in-between frame), then
-# score them into docs/real-data.md. Needs the scene at $(REAL).
+# score them into docs/real-data.md. Needs the scene at $(REAL). The side-by-side figures show real
+# frames: they go to $(OUT)/real-data (not committed; the data is not ours to redistribute).
 REAL ?= ../shared/real/ddad_scene_02
 REAL_OUT ?= data/real
 real-data: setup
@@ -46,4 +47,4 @@ real-data: setup
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 2 --eval 1 -o $(REAL_OUT)/ddad02_0-2.npz --force
 	$(VENV)/bin/drivingscene bench real $(REAL_OUT)/ddad02_0-1.npz $(REAL_OUT)/ddad02_1-2.npz $(REAL_OUT)/ddad02_0-2.npz \
 		--names "DDAD scene_02, 0->1" "DDAD scene_02, 1->2" "DDAD scene_02, 0->2 (1 held out)" \
-		--out docs/real-data.md --json docs/real-data.json --images docs/images/real
+		--out docs/real-data.md --json docs/real-data.json --images $(OUT)/real-data

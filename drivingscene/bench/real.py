@@ -354,7 +354,10 @@ def run(args: argparse.Namespace) -> int:
             path = figure(pair, renders, args.images / f"{_slug(name)}.png")
             if args.out is not None:
                 rel = os.path.relpath(path, args.out.parent)
-                s.figure = f"![{name}: input, render, real frame, blend baseline; model depth, LiDAR]({rel})\n"
+                s.figure = (
+                    f"Side by side (input, render, real frame, blend baseline; model depth, LiDAR): [{path.name}]({rel}), "
+                    "written by the command beside the report's run; real frames are not committed to the repository.\n"
+                )
         scenes.append(s)
         flat[name] = {k: v for k, v in vars(s).items() if k != "figure"}
         print(f"{name}: scored", file=sys.stderr)
