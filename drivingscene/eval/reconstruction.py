@@ -31,18 +31,22 @@ def _nanmean(x: torch.Tensor) -> float:
     return float(x.mean()) if x.numel() else math.nan
 
 
-def score_novel_views(
-    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None, blend: str = "all"
-) -> dict[str, float]:
-    from drivingscene.render.scene import render_eval_frames
-
-    pred = render_eval_frames(recon, pair, blend=blend).flatten(0, 1).permute(0, 3, 1, 2)  # [MV, 3, H, W]
+def score_frames(pred: torch.Tensor, pair: FramePair, perceptual: PerceptualMetric | None) -> dict[str, float]:
+    """Scores of predicted in-between frames ``[M, V, H, W, 3]`` in [0, 1] against ``eval_images``:
+    PSNR, SSIM (and the perceptual distance) over the pixels that see the world (``valid_mask``;
+    every pixel without one), and the same over moving pixels (``eval_dynamic``) when known."""
+    pred = pred.flatten(0, 1).permute(0, 3, 1, 2)  # [MV, 3, H, W]
     target = torch.from_numpy(pair.eval_images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
-    out = {"psnr": _nanmean(psnr(pred, target)), "ssim": _nanmean(ssim(pred, target))}
+    world = None
+    if pair.valid_mask is not None:
+        world = torch.from_numpy(pair.valid_mask)[None].expand(pair.num_eval, *pair.valid_mask.shape).flatten(0, 1)
+    out = {"psnr": _nanmean(psnr(pred, target, world)), "ssim": _nanmean(ssim(pred, target, world))}
     if perceptual is not None:
-        out["lpips"] = _nanmean(lpips_distance(pred, target, metric=perceptual))
+        out["lpips"] = _nanmean(lpips_distance(pred, target, world, metric=perceptual))
     if pair.eval_dynamic is not None:
         dyn = torch.from_numpy(pair.eval_dynamic).flatten(0, 1)
+        if world is not None:
+            dyn = dyn & world
         out["psnr_dyn"] = _nanmean(psnr(pred, target, dyn))
         out["ssim_dyn"] = _nanmean(ssim(pred, target, dyn))
         if perceptual is not None:
@@ -51,11 +55,22 @@ def score_novel_views(
     return out
 
 
+def score_novel_views(
+    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None, blend: str = "all"
+) -> dict[str, float]:
+    """`score_frames` of the reconstruction rendered at the pair's intermediate frames."""
+    from drivingscene.render.scene import render_eval_frames
+
+    return score_frames(render_eval_frames(recon, pair, blend=blend), pair, perceptual)
+
+
 def score_depth(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
     if recon.depth is None or pair.gt_depth is None:
         return {}
     pred = torch.from_numpy(recon.depth).flatten(0, 1)
     gt = torch.from_numpy(pair.gt_depth).flatten(0, 1)
+    if pair.valid_mask is not None:  # no ground truth on the ego's own body
+        gt = torch.where(torch.from_numpy(pair.valid_mask).repeat(2, 1, 1), gt, torch.zeros_like(gt))
     out = {}
     for prefix, scaled in (("depth", False), ("depth_ms", True)):
         m = depth_metrics(pred, gt, median_scaling=scaled)
@@ -79,6 +94,8 @@ def score_flow(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
     dyn = torch.from_numpy(pair.gt_dynamic).flatten(0, 1)
     noc = torch.cat([forward_backward_consistency(gt_pair[k], gt_pair[1 - k]) for k in (0, 1)])
     valid = noc & (torch.from_numpy(pair.gt_depth > 0).flatten(0, 1) if pair.gt_depth is not None else True)
+    if pair.valid_mask is not None:
+        valid = valid & torch.from_numpy(pair.valid_mask).repeat(2, 1, 1)
     out = {}
     for name, flow in (("rigid", recon.rigid_flow), ("total", recon.total_flow)):
         pred = torch.from_numpy(np.ascontiguousarray(flow)).flatten(0, 1)
