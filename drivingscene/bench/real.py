@@ -329,7 +329,11 @@ def figure(pair, renders: dict, path: Path) -> Path:
 
 
 def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+    """A file name from a scene label: ``DDAD scene_02, 0->2`` -> ``DDAD_scene_02_0-to-2``."""
+    import re
+
+    text = re.sub(r"[^A-Za-z0-9_-]+", "_", name.replace("->", "-to-"))
+    return re.sub(r"_+", "_", text).strip("_") or "scene"
 
 
 def run(args: argparse.Namespace) -> int:

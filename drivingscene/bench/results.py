@@ -6,7 +6,9 @@ On test-split pairs never seen in training, with the same inputs for every metho
 - R alone: the same without the search (R's flow as it is),
 - static-only: the same weights without the residual flow (stage 1 alone: every Gaussian static),
 - single-stage: a model trained jointly from the start (``--joint-weights``),
-- oracle: ground-truth depth and scene flow in the same representation (the ceiling).
+- oracle: ground-truth depth and scene flow in the same representation (the ceiling),
+- two trivial baselines with no geometry: copy the nearest keyframe, blend the two keyframes
+  (`drivingscene.eval.baselines`); a method whose mean PSNR is below the better one is in bold.
 
 Scores come from ``drivingscene.eval.reconstruction.score_reconstruction``.
 """
@@ -31,6 +33,8 @@ SEARCH_ALONE = "diagnostic: the search without R"
 GT_FLOW = "diagnostic: DrivingScene depth + GT flow"
 GT_FLOW_QUARTER = "diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"
 ORACLE_STATIC = "diagnostic: oracle without scene flow"
+COPY, BLEND = "baseline: copy the nearest keyframe", "baseline: blend the two keyframes"
+BASELINES = (COPY, BLEND)
 DEPTH = [
     ("abs_rel", "AbsRel", "{:.3f}"),
     ("sq_rel", "SqRel", "{:.3f}"),
@@ -209,15 +213,45 @@ def checks(scores: dict[str, list[dict]]) -> list[str]:
             f"- {what} lowers the dynamic-pixel flow error: {mean:+.2f} px on average (rigid only minus rigid + residual), "
             f"lower in {wins} of {n} pairs — " + _verdict(mean, wins, n) + "."
         )
+    present = [b for b in BASELINES if scores.get(b)]
+    if present:
+        base = max(present, key=lambda b: _mean(scores[b], "psnr"))
+        mean, wins, n = _paired(full, scores[base], "psnr")
+        lines.append(
+            f"- Full model vs the better trivial baseline ({base.split(': ')[1]}), all pixels: PSNR {mean:+.2f} dB on "
+            f"average, higher in {wins} of {n} pairs — " + _verdict(mean, wins, n) + "."
+        )
     return lines
+
+
+def losing(scores: dict[str, list[dict]], key: str) -> set[str]:
+    """Methods (not the baselines) whose mean ``key`` (a PSNR) is below the better baseline's."""
+    base = [_mean(scores[b], key) for b in BASELINES if b in scores]
+    base = [b for b in base if not math.isnan(b)]
+    if not base:
+        return set()
+    return {m for m, rows in scores.items() if m not in BASELINES and _mean(rows, key) < max(base)}
+
+
+def _nvs_rows(scores: dict[str, list[dict]], suffix: str) -> list[list[str]]:
+    """Novel-view rows; a method that loses to a trivial baseline (on PSNR) is in bold and says so."""
+    lose = losing(scores, f"psnr{suffix}")
+    rows = []
+    for m, r in scores.items():
+        cells = [_fmt(_mean(r, f"{k}{suffix}"), f) for k, _, f in NVS]
+        if m in lose:
+            rows.append([f"**{m} — loses to a trivial baseline**"] + [f"**{c}**" for c in cells])
+        else:
+            rows.append([m] + cells)
+    return rows
 
 
 def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips_name: str, args, count: int) -> str:
     nvs_head = ["method"] + [h.format(lpips=lpips_name) for _, h, _ in NVS]
-    nvs_all = [[m] + [_fmt(_mean(rows, k), f) for k, _, f in NVS] for m, rows in scores.items()]
-    nvs_dyn = [[m] + [_fmt(_mean(rows, f"{k}_dyn"), f) for k, _, f in NVS] for m, rows in scores.items()]
+    nvs_all, nvs_dyn = _nvs_rows(scores, ""), _nvs_rows(scores, "_dyn")
+    models = {m: rows for m, rows in scores.items() if m not in BASELINES}
     depth_rows = []
-    for m, rows in scores.items():
+    for m, rows in models.items():
         for prefix, label in (("depth", "metric"), ("depth_ms", "median-scaled")):
             split = [
                 _fmt(_mean(rows, f"depth_abs_rel_{part}"), "{:.3f}") if label == "metric" else "" for part in ("dyn", "static")
@@ -230,7 +264,7 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
             _fmt(_mean(rows, "epe_dyn_total"), "{:.2f}"),
             _fmt(_mean(rows, "epe_static_total"), "{:.2f}"),
         ]
-        for m, rows in scores.items()
+        for m, rows in models.items()
     ]
     speed = [
         [
@@ -239,7 +273,7 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
             f"{_mean(rows, 'gaussians') / 1e3:.0f}k",
             f"{_mean(rows, 'dynamic_gaussians') / 1e3:.1f}k",
         ]
-        for m, rows in scores.items()
+        for m, rows in models.items()
     ]
     cmd = f"drivingscene bench results --data {args.data} --count {args.count}"
     cmd += f" --weights {args.weights}" if args.weights else ""
@@ -314,8 +348,9 @@ def figure(recons: dict, pair, path: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
+    from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
     from drivingscene.eval.lpips import load_perceptual
-    from drivingscene.eval.reconstruction import score_reconstruction
+    from drivingscene.eval.reconstruction import score_frames, score_reconstruction
     from drivingscene.train.data import list_pairs
 
     _extras(args.extra)  # argument errors before any work
@@ -338,11 +373,14 @@ def run(args: argparse.Namespace) -> int:
             recon = recons[name] = method(pair)
             seconds[name].append(time.perf_counter() - tic)
             scores[name].append({"file": path.name, **score_reconstruction(recon, pair, perceptual)})
+        for name, predict in ((COPY, copy_nearest_frames), (BLEND, blend_frames)):
+            if pair.num_eval:
+                scores.setdefault(name, []).append({"file": path.name, **score_frames(predict(pair), pair, perceptual)})
         if args.image and i == args.image_pair:
             figure({k: v for k, v in recons.items() if not k.startswith("diagnostic")}, pair, args.image)
         print(
             f"[{i + 1}/{len(files)}] {path.name}: "
-            + ", ".join(f"{n.split(' ')[0]} {scores[n][-1].get('psnr', math.nan):.2f} dB" for n, _ in methods),
+            + ", ".join(f"{n.split(' ')[0]} {rows[-1].get('psnr', math.nan):.2f} dB" for n, rows in scores.items() if rows),
             flush=True,
         )
     text = report(scores, seconds, perceptual.name, args, len(files))
