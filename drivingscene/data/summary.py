@@ -32,6 +32,12 @@ def summarise(pair: FramePair, path: str | os.PathLike | None = None) -> str:
     if pair.num_eval:
         ts = ", ".join(f"{t:.3f}" for t in pair.normalised_time(pair.eval_timestamps))
         lines.append(f"eval frames {pair.num_eval} at t = {ts} (normalised)")
+    if pair.camera_timestamps is not None:
+        spread = 1e3 * np.ptp(pair.camera_timestamps, axis=1)
+        lines.append(f"capture     per-image poses and times; cameras of a keyframe span {spread.max():.1f} ms")
+    if pair.valid_mask is not None:
+        masked = 100.0 * (1 - pair.valid_mask.reshape(pair.num_views, -1).mean(1))
+        lines.append(f"valid_mask  masked (not the world) per camera: {', '.join(f'{m:.1f}%' for m in masked)}")
     gt = [k for k in ("gt_depth", "gt_flow", "gt_scene_flow", "gt_dynamic") if pair.has(k)]
     lines.append(f"ground truth {', '.join(gt) if gt else 'none'}")
     if pair.gt_depth is not None:

@@ -48,6 +48,21 @@ def test_info_summarises(tmp_path, small_pair, capsys):
     assert "image size  16x12" in out
     assert "ego motion  4.00 m (8.00 m/s)" in out
     assert "eval frames 1 at t = 0.500" in out
+    assert "valid_mask" not in out and "capture" not in out
+
+
+def test_info_tells_mask_and_capture_times(tmp_path, small_pair, capsys):
+    from dataclasses import replace
+
+    import numpy as np
+
+    mask = np.ones((3, 12, 16), bool)
+    mask[1, -3:] = False  # a quarter of camera 1
+    times = small_pair.timestamps[:, None] + np.array([0.0, 0.02, 0.04])[None]
+    pair = replace(small_pair, valid_mask=mask, camera_timestamps=times)
+    assert main(["info", str(save_frame_pair(pair, tmp_path / "s.npz"))]) == 0
+    out = capsys.readouterr().out
+    assert "0.0%, 25.0%, 0.0%" in out and "span 40.0 ms" in out
 
 
 def test_info_on_bad_file_is_one_line_error(tmp_path, capsys):
