@@ -16,7 +16,7 @@ def _resolution(text: str) -> tuple[int, int]:
 
 def _common(p: argparse.ArgumentParser, default_res: str | None = "176x320") -> None:
     res_help = "output image size HxW" + (f" (default {default_res})" if default_res else " (default: the images' own size)")
-    p.add_argument("--res", type=_resolution, default=None if default_res is None else _resolution(default_res), help=res_help)
+    p.add_argument("--res", type=_resolution, default=default_res, help=res_help)  # argparse converts a string default
     p.add_argument(
         "--fit",
         choices=("crop", "pad"),

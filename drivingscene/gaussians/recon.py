@@ -238,7 +238,9 @@ def save_reconstruction(recon: Reconstruction, path: str | os.PathLike) -> Path:
     problems = validate_recon_arrays(arrays, str(path))
     if problems:
         raise SceneFormatError(problems)
-    return save_npz(path, arrays)
+    # Deflate level 1: float32 Gaussians barely compress (41.6 against 41.4 MB at level 6 for a
+    # 6x176x320 pair) and level 6 took about 1 s longer to write.
+    return save_npz(path, arrays, level=1)
 
 
 def load_reconstruction(path: str | os.PathLike) -> Reconstruction:
