@@ -177,7 +177,7 @@ def _legend(viewer: Viewer, kind: str) -> None:
         imgui.text_disabled("input images")
     if viewer.doc.recon.valid_mask is not None:
         imgui.text_colored(imgui.ImVec4(1.0, 0.3, 1.0, 1.0), "magenta: masked")
-        imgui.text_disabled("(ego body, no Gaussian)")
+        imgui.text_disabled("(ego body)")
     imgui.end_group()
 
 
