@@ -2,13 +2,16 @@
 
 - novel views: the Gaussians rendered at the pair's intermediate frames (exact recorded ego poses)
   against the real frames: PSNR, SSIM and the perceptual distance, over all pixels and over
-  dynamic pixels (``eval_dynamic``);
+  dynamic pixels (``eval_dynamic``), by `score_frames`, which also scores the trivial baselines
+  (`drivingscene.eval.baselines`);
 - depth: the reconstruction's per-camera depth at both keyframes against ``gt_depth`` (0.1-80 m),
   metric and median-scaled;
 - flow: end-point error of the rigid flow alone and of rigid + residual against ``gt_flow``, on
   dynamic and on static pixels (both keyframes, both directions), over non-occluded pixels as in
   KITTI's "noc": the ground-truth flow stays in the image and is forward/backward consistent (this
   also drops points that pass behind the camera, whose flow is unbounded).
+
+Pixels outside the pair's ``valid_mask`` (ego body, hood, mounts) count in none of these.
 """
 
 from __future__ import annotations
@@ -31,20 +34,30 @@ def _nanmean(x: torch.Tensor) -> float:
     return float(x.mean()) if x.numel() else math.nan
 
 
-def score_frames(pred: torch.Tensor, pair: FramePair, perceptual: PerceptualMetric | None) -> dict[str, float]:
-    """Scores of predicted in-between frames ``[M, V, H, W, 3]`` in [0, 1] against ``eval_images``:
+def score_frames(
+    pred: torch.Tensor,  # [M, V, H, W, 3] in [0, 1]
+    pair: FramePair,
+    perceptual: PerceptualMetric | None,
+) -> dict[str, float]:
+    """Scores of predicted in-between frames against ``eval_images``, for methods and baselines alike.
+
     PSNR, SSIM (and the perceptual distance) over the pixels that see the world (``valid_mask``;
-    every pixel without one), and the same over moving pixels (``eval_dynamic``) when known."""
+    every pixel without one), and the same over moving pixels (``eval_dynamic``) when known. The
+    masked pixels of ``pred`` are first replaced by the target's, so what a method puts on the
+    ego's body cannot reach a counted pixel through an SSIM window or the perceptual network's
+    receptive field either; without a mask the scores are those of the metrics on the raw images.
+    """
     pred = pred.flatten(0, 1).permute(0, 3, 1, 2)  # [MV, 3, H, W]
     target = torch.from_numpy(pair.eval_images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
-    world = None
+    world = None  # [MV, H, W]
     if pair.valid_mask is not None:
         world = torch.from_numpy(pair.valid_mask)[None].expand(pair.num_eval, *pair.valid_mask.shape).flatten(0, 1)
+        pred = torch.where(world[:, None], pred, target.to(pred.dtype))
     out = {"psnr": _nanmean(psnr(pred, target, world)), "ssim": _nanmean(ssim(pred, target, world))}
     if perceptual is not None:
         out["lpips"] = _nanmean(lpips_distance(pred, target, world, metric=perceptual))
     if pair.eval_dynamic is not None:
-        dyn = torch.from_numpy(pair.eval_dynamic).flatten(0, 1)
+        dyn = torch.from_numpy(pair.eval_dynamic).flatten(0, 1)  # [MV, H, W]
         if world is not None:
             dyn = dyn & world
         out["psnr_dyn"] = _nanmean(psnr(pred, target, dyn))
@@ -65,6 +78,8 @@ def score_novel_views(
 
 
 def score_depth(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
+    """Depth errors of ``recon.depth`` ``[2, V, H, W]`` against ``gt_depth`` on the pixels that see the
+    world, metric and median-scaled, and metric AbsRel on moving and on static pixels."""
     if recon.depth is None or pair.gt_depth is None:
         return {}
     pred = torch.from_numpy(recon.depth).flatten(0, 1)

@@ -48,3 +48,75 @@ def test_scores_ignore_masked_pixels():
 
     flat = psnr(pred.flatten(0, 1).permute(0, 3, 1, 2), target.flatten(0, 1).permute(0, 3, 1, 2))
     assert unmasked["psnr"] == pytest.approx(float(flat.double().mean()))
+
+
+def _old_score_novel_views(pred, pair, perceptual):
+    """score_novel_views before valid_mask, for the bit-identity check."""
+    from drivingscene.eval.metrics import lpips_distance, psnr, ssim
+    from drivingscene.eval.reconstruction import _nanmean
+
+    pred = pred.flatten(0, 1).permute(0, 3, 1, 2)
+    target = torch.from_numpy(pair.eval_images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
+    out = {"psnr": _nanmean(psnr(pred, target)), "ssim": _nanmean(ssim(pred, target))}
+    out["lpips"] = _nanmean(lpips_distance(pred, target, metric=perceptual))
+    dyn = torch.from_numpy(pair.eval_dynamic).flatten(0, 1)
+    out["psnr_dyn"] = _nanmean(psnr(pred, target, dyn))
+    out["ssim_dyn"] = _nanmean(ssim(pred, target, dyn))
+    out["lpips_dyn"] = _nanmean(lpips_distance(pred, target, dyn, metric=perceptual))
+    out["dynamic_share"] = float(dyn.float().mean())
+    return out
+
+
+@pytest.fixture(scope="module")
+def scored_pair():
+    """A pair of 2 cameras at 36 x 40 (large enough for the perceptual network) with moving pixels,
+    a prediction and the perceptual metric."""
+    from drivingscene.eval.lpips import load_perceptual
+
+    pair = make_pair(2, 36, 40)
+    rng = np.random.default_rng(1)
+    pair = replace(pair, eval_dynamic=rng.uniform(size=(1, 2, 36, 40)) < 0.3)
+    return pair, blend_frames(pair), load_perceptual("stlpips", "alex")
+
+
+def test_scores_without_a_mask_are_bit_identical_to_before(scored_pair):
+    pair, pred, perceptual = scored_pair
+    assert score_frames(pred, pair, perceptual) == _old_score_novel_views(pred, pair, perceptual)
+
+
+def test_masked_prediction_pixels_change_no_score(scored_pair):
+    pair, pred, perceptual = scored_pair
+    mask = np.ones((2, 36, 40), bool)
+    mask[:, 26:, 5:30] = False  # a hood
+    pair = replace(pair, valid_mask=mask)
+    other = pred.clone()
+    other[:, torch.from_numpy(~mask)] = torch.rand(int((~mask).sum()), 3)
+    scores = score_frames(pred, pair, perceptual)
+    assert scores == score_frames(other, pair, perceptual)
+    assert scores["dynamic_share"] == pytest.approx(float((pair.eval_dynamic & mask).mean()))
+    # an all-true mask scores every pixel: PSNR and SSIM as without one
+    everything = score_frames(pred, replace(pair, valid_mask=np.ones_like(mask)), perceptual)
+    unmasked = score_frames(pred, replace(pair, valid_mask=None), perceptual)
+    for key in ("psnr", "ssim", "psnr_dyn", "ssim_dyn", "lpips_dyn"):
+        assert everything[key] == pytest.approx(unmasked[key], rel=1e-6)
+
+
+def test_depth_scores_ignore_masked_pixels():
+    from types import SimpleNamespace
+
+    from drivingscene.eval.reconstruction import score_depth
+
+    pair = make_pair(2, 16, 20)
+    rng = np.random.default_rng(2)
+    depth = (pair.gt_depth * rng.uniform(0.8, 1.2, pair.gt_depth.shape)).astype(np.float32)
+    mask = np.ones((2, 16, 20), bool)
+    mask[:, -5:] = False
+    scores = score_depth(SimpleNamespace(depth=depth), replace(pair, valid_mask=mask))
+    wrong = depth.copy()
+    wrong[:, ~mask] = 1000.0
+    assert scores == score_depth(SimpleNamespace(depth=wrong), replace(pair, valid_mask=mask))
+    assert score_depth(SimpleNamespace(depth=wrong), pair)["depth_abs_rel"] > scores["depth_abs_rel"] + 1
+    # an all-true mask changes nothing
+    assert score_depth(SimpleNamespace(depth=depth), pair) == score_depth(
+        SimpleNamespace(depth=depth), replace(pair, valid_mask=np.ones_like(mask))
+    )

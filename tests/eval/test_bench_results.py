@@ -166,3 +166,35 @@ def test_peak_memory_of_a_spawned_process_does_not_inherit_the_parents():
         child_peak = pool.apply(peak_rss_bytes)
     assert current_rss_bytes() > 400 * 2**20 and ballast.sum() > 0
     assert child_peak < current_rss_bytes() - 300 * 2**20
+
+
+def test_methods_below_the_better_baseline_are_bold():
+    """The table logic alone, on made-up scores: all-pixel PSNR against the better baseline (22 dB,
+    copy), moving-pixel PSNR against its better baseline (16 dB, blend)."""
+    from types import SimpleNamespace
+
+    from drivingscene.bench.results import BLEND, COPY, FULL, STATIC, losing, report
+
+    def rows(*values):
+        return [{"psnr": a, "psnr_dyn": d, "ssim": 0.5, "ssim_dyn": 0.4} for a, d in values]
+
+    scores = {
+        FULL: rows((25.0, 12.0), (25.0, 12.0)),
+        STATIC: rows((20.0, 15.0), (21.0, 15.0)),
+        COPY: rows((22.0, 14.0), (22.0, 14.0)),
+        BLEND: rows((21.0, 16.0), (21.0, 16.0)),
+    }
+    assert losing(scores, "psnr") == {STATIC} and losing(scores, "psnr_dyn") == {FULL, STATIC}
+    assert losing({FULL: rows((25.0, 12.0))}, "psnr") == set()  # no baseline scored: nothing to lose to
+    args = SimpleNamespace(
+        data="d", count=2, weights=None, joint_weights=None, extra=[], diagnostics=False, notes=None, image=None
+    )
+    text = report(scores, {m: [1.0] for m in scores}, "ST-LPIPS (alex)", args, 2)
+    all_pixels, dynamic = text.split("### Intermediate-frame novel views, dynamic pixels")
+    all_pixels = all_pixels.split("### Intermediate-frame novel views, all pixels")[1]
+    assert f"| **{STATIC} — loses to a trivial baseline** | **20.50** | **0.500** | **–** |" in all_pixels
+    assert f"| {FULL} | 25.00 |" in all_pixels and f"| {COPY} | 22.00 |" in all_pixels
+    dynamic = dynamic.split("### Depth")[0]
+    assert f"| **{FULL} — loses to a trivial baseline** | **12.00** | **0.400** | **–** |" in dynamic
+    assert f"| {BLEND} | 16.00 |" in dynamic and "baseline: copy" not in text.split("### Depth")[1]
+    assert "Full model vs the better trivial baseline (copy the nearest keyframe), all pixels: PSNR +3.00 dB" in text
