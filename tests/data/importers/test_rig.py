@@ -197,7 +197,7 @@ def test_undistortion_recovers_the_pinhole_image(tmp_path, model, coeffs):
     assert valid.mean() > 0.98  # alpha 0 / balance 0: (almost) every pixel has a source
     err = np.abs(pair.images[0, 0].astype(np.float64) - expected)[valid]
     psnr = 10 * np.log10(255.0**2 / np.mean(err**2))
-    assert psnr > 35 and err.max() < 40, (psnr, err.max())
+    assert psnr > 45 and err.max() <= 3, (psnr, err.max())  # one bilinear resampling of a smooth pattern
     # without the distortion block the same images are far off
     rig = json.loads((tmp_path / "rig.json").read_text())
     del rig["cameras"][0]["distortion"]
