@@ -168,3 +168,17 @@ def read_rgb(path) -> np.ndarray:
         found = "unreadable data" if Path(path).exists() else "no such file"
         raise InputError(f"{path}: expected a readable image file (JPEG/PNG), found {found}")
     return np.ascontiguousarray(image[..., ::-1])
+
+
+def read_json(path: Path, what: str = "a JSON file"):
+    """Parsed JSON of ``path``; InputError naming the file (and the line of a syntax error)."""
+    import json
+
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: expected {what}, found no such file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: could not read it ({e})") from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: expected JSON, found a syntax error at line {e.lineno} column {e.colno} ({e.msg})") from None

@@ -6,6 +6,8 @@ camera image or a LiDAR sweep with the sensor's pose in the world), ``calibratio
 ``point_cloud/<LIDAR>/<time>.npz`` (points in the sensor frame). Vehicle frame: x forward, y left,
 z up; camera frames: OpenCV axes.
 
+- Lenses with distortion coefficients (DGP's k1..k6, p1, p2, or fisheye k1..k4) are undistorted
+  into pinhole images of the same size with OpenCV (`undistort.Undistortion`) before fitting.
 - Each image's ego pose is its camera's pose times the inverse extrinsics (``camera_ego_to_world``);
   the pair's ``ego_to_world`` is the front camera's (the first in order around the car).
 - Times: DDAD names files by capture time in 1e-7 s ticks; those are used when the names are
@@ -17,8 +19,7 @@ z up; camera frames: OpenCV axes.
 
 from __future__ import annotations
 
-import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
@@ -26,7 +27,15 @@ import cv2
 import numpy as np
 
 from drivingscene.data.frame_pair import FramePair
-from drivingscene.data.importers.common import Fit, lidar_depth, order_around_car, read_rgb, rigid_from_quaternion
+from drivingscene.data.importers.common import (
+    Fit,
+    lidar_depth,
+    order_around_car,
+    read_json,
+    read_rgb,
+    rigid_from_quaternion,
+)
+from drivingscene.data.importers.undistort import Undistortion
 from drivingscene.errors import InputError
 
 # The DDAD vehicle's own body in each camera, (x / W, y / H) polygon vertices, drawn with a margin
@@ -75,17 +84,6 @@ class _Datum:
     path: Path
     sensor_to_world: np.ndarray  # [4, 4]
     seconds: float
-
-
-def _load_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: could not read it ({e})") from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"{path}: expected JSON, found a syntax error at line {e.lineno} column {e.colno}") from None
 
 
 def _pose(value: dict, where: str) -> np.ndarray:
@@ -140,10 +138,28 @@ def _sample_data(scene_dir: Path, scene: dict, index: int, source: Path) -> tupl
     return out, samples[index].get("calibration_key", "")
 
 
-def _calibration(scene_dir: Path, key: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per sensor name: (intrinsics [3, 3], sensor_to_vehicle [4, 4])."""
+@dataclass(frozen=True)
+class _Sensor:
+    intrinsics: np.ndarray  # [3, 3] of the recorded (possibly distorted) image
+    to_vehicle: np.ndarray  # [4, 4] sensor -> vehicle (ego)
+    model: str = "none"  # distortion model (undistort.DISTORTION_MODELS)
+    coeffs: tuple[float, ...] = ()  # in OpenCV's order
+
+
+def _distortion(k: dict) -> tuple[str, tuple[float, ...]]:
+    """DGP's k1..k6, p1, p2 (and fisheye flag) as an OpenCV model and coefficients."""
+    c = {name: float(k.get(name, 0.0) or 0.0) for name in DISTORTION_KEYS}
+    if k.get("fisheye"):
+        return "fisheye", (c["k1"], c["k2"], c["k3"], c["k4"])
+    if not any(c.values()):
+        return "none", ()
+    return "opencv", (c["k1"], c["k2"], c["p1"], c["p2"], c["k3"], c["k4"], c["k5"], c["k6"])
+
+
+def _calibration(scene_dir: Path, key: str) -> dict[str, _Sensor]:
+    """Per sensor name: intrinsics, sensor-to-vehicle transform and lens distortion."""
     path = scene_dir / "calibration" / f"{key}.json"
-    cal = _load_json(path)
+    cal = read_json(path, "a DGP calibration file")
     try:
         names, intrinsics, extrinsics = cal["names"], cal["intrinsics"], cal["extrinsics"]
     except (KeyError, TypeError):
@@ -156,13 +172,18 @@ def _calibration(scene_dir: Path, key: str) -> dict[str, tuple[np.ndarray, np.nd
             mat = np.array([[k["fx"], k.get("skew", 0.0), k["cx"]], [0.0, k["fy"], k["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64)
         except (KeyError, TypeError):
             raise InputError(f"{path}: intrinsics[{i}] ({name}): expected fx, fy, cx, cy") from None
-        if any(abs(float(k.get(c, 0.0) or 0.0)) > 1e-9 for c in DISTORTION_KEYS) or k.get("fisheye"):
-            raise InputError(
-                f"{path}: intrinsics[{i}] ({name}): expected undistorted pinhole images, found distortion coefficients "
-                "(undistort the images first, or import them with `drivingscene import rig`, which undistorts)"
-            )
-        out[name] = (mat, _pose(e, f"{path}: extrinsics[{i}] ({name})"))
+        try:
+            model, coeffs = _distortion(k)
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: intrinsics[{i}] ({name}): expected numeric distortion coefficients {', '.join(DISTORTION_KEYS)}") from None
+        out[name] = _Sensor(mat, _pose(e, f"{path}: extrinsics[{i}] ({name})"), model, coeffs)
     return out
+
+
+def _lens(sensor: _Sensor, name: str, size: tuple[int, int], mask: bool) -> Undistortion:
+    """The camera's undistortion (identity for a pinhole one), its valid pixels including the ego body."""
+    body = ego_body_mask(name, size) if mask else None
+    return Undistortion.make(sensor.intrinsics, sensor.model, np.array(sensor.coeffs), size, body)
 
 
 def _lidar_points(path: Path) -> np.ndarray:
@@ -184,43 +205,68 @@ class _Frame:
     camera_ego_to_world: np.ndarray  # [V, 4, 4]
     camera_seconds: np.ndarray  # [V]
     depth: np.ndarray | None  # [V, H, W]
-    fits: list[Fit]  # per camera: its image onto the output size
+    fits: list[Fit]  # per camera: its (undistorted) image onto the output size
 
 
-def _camera_names(datums: dict[str, _Datum], calibration: dict, source: Path) -> list[str]:
+def _camera_names(datums: dict[str, _Datum], calibration: dict[str, _Sensor], source: Path) -> list[str]:
     names = [n for n, d in datums.items() if d.kind == "image"]
     if not names:
         raise InputError(f"{source}: samples: expected camera images (datum.image), found none")
     missing = [n for n in names if n not in calibration]
     if missing:
         raise InputError(f"{source}: calibration: expected intrinsics and extrinsics for {', '.join(missing)}, found none")
-    order = order_around_car(np.stack([calibration[n][1] for n in names]))
+    order = order_around_car(np.stack([calibration[n].to_vehicle for n in names]))
     return [names[i] for i in order]
 
 
-def _frame(datums: dict[str, _Datum], names: list[str], calibration: dict, size, fit: str, source: Path) -> _Frame:
-    images, egos, seconds, depths, fits = [], [], [], [], []
-    lidar = next((d for d in datums.values() if d.kind == "point_cloud"), None)
-    points = None if lidar is None else _lidar_points(lidar.path)
-    for name in names:
-        if name not in datums:
-            raise InputError(f"{source}: samples: expected an image of {name} in every sample, found none in one")
-        d = datums[name]
-        k, cam_to_ego = calibration[name]
-        image = read_rgb(d.path)
-        f = Fit.make(image.shape[:2], size or image.shape[:2], fit)
-        fits.append(f)
-        images.append(f.image(image))
-        egos.append(d.sensor_to_world @ np.linalg.inv(cam_to_ego))
-        seconds.append(d.seconds)
-        if points is not None:
-            to_cam = np.linalg.inv(d.sensor_to_world) @ lidar.sensor_to_world
-            depths.append(lidar_depth(points, to_cam, f.intrinsics(k), f.dst))
-    shapes = {im.shape for im in images}
-    if len(shapes) > 1:
-        raise InputError(f"{source}: rgb: cameras have different image sizes {sorted(shapes)}; pass --res HxW")
-    depth = None if points is None else np.stack(depths)
-    return _Frame(np.stack(images), np.stack(egos), np.array(seconds), depth, fits)
+@dataclass
+class _Reader:
+    """Reads samples of one scene into frames that share cameras, lenses and output size."""
+
+    scene_dir: Path
+    source: Path  # the scene JSON
+    scene: dict
+    names: list[str]
+    calibration: dict[str, _Sensor]
+    size: tuple[int, int] | None
+    fit: str
+    mask: bool
+    lenses: dict[str, Undistortion] = field(default_factory=dict)  # made from the first image of each camera
+
+    def lens(self, name: str, image: np.ndarray, path: Path) -> Undistortion:
+        if name not in self.lenses:
+            self.lenses[name] = _lens(self.calibration[name], name, image.shape[:2], self.mask)
+        lens = self.lenses[name]
+        if lens.valid.shape != image.shape[:2]:
+            want, got = lens.valid.shape, image.shape
+            raise InputError(f"{path}: expected a {want[1]}x{want[0]} image like the first sample's, found {got[1]}x{got[0]}")
+        return lens
+
+    def frame(self, index: int) -> _Frame:
+        """Sample ``index``: its images (undistorted, fitted), poses, times and LiDAR depth."""
+        datums = _sample_data(self.scene_dir, self.scene, index, self.source)[0]
+        images, egos, seconds, depths, fits = [], [], [], [], []
+        lidar = next((d for d in datums.values() if d.kind == "point_cloud"), None)
+        points = None if lidar is None else _lidar_points(lidar.path)
+        for name in self.names:
+            if name not in datums:
+                raise InputError(f"{self.source}: samples[{index}]: expected an image of {name}, found none")
+            d = datums[name]
+            image = read_rgb(d.path)
+            lens = self.lens(name, image, d.path)
+            f = Fit.make(image.shape[:2], self.size or image.shape[:2], self.fit)
+            fits.append(f)
+            images.append(f.image(lens.image(image)))
+            egos.append(d.sensor_to_world @ np.linalg.inv(self.calibration[name].to_vehicle))
+            seconds.append(d.seconds)
+            if points is not None:
+                to_cam = np.linalg.inv(d.sensor_to_world) @ lidar.sensor_to_world
+                depths.append(lidar_depth(points, to_cam, f.intrinsics(lens.intrinsics), f.dst))
+        shapes = {im.shape for im in images}
+        if len(shapes) > 1:
+            raise InputError(f"{self.source}: rgb: cameras have different image sizes {sorted(shapes)}; pass --res HxW")
+        depth = None if points is None else np.stack(depths)
+        return _Frame(np.stack(images), np.stack(egos), np.array(seconds), depth, fits)
 
 
 def import_ddad(
@@ -234,26 +280,24 @@ def import_ddad(
     """Two samples of a DGP scene as a frame pair, with samples between them as eval frames."""
     scene_dir = Path(scene_dir)
     source = _scene_file(scene_dir)
-    scene = _load_json(source)
+    scene = read_json(source, "a DGP scene file")
     i, j = samples
     if i == j:
         raise InputError(f"--samples: expected two different samples, found {i} {j}")
     first, cal_key = _sample_data(scene_dir, scene, i, source)
     calibration = _calibration(scene_dir, cal_key)
     names = _camera_names(first, calibration, source)
-    frames = [_frame(first, names, calibration, size, fit, source)]
-    frames.append(_frame(_sample_data(scene_dir, scene, j, source)[0], names, calibration, size, fit, source))
-    fits = frames[0].fits
-    intrinsics = np.stack([f.intrinsics(calibration[n][0]) for f, n in zip(fits, names)]).astype(np.float32)
-    cam_to_ego = np.stack([calibration[n][1] for n in names]).astype(np.float32)
+    reader = _Reader(scene_dir, source, scene, names, calibration, size, fit, mask)
+    frames = [reader.frame(i), reader.frame(j)]
     times = np.array([f.camera_seconds[0] for f in frames])
     if not times[1] > times[0]:
         raise InputError(f"--samples: expected sample {j} after sample {i}, found times {times[0]:.4f} and {times[1]:.4f} s")
-    valid = np.stack([f.mask(ego_body_mask(n, f.src)) if mask else f.valid() for f, n in zip(fits, names)])
+    fits, lenses = frames[0].fits, [reader.lenses[n] for n in names]
+    valid = np.stack([f.mask(lens.valid) for f, lens in zip(fits, lenses)])
     out = dict(
         images=np.stack([f.images for f in frames]),
-        intrinsics=intrinsics,
-        cam_to_ego=cam_to_ego,
+        intrinsics=np.stack([f.intrinsics(lens.intrinsics) for f, lens in zip(fits, lenses)]).astype(np.float32),
+        cam_to_ego=np.stack([calibration[n].to_vehicle for n in names]).astype(np.float32),
         ego_to_world=np.stack([f.camera_ego_to_world[0] for f in frames]),
         timestamps=times,
         camera_names=tuple(names),
@@ -265,12 +309,12 @@ def import_ddad(
     if all(f.depth is not None for f in frames):  # no LiDAR depth on the car's own body
         out["gt_depth"] = np.where(valid[None], np.stack([f.depth for f in frames]), 0.0).astype(np.float32)
     if eval_samples:
-        out.update(_eval_frames(scene_dir, scene, eval_samples, names, calibration, size, fit, source, times))
+        out.update(_eval_frames(reader, eval_samples, times))
     return FramePair(**out)
 
 
-def _eval_frames(scene_dir, scene, eval_samples, names, calibration, size, fit, source, times) -> dict[str, np.ndarray]:
-    frames = [_frame(_sample_data(scene_dir, scene, s, source)[0], names, calibration, size, fit, source) for s in eval_samples]
+def _eval_frames(reader: _Reader, eval_samples: tuple[int, ...], times: np.ndarray) -> dict[str, np.ndarray]:
+    frames = [reader.frame(s) for s in eval_samples]
     seconds = np.array([f.camera_seconds[0] for f in frames])
     if np.any(seconds <= times[0]) or np.any(seconds >= times[1]) or np.any(np.diff(seconds) <= 0):
         raise InputError(f"--eval: expected samples strictly between the two keyframes in increasing order, found {list(eval_samples)}")

@@ -8,14 +8,13 @@ x forward, y left, z up; metres, seconds; quaternions w, x, y, z.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from drivingscene.data.importers.common import rigid_from_quaternion
+from drivingscene.data.importers.common import read_json, rigid_from_quaternion
 from drivingscene.data.importers.undistort import COEFF_COUNTS, DISTORTION_MODELS
 from drivingscene.errors import InputError
 
@@ -143,17 +142,6 @@ class Field:
         return folder / self.string()
 
 
-def read_json(path: Path):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: expected the rig description {RIG_FILE} (docs/importing.md), found no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: could not read it ({e})") from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"{path}: expected JSON, found a syntax error at line {e.lineno} column {e.colno} ({e.msg})") from None
-
-
 def rigid(field: Field) -> np.ndarray:
     """``[4, 4]`` float64 from a 4x4 list or {rotation_wxyz, translation}; a rotation within
     ROTATION_TOL of orthonormal is projected onto the nearest rotation."""
@@ -257,7 +245,7 @@ def load_rig(folder: str | Path) -> Rig:
             f"{folder}: expected a rig folder holding {RIG_FILE} and images, found {'a file' if folder.exists() else 'nothing'}"
         )
     source = folder / RIG_FILE
-    root = Field(source, read_json(source))
+    root = Field(source, read_json(source, f"the rig description {RIG_FILE} (docs/importing.md)"))
     if not isinstance(root.value, dict):
         raise root.error("a JSON object {format, version, cameras, frames}")
     if root["format"].value != RIG_FORMAT:
