@@ -5,6 +5,10 @@ Stage 2 (dynamics):      0.02 L_warp + 1e-5 L_consist + 0.01 L_render
                          (+ optional L_depth_sup in stage 1 and L_flow_sup in stage 2, on synthetic
                           ground truth, and L_search_sup in stage 2, self-supervised; none in the paper)
 (weights in ``drivingscene.train.config.LossWeights``).
+
+Pixels that do not see the world (a pair's ``valid_mask``: ego body, hood) count in no loss: each
+loss takes their masks (None: every pixel counts, and the loss is what it was without masks), and
+`blank_masked` keeps their values out of SSIM windows and the perceptual network's receptive field.
 """
 
 from __future__ import annotations
@@ -42,6 +46,31 @@ def ssim_box(x: Tensor, y: Tensor) -> Tensor:
     return num / den
 
 
+def sampled_from(
+    mask: Tensor,  # [B, H, W] bool: the source's pixels that may be sampled
+    flow: Tensor,  # [B, H, W, 2] pixels, target -> source
+) -> Tensor:
+    """``[B, H, W]`` bool: target pixels whose bilinear sample at p + flow(p) (`backward_warp`) reads
+    only pixels inside ``mask``. Exact: the off-mask indicator, sampled with the same weights, is 0
+    only when no off-mask pixel has a non-zero weight."""
+    off, _ = backward_warp((~mask)[:, None].to(flow.dtype), flow)
+    return off[:, 0] == 0
+
+
+def blank_masked(
+    pred: Tensor,  # [B, 3, H, W]
+    target: Tensor,  # [B, 3, H, W]
+    pred_ok: Tensor,  # [B, H, W] bool: pred's pixels that may be compared
+    target_ok: Tensor,  # [B, H, W] bool: target's pixels that see the world
+) -> tuple[Tensor, Tensor]:
+    """``(pred, target)`` with the target's off-mask pixels 0 in both and pred's other unusable pixels
+    replaced by the target's: equal in both images, so they add nothing to a masked mean, and
+    independent of the masked pixels' values, so those reach no counted pixel through an SSIM
+    window or a network's receptive field either; and no gradient flows into them."""
+    target = torch.where(target_ok[:, None], target, torch.zeros((), dtype=target.dtype, device=target.device))
+    return torch.where((pred_ok & target_ok)[:, None], pred, target), target
+
+
 def photometric_error(pred: Tensor, target: Tensor) -> Tensor:
     """Per-pixel SSIM + L1 error ``[B, H, W]`` (monodepth2): 0.85 (1 - SSIM) / 2 + 0.15 |d|."""
     l1 = (pred - target).abs().mean(1)
@@ -76,17 +105,49 @@ def reprojection_loss(
     return loss, used
 
 
-def smoothness_loss(disparity: Tensor, image: Tensor) -> Tensor:
-    """L_smooth: edge-aware smoothness of mean-normalised disparity ``[B, 1, h, w]`` (image
-    resized to the disparity's size)."""
+def smoothness_loss(
+    disparity: Tensor,  # [B, 1, h, w]
+    image: Tensor,  # [B, 3, H, W]
+    mask: Tensor | None = None,  # [B, H, W] bool: pixels that see the world (None: all)
+) -> Tensor:
+    """L_smooth: edge-aware smoothness of mean-normalised disparity (image resized to the
+    disparity's size). With a mask, a resized pixel counts only if every image pixel it covers is
+    in the mask, and each difference only between two counted pixels (the mean too)."""
     image = torch.nn.functional.interpolate(image, size=disparity.shape[-2:], mode="area")
-    norm = disparity / disparity.mean(dim=(2, 3), keepdim=True).clamp(min=1e-7)
-    return kornia.losses.inverse_depth_smoothness_loss(norm, image)
+    if mask is None:
+        norm = disparity / disparity.mean(dim=(2, 3), keepdim=True).clamp(min=1e-7)
+        return kornia.losses.inverse_depth_smoothness_loss(norm, image)
+    off = F.interpolate((~mask)[:, None].to(disparity.dtype), size=disparity.shape[-2:], mode="area")
+    keep = off == 0  # [B, 1, h, w]
+    zero = torch.zeros((), dtype=disparity.dtype, device=disparity.device)
+    count = keep.sum(dim=(2, 3), keepdim=True).clamp(min=1)
+    norm = torch.where(keep, disparity, zero)
+    norm = norm / (norm.sum(dim=(2, 3), keepdim=True) / count).clamp(min=1e-7)
+    loss = zero
+    for dim in (3, 2):  # x, then y: forward differences as kornia's
+        n = disparity.shape[dim] - 1
+        both = keep.narrow(dim, 0, n) & keep.narrow(dim, 1, n)
+        d_disp = norm.narrow(dim, 0, n) - norm.narrow(dim, 1, n)
+        d_image = (image.narrow(dim, 0, n) - image.narrow(dim, 1, n)).abs().mean(dim=1, keepdim=True)
+        term = torch.where(both, (d_disp * torch.exp(-d_image)).abs(), zero)
+        loss = loss + term.sum() / both.sum().clamp(min=1)
+    return loss
 
 
-def render_loss(pred: Tensor, target: Tensor, perceptual, lpips_weight: float = 0.05) -> Tensor:
-    """L_render: L2 + 0.05 LPIPS between rendered and real views."""
-    l2 = (pred - target).square().mean()
+def render_loss(
+    pred: Tensor,  # [B, 3, H, W] rendered
+    target: Tensor,  # [B, 3, H, W] real
+    perceptual,
+    lpips_weight: float = 0.05,
+    mask: Tensor | None = None,  # [B, H, W] bool: target pixels that see the world (None: all)
+) -> Tensor:
+    """L_render: L2 + 0.05 LPIPS between rendered and real views; with a mask, the L2 over its
+    pixels and the perceptual term with the off-mask pixels blanked in both (`blank_masked`)."""
+    if mask is None:
+        l2 = (pred - target).square().mean()
+    else:
+        pred, target = blank_masked(pred, target, mask, mask)
+        l2 = (pred - target).square().sum() / (3 * mask.sum()).clamp(min=1)
     if lpips_weight == 0 or perceptual is None:
         return l2
     return l2 + lpips_weight * perceptual(pred, target).mean()
@@ -115,11 +176,20 @@ def warp_loss(
     return loss
 
 
-def consistency_loss(flow_fw: Tensor, flow_bw: Tensor) -> Tensor:
+def consistency_loss(
+    flow_fw: Tensor,  # [B, H, W, 2] pixels
+    flow_bw: Tensor,  # [B, H, W, 2] pixels
+    mask_fw: Tensor | None = None,  # [B, H, W] bool: flow_fw's pixels that see the world (None: all)
+    mask_bw: Tensor | None = None,  # [B, H, W] bool: flow_bw's pixels that see the world (None: mask_fw)
+) -> Tensor:
     """L_consist: forward-backward consistency |f(p) + b(p + f(p))| (L1, pixels), averaged where
-    p + f(p) lands inside the image. Flows ``[B, H, W, 2]``."""
+    p + f(p) lands inside the image (and, with masks, p and every pixel its sample reads see the world)."""
     bw_at_fw, inside = backward_warp(flow_bw.permute(0, 3, 1, 2), flow_fw)
+    if mask_fw is not None:
+        inside = inside & mask_fw & sampled_from(mask_fw if mask_bw is None else mask_bw, flow_fw)
     diff = (flow_fw + bw_at_fw.permute(0, 2, 3, 1)).abs().sum(-1)
+    if mask_fw is not None:  # where, not a product: an off-mask flow may be anything
+        return torch.where(inside, diff, torch.zeros_like(diff)).sum() / inside.sum().clamp(min=1)
     return (diff * inside).sum() / inside.sum().clamp(min=1)
 
 

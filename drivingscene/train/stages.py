@@ -8,6 +8,9 @@ wrapped in DistributedDataParallel).
 - dynamic: D and P frozen; R on the rigid flow. L_warp and L_consist on the total flow, L_render
   of Gaussians moved by the lifted flow to the intermediate time (or to the other keyframe).
 - joint:   everything trained together from the start (the single-stage ablation).
+
+Pixels off the pair's ``valid_mask`` (ego body, hood) are in no loss: not as targets, not as
+sampled sources, and they make no Gaussian and do not colour the sky (as at inference).
 """
 
 from __future__ import annotations
@@ -38,9 +41,11 @@ from drivingscene.precision import resolve_amp
 from drivingscene.render.scene import render_gaussians
 from drivingscene.train.config import TrainConfig
 from drivingscene.train.losses import (
+    blank_masked,
     consistency_loss,
     render_loss,
     reprojection_loss,
+    sampled_from,
     search_distillation_loss,
     smoothness_loss,
     supervised_depth_loss,
@@ -62,6 +67,29 @@ def neighbour_views(cam_to_ego: Tensor) -> list[tuple[int, int]]:
     for i, v in enumerate(order):
         out[v] = (order[(i - 1) % n], order[(i + 1) % n])
     return out if n > 1 else []
+
+
+def _world(batch: PairTensors) -> Tensor | None:
+    """``[2V, H, W]`` bool: the pixels of both keyframes' images that see the world (None: all)."""
+    return None if batch.valid_mask is None else batch.valid_mask.repeat(2, 1, 1)
+
+
+def _masked_warp(
+    sources: Tensor,  # [B, 3, H, W]
+    targets: Tensor,  # [B, 3, H, W]
+    flow: Tensor,  # [B, H, W, 2] target -> source, pixels
+    source_world: Tensor | None,  # [B, H, W] bool: sources' pixels that see the world (None: all)
+    target_world: Tensor | None,  # [B, H, W] bool: targets' pixels that see the world
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``sources`` warped into the targets, the targets, and where the two may be compared
+    ``[B, H, W]``: inside the source, and with masks, a target pixel that sees the world sampled
+    only from source pixels that do (images blanked elsewhere by `blank_masked`)."""
+    warped, inside = backward_warp(sources, flow)
+    if source_world is None:
+        return warped, targets, inside
+    seen = sampled_from(source_world, flow)
+    warped, targets = blank_masked(warped, targets, seen, target_world)
+    return warped, targets, inside & seen & target_world
 
 
 def _source_sets(batch: PairTensors) -> list[tuple[Tensor, Tensor]]:
@@ -131,12 +159,17 @@ class TrainStep(nn.Module):
         out_depths = static.depth_output.depths
         targets = batch.images.flatten(0, 1).float()  # [2V, 3, H, W]
         loc = sum(self.location_loss(d.unflatten(0, (2, batch.num_views)), batch, targets) for d in out_depths) / len(out_depths)
-        smooth = sum(smoothness_loss(disp.float(), targets) / (2**s) for s, disp in enumerate(static.depth_output.disparities))
+        world = _world(batch)
+        smooth = sum(
+            smoothness_loss(disp.float(), targets, world) / (2**s) for s, disp in enumerate(static.depth_output.disparities)
+        )
         terms = {"loc": loc, "smooth": smooth}
         if self.config.weights.depth_sup > 0:
             if batch.gt_depth is None:
                 raise InputError("--depth-supervision: the training pairs carry no gt_depth (synthetic pairs do)")
             gt, dyn = batch.gt_depth.float(), batch.gt_dynamic
+            if batch.valid_mask is not None:  # 0: no ground truth
+                gt = torch.where(batch.valid_mask, gt, torch.zeros_like(gt))
             dyn = torch.zeros_like(gt, dtype=torch.bool) if dyn is None else dyn
             terms["depth_sup"] = sum(
                 supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), gt, dyn) for d in out_depths
@@ -146,30 +179,36 @@ class TrainStep(nn.Module):
         return terms
 
     def location_loss(self, depth: Tensor, batch: PairTensors, targets: Tensor) -> Tensor:
-        """L_loc for all 2V targets with depth ``[2, V, H, W]``."""
+        """L_loc for all 2V targets ``[2V, 3, H, W]`` with depth ``[2, V, H, W]``; with a
+        ``valid_mask``, only target pixels that see the world, sampled only from source pixels that do."""
         c2l = batch.cam_to_local.flatten(0, 1)  # [2V, 4, 4]
         k = batch.intrinsics.repeat(2, 1, 1)
         num_views = batch.num_views
+        world = _world(batch)  # [2V, H, W]
         warped, valid, identity = [], [], []
+        compared = targets
         for i, (src_kf, src_cam) in enumerate(_source_sets(batch)):
             src = src_kf * num_views + src_cam
             flow, z = rigid_flow(depth.flatten(0, 1).float(), k, c2l, c2l[src], dst_intrinsics=k[src])
-            image, inside = backward_warp(targets[src], flow)
+            source_world = None if world is None else world[src]
+            image, compared, inside = _masked_warp(targets[src], targets, flow, source_world, world)
             warped.append(image)
             valid.append(inside & (z > 0.1))
-            if i == 0:
-                identity.append(targets[src])
-        loss, _ = reprojection_loss(targets, warped, valid, identity)
+            if i == 0:  # the unwarped source, for the auto-mask
+                identity.append(targets[src] if world is None else blank_masked(targets[src], targets, source_world, world)[0])
+        loss, _ = reprojection_loss(compared, warped, valid, identity)
         return loss
 
     # -- rendering, both stages --------------------------------------------------------------
     def render_term(self, static: StaticPrediction, batch: PairTensors, step: int, scene_flow: Tensor | None) -> Tensor:
         """Gaussians rendered into views they did not come from (module docstring)."""
         ref_focal = self.model.config.depth.ref_focal
-        sky = sky_mask(static.depth, batch.intrinsics, ref_focal, TRAIN_LIFT)
+        sky = sky_pixels = sky_mask(static.depth, batch.intrinsics, ref_focal, TRAIN_LIFT)
+        if batch.valid_mask is not None:  # off-world pixels: no Gaussian, no sky colour (as at inference)
+            sky_pixels, sky = sky & batch.valid_mask, sky | ~batch.valid_mask
         height, width = batch.image_size
         with torch.no_grad():
-            sky_sh = fit_sky_from_pixels(batch.images, sky, batch.cam_to_local.double(), batch.intrinsics)
+            sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, batch.cam_to_local.double(), batch.intrinsics)
         if batch.eval_images is not None and step % 2 == 0:
             m = step // 2 % batch.eval_images.shape[0]
             gaussians = assemble(static, batch, sky, scene_flow)
@@ -180,7 +219,7 @@ class TrainStep(nn.Module):
             t, cams, target = float(k), batch.cam_to_local[k], batch.images[k]
         out = render_gaussians(gaussians, t, invert_rigid(cams), batch.intrinsics, height, width, sky_sh=sky_sh)
         pred = out.colors.permute(0, 3, 1, 2).clamp(0, 1)
-        return render_loss(pred, target, self.perceptual, self.config.weights.render_lpips)
+        return render_loss(pred, target, self.perceptual, self.config.weights.render_lpips, batch.valid_mask)
 
     # -- stage 2 ---------------------------------------------------------------------------
     def dynamic_terms(self, static: StaticPrediction, batch: PairTensors, step: int) -> dict[str, Tensor]:
@@ -188,8 +227,26 @@ class TrainStep(nn.Module):
         # R in float32: its cost volumes and small convolutions gain nothing from bf16 on CPU, and
         # autocast's per-call weight casts cost more than they save.
         flow = predict_flow(self.model, batch, depth)
-        targets = batch.images.flatten(0, 1)
-        sources = batch.images.flip(0).flatten(0, 1)
+        per_level = self.flow_terms(flow, batch)
+        total = flow.total
+        world = batch.valid_mask  # [V, H, W], both keyframes
+        consist = consistency_loss(total[0], total[1], world, world) + consistency_loss(total[1], total[0], world, world)
+        terms = {"warp": per_level.pop("warp"), "consist": consist, **per_level}
+        if step % self.config.render_every == 0:
+            sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
+            if world is not None:  # off-world pixels do not move (as at inference)
+                sky = sky | ~world
+            scene_flow, _ = lift_scene_flow(depth, total, flow.residual, sky, batch, TRAIN_LIFT)
+            terms["render"] = self.render_term(static, batch, step, scene_flow)
+        terms["residual_px"] = flow.residual.detach().norm(dim=-1).mean()
+        return terms
+
+    def flow_terms(self, flow: FlowPrediction, batch: PairTensors) -> dict[str, Tensor]:
+        """L_warp of R's total flow at every level (coarser levels down-weighted), and the optional
+        L_flow_sup and L_search_sup, over the pixels that see the world."""
+        targets = batch.images.flatten(0, 1)  # [2V, 3, H, W]
+        sources = batch.images.flip(0).flatten(0, 1)  # the same cameras at the other keyframe
+        world = _world(batch)
         w = self.config.weights
         levels = len(flow.residuals)
         supervise = w.flow_sup > 0
@@ -200,31 +257,25 @@ class TrainStep(nn.Module):
         distil = w.search_sup > 0
         if distil:
             searched, overridden = search_targets(flow, batch)
+            overridden = overridden if world is None else overridden & world
         warp = sup = search = 0.0
         for level, residual in enumerate(flow.residuals):
             total = (flow.rigid + residual).flatten(0, 1)
-            warped, inside = backward_warp(sources, total)
+            warped, compared, inside = _masked_warp(sources, targets, total, world, world)
             finest = level == levels - 1
             lpips = self.perceptual if finest else None
             scale = 2 ** (levels - 1 - level)
-            warp = warp + warp_loss(warped, targets, inside, lpips, w.warp_ssim, w.warp_lpips) / scale
+            warp = warp + warp_loss(warped, compared, inside, lpips, w.warp_ssim, w.warp_lpips) / scale
             if supervise:
                 sup = sup + supervised_flow_loss(total, gt_flow, gt_dynamic, gt_valid) / scale
             if distil:
                 search = search + search_distillation_loss(total, searched, overridden) / scale
-        total = flow.total
-        consist = consistency_loss(total[0], total[1]) + consistency_loss(total[1], total[0])
-        terms = {"warp": warp, "consist": consist}
+        terms = {"warp": warp}
         if supervise:
             terms["flow_sup"] = sup
         if distil:
             terms["search_sup"] = search
             terms["search_px"] = overridden.float().mean()
-        if step % self.config.render_every == 0:
-            sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
-            scene_flow, _ = lift_scene_flow(depth, total, flow.residual, sky, batch, TRAIN_LIFT)
-            terms["render"] = self.render_term(static, batch, step, scene_flow)
-        terms["residual_px"] = flow.residual.detach().norm(dim=-1).mean()
         return terms
 
 
@@ -252,6 +303,8 @@ def _flow_targets(batch: PairTensors) -> tuple[Tensor, Tensor, Tensor]:
     valid &= (dest[..., 1] >= 0) & (dest[..., 1] <= height - 1)
     if batch.gt_depth is not None:
         valid &= batch.gt_depth.flatten(0, 1) > 0
+    if batch.valid_mask is not None:
+        valid &= batch.valid_mask.repeat(2, 1, 1)
     dynamic = batch.gt_dynamic.flatten(0, 1) if batch.gt_dynamic is not None else torch.zeros_like(valid)
     return torch.nan_to_num(gt), valid, dynamic
 
