@@ -74,12 +74,15 @@ def _per_camera(values: torch.Tensor, num_views: int) -> list[float]:
 
 def image_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, perceptual, num_views: int) -> dict:
     """Per-camera PSNR / SSIM (/ perceptual) of images ``[T, V, H, W, 3]`` in [0, 1] over ``mask``
-    ``[T, V, H, W]`` (None: every pixel), averaged over T per camera."""
+    ``[T, V, H, W]`` (None: every pixel), averaged over T per camera; masked pixels of ``pred``
+    take the target's values first (`drivingscene.eval.reconstruction.score_frames`)."""
     from drivingscene.eval.metrics import lpips_distance, psnr, ssim
 
     p = pred.flatten(0, 1).permute(0, 3, 1, 2).float()
     t = target.flatten(0, 1).permute(0, 3, 1, 2).float()
     m = None if mask is None else mask.flatten(0, 1)
+    if m is not None:  # as `score_frames`: nothing on the ego's body reaches a counted pixel via SSIM/LPIPS
+        p = torch.where(m[:, None], p, t)
     out = {"psnr": _per_camera(psnr(p, t, m), num_views), "ssim": _per_camera(ssim(p, t, m), num_views)}
     if perceptual is not None:
         out["lpips"] = _per_camera(lpips_distance(p, t, m, metric=perceptual), num_views)
