@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -46,6 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/real-data.md)")
     p.add_argument("--json", type=Path, default=None, help="also write every score as JSON")
+    p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/real-data-notes.md)")
     p.add_argument("--images", type=Path, default=None, help="folder for the side-by-side figures (e.g. docs/images/real)")
 
 
@@ -288,10 +290,10 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
                 f"**{psnr}**" if lose else psnr,
                 _fmt(best_base, "{:.2f}"),
                 f"{100 * s.dynamic_share[FULL]:.1f} %",
-                f"{_mean(s.seconds[FULL]):.2f}",
+                f"{statistics.median(s.seconds[FULL]):.2f} ({min(s.seconds[FULL]):.2f}-{max(s.seconds[FULL]):.2f})",
             ]
         )
-    header = ["scene", "depth AbsRel", "AbsRel (median-scaled)", "keyframe re-render PSNR", "in-between PSNR", "best baseline PSNR", "dynamic Gaussians", "s / pair"]
+    header = ["scene", "depth AbsRel", "AbsRel (median-scaled)", "keyframe re-render PSNR", "in-between PSNR", "best baseline PSNR", "dynamic Gaussians", "s / pair, median (range)"]
     return "\n".join(head) + _table(header, rows) + "\n## Per scene and camera\n\n" + "\n".join(
         _scene_section(s, lpips_name, s.figure) for s in scenes
     )
@@ -350,6 +352,12 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--names: expected one name per scene ({len(args.scenes)}), found {len(args.names)}")
     if args.repeats < 1:
         raise InputError(f"--repeats: expected at least 1, found {args.repeats}")
+    notes = ""
+    if args.notes is not None:
+        try:
+            notes = args.notes.read_text()
+        except OSError as e:
+            raise InputError(f"{args.notes}: --notes: expected a readable markdown file, found {e.strerror}") from None
     pairs = [load_frame_pair(p) for p in args.scenes]  # every file checked before the long part
     names = args.names or [p.stem for p in args.scenes]
     methods = _methods(args)
@@ -371,6 +379,8 @@ def run(args: argparse.Namespace) -> int:
     precision = _precision(args)
     command = "drivingscene bench real " + " ".join(str(p) for p in args.scenes)
     text = report(scenes, perceptual.name, command, machine_description(), precision)
+    if notes:
+        text += "\n" + notes
     if args.out is not None:
         from drivingscene.data.npz import atomic_write
 
