@@ -17,7 +17,8 @@ $(STAMP): pyproject.toml .ci/install-system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip 2>/dev/null || true
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -m pip install -q -e ".[dev,nuscenes]"
+	$(PY) -m pip install -q --no-deps "nuscenes-devkit==1.2.0"  # its pins clash with numpy 2 / opencv-contrib (pyproject.toml)
 	touch $@
 
 # With a display: the viewer window on the bundled demo scene. Without one: the same viewer renders
