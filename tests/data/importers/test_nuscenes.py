@@ -73,6 +73,7 @@ def _run(capsys, *args):
         (["--scene", "scene-9999"], "--scene: expected one of scene-0001"),
         (["--scene", SCENE, "--sample", "1"], "--sample: expected 0..0 (scene scene-0001 has 2 samples)"),
         (["--scene", SCENE, "--version", "v1.0-trainval"], "--version: expected a table folder"),
+        (["--scene", SCENE, "--sample", "1", "--next", "sweep"], "CAM_FRONT: expected a sweep after"),
     ],
 )
 def test_errors_are_one_line(dataset, tmp_path, capsys, args, expected):
@@ -80,6 +81,13 @@ def test_errors_are_one_line(dataset, tmp_path, capsys, args, expected):
     code, err = _run(capsys, "--dataroot", str(dataset), *args, "-o", str(out))
     assert code == 2 and expected in err and "\n" not in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_bad_option_value_is_one_line(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["import", "nuscenes", "--dataroot", "x", "--scene", SCENE, "--next", "later", "-o", "o.npz"])
+    err = capsys.readouterr().err.strip()
+    assert stop.value.code == 2 and "argument --next: invalid choice" in err and "\n" not in err
 
 
 def test_missing_dataroot_image_and_table(synth_pair, tmp_path, capsys):
