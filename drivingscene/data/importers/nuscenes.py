@@ -7,12 +7,13 @@
   fitted to the output size; ``cam_to_ego`` from the camera's ``calibrated_sensor``.
 - Each image's own ``ego_pose`` and timestamp (the six cameras of a sample fire as the LiDAR sweeps
   past them, up to ~50 ms apart): ``camera_ego_to_world``, ``camera_timestamps``. The pair's
-  ``ego_to_world`` and ``timestamps`` are CAM_FRONT's.
+  ``ego_to_world`` and ``timestamps``: a keyframe's LIDAR_TOP record (the sample's own time; CAM_FRONT's
+  without LiDAR); a sweep's CAM_FRONT pose and the mean time of its six images.
 - LiDAR: the LIDAR_TOP sweep of each keyframe (for a camera sweep, the LIDAR_TOP record nearest in
   time), lidar -> ego at the LiDAR's time -> world -> ego at each image's time -> camera, projected
   into sparse ``gt_depth``.
-- ``eval_sweeps``: camera sweeps strictly between the two keyframes become eval frames, the m-th
-  sweep of every camera in frame m.
+- ``eval_sweeps``: camera sweeps strictly between the two frames become eval frames, the m-th sweep
+  of every camera in frame m; its time is the mean of its images' times, its pose CAM_FRONT's.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ from drivingscene.errors import InputError
 
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
 LIDAR = "LIDAR_TOP"
-INSTALL = "pip install -e '.[nuscenes]' (or `make setup`)"
+# nuscenes-devkit's metadata pins numpy<2 and opencv-python-headless: installed without its deps
+INSTALL = "make setup, or pip install -e '.[nuscenes]' && pip install --no-deps nuscenes-devkit==1.2.0"
 
 
 def open_nuscenes(dataroot: str | Path, version: str):
@@ -47,8 +49,8 @@ def open_nuscenes(dataroot: str | Path, version: str):
         return NuScenes(version=version, dataroot=str(root), verbose=False)
     except FileNotFoundError as e:
         raise InputError(f"{e.filename}: expected a nuScenes table, found no such file") from None
-    except (ValueError, KeyError, AssertionError, TypeError) as e:  # JSON errors are ValueErrors
-        raise InputError(f"{root / version}: expected valid nuScenes tables, found {type(e).__name__}: {e}") from None
+    except Exception as e:  # the devkit asserts, indexes and raises plain Exceptions on malformed tables
+        raise InputError(f"{root / version}: expected valid nuScenes tables, found {type(e).__name__}: {' '.join(str(e).split())}") from None
 
 
 def _record(nusc, table: str, token: str, where: str) -> dict:
@@ -135,7 +137,8 @@ def _lidar_world(nusc, token: str) -> tuple[np.ndarray, float]:
 
 
 def _nearest_lidar(nusc, sample: dict, seconds: float) -> str:
-    """The LIDAR_TOP record (keyframe or sweep) nearest in time, searched from ``sample``'s on."""
+    """The LIDAR_TOP record (keyframe or sweep) nearest in time, searched from ``sample``'s on; ""
+    if the sample has none."""
     token = sample["data"].get(LIDAR, "")
     best, best_dt = token, np.inf
     while token:
@@ -147,31 +150,61 @@ def _nearest_lidar(nusc, sample: dict, seconds: float) -> str:
     return best
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Frame:
-    images: np.ndarray  # [V, H, W, 3] uint8
-    camera_ego_to_world: np.ndarray  # [V, 4, 4]
-    camera_seconds: np.ndarray  # [V]
-    depth: np.ndarray | None  # [V, H, W]
+    """The six images of one frame, in rig order."""
+
+    channels: tuple[str, ...]  # [V]
+    shots: tuple[_Image, ...]  # [V]
+    images: np.ndarray  # [V, H, W, 3] uint8, fitted to the output size
+
+    @property
+    def camera_ego_to_world(self) -> np.ndarray:
+        """``[V, 4, 4]`` float64."""
+        return np.stack([s.ego_to_world for s in self.shots])
+
+    @property
+    def camera_seconds(self) -> np.ndarray:
+        """``[V]`` float64."""
+        return np.array([s.seconds for s in self.shots])
+
+    def front(self) -> _Image:
+        return self.shots[self.channels.index("CAM_FRONT")]
 
 
-def _frame(nusc, tokens: dict[str, str], order: list[str], fits: dict[str, Fit], lidar_token: str | None) -> _Frame:
-    images, egos, seconds, depths = [], [], [], []
-    points = None if not lidar_token else _lidar_world(nusc, lidar_token)[0]
+def _frame(nusc, tokens: dict[str, str], order: list[str], fits: dict[str, Fit]) -> _Frame:
+    shots, images = [], []
     for channel in order:
-        im = _Image.load(nusc, tokens[channel])
-        rgb = read_rgb(im.path)
+        shot = _Image.load(nusc, tokens[channel])
+        rgb = read_rgb(shot.path)
         if rgb.shape[:2] != fits[channel].src:
             h, w = fits[channel].src
-            raise InputError(f"{im.path}: expected {w}x{h} like the first frame's {channel}, found {rgb.shape[1]}x{rgb.shape[0]}")
+            raise InputError(f"{shot.path}: expected {w}x{h} like the first frame's {channel}, found {rgb.shape[1]}x{rgb.shape[0]}")
+        shots.append(shot)
         images.append(fits[channel].image(rgb))
-        egos.append(im.ego_to_world)
-        seconds.append(im.seconds)
-        if points is not None:
-            to_cam = np.linalg.inv(im.ego_to_world @ im.cam_to_ego)
-            depths.append(lidar_depth(points, to_cam, fits[channel].intrinsics(im.intrinsics), fits[channel].dst))
-    depth = None if points is None else np.stack(depths)
-    return _Frame(np.stack(images), np.stack(egos), np.array(seconds), depth)
+    return _Frame(tuple(order), tuple(shots), np.stack(images))
+
+
+def _depth(nusc, frame: _Frame, fits: dict[str, Fit], lidar_token: str) -> np.ndarray:
+    """``[V, H, W]`` float32 sparse z-depth: the LiDAR points seen from each image's own ego pose."""
+    points = _lidar_world(nusc, lidar_token)[0]
+    depths = []
+    for channel, shot in zip(frame.channels, frame.shots):
+        to_cam = np.linalg.inv(shot.ego_to_world @ shot.cam_to_ego)
+        depths.append(lidar_depth(points, to_cam, fits[channel].intrinsics(shot.intrinsics), fits[channel].dst))
+    return np.stack(depths)
+
+
+def _reference(nusc, frame: _Frame, lidar_token: str, sweep: bool) -> tuple[np.ndarray, float]:
+    """A frame's ``ego_to_world`` [4, 4] and time: a keyframe's LiDAR record (CAM_FRONT's without
+    one); a sweep's CAM_FRONT pose and the mean time of its images."""
+    if sweep:
+        return frame.front().ego_to_world, float(frame.camera_seconds.mean())
+    if lidar_token:
+        sd = _record(nusc, "sample_data", lidar_token, LIDAR)
+        ego = _record(nusc, "ego_pose", sd["ego_pose_token"], LIDAR)
+        return _pose(ego, f"{nusc.version}/sample_data {lidar_token}"), sd["timestamp"] * 1e-6
+    return frame.front().ego_to_world, frame.front().seconds
 
 
 def import_nuscenes(
@@ -184,62 +217,97 @@ def import_nuscenes(
     size: tuple[int, int] | None = (176, 320),
     fit: str = "crop",
 ) -> FramePair:
-    """Two frames of the six cameras of a nuScenes scene as a frame pair (module docstring)."""
+    """Two frames of the six cameras of a nuScenes scene as a frame pair (module docstring).
+
+    Args:
+        sample: index of the first keyframe within the scene, from 0.
+        next_frame: "keyframe" (sample + 1) or "sweep" (each camera's next sweep).
+        size: output (H, W); None keeps the images' own size.
+
+    Raises:
+        InputError: one line naming the file or field (missing devkit, folder, table, record, file).
+    """
     if next_frame not in ("keyframe", "sweep"):
         raise InputError(f"--next: expected keyframe or sweep, found {next_frame!r}")
+    if eval_sweeps and next_frame == "sweep":
+        raise InputError("--eval-sweeps: expected --next keyframe (no sweep lies between a keyframe and the next sweep), found --next sweep")
     nusc = open_nuscenes(dataroot, version)
+    try:
+        return _import(nusc, scene, sample, next_frame == "sweep", eval_sweeps, size, fit)
+    except KeyError as e:  # a record without a field the devkit or we read
+        raise InputError(f"{nusc.dataroot}/{version}: expected nuScenes records with the field {e}, found one without it") from None
+
+
+def _import(nusc, scene: str, index: int, sweep: bool, eval_sweeps: bool, size, fit: str) -> FramePair:
     samples = _scene_samples(nusc, scene)
-    last = len(samples) - (2 if next_frame == "keyframe" else 1)
-    if not 0 <= sample <= last:
-        raise InputError(f"{nusc.dataroot}/{version}/sample.json: --sample: expected 0..{last} (scene {scene} has {len(samples)} samples), found {sample}")
-    first = _camera_tokens(nusc, samples[sample], sample)
-    second = _camera_tokens(nusc, samples[sample + 1], sample + 1) if next_frame == "keyframe" else _next_sweeps(nusc, first)
-    images = {c: _Image.load(nusc, first[c]) for c in CAMERAS}
-    order = [CAMERAS[i] for i in order_around_car(np.stack([images[c].cam_to_ego for c in CAMERAS]))]
-    fits = {c: Fit.make(read_rgb(images[c].path).shape[:2], size or (900, 1600), fit) for c in order}
-    later = _Image.load(nusc, second[order[0]]).seconds
-    lidars = [samples[sample]["data"].get(LIDAR), _nearest_lidar(nusc, samples[sample], later)]
-    frames = [_frame(nusc, tokens, order, fits, lidar) for tokens, lidar in zip((first, second), lidars)]
-    times = np.array([f.camera_seconds[0] for f in frames])
+    last = len(samples) - (1 if sweep else 2)
+    if not 0 <= index <= last:
+        expected = f"0..{last}" if last >= 0 else "a scene with a next keyframe"
+        raise InputError(f"{nusc.dataroot}/{nusc.version}/sample.json: --sample: expected {expected} (scene {scene} has {len(samples)} samples), found {index}")
+    first = _camera_tokens(nusc, samples[index], index)
+    second = _next_sweeps(nusc, first) if sweep else _camera_tokens(nusc, samples[index + 1], index + 1)
+    shots = {c: _Image.load(nusc, first[c]) for c in CAMERAS}
+    order = [CAMERAS[i] for i in order_around_car(np.stack([shots[c].cam_to_ego for c in CAMERAS]))]
+    sources = {c: read_rgb(shots[c].path).shape[:2] for c in order}
+    fits = {c: Fit.make(sources[c], size or sources[c], fit) for c in order}
+    frames = [_frame(nusc, first, order, fits), _frame(nusc, second, order, fits)]
+    later = float(frames[1].camera_seconds.mean())
+    lidars = [samples[index]["data"].get(LIDAR, ""),
+              _nearest_lidar(nusc, samples[index], later) if sweep else samples[index + 1]["data"].get(LIDAR, "")]
+    refs = [_reference(nusc, frames[0], lidars[0], False), _reference(nusc, frames[1], lidars[1], sweep)]
+    times = np.array([t for _, t in refs])
     out = dict(
         images=np.stack([f.images for f in frames]),
-        intrinsics=np.stack([fits[c].intrinsics(images[c].intrinsics) for c in order]).astype(np.float32),
-        cam_to_ego=np.stack([images[c].cam_to_ego for c in order]).astype(np.float32),
-        ego_to_world=np.stack([f.camera_ego_to_world[0] for f in frames]),
+        intrinsics=np.stack([fits[c].intrinsics(shots[c].intrinsics) for c in order]).astype(np.float32),
+        cam_to_ego=np.stack([shots[c].cam_to_ego for c in order]).astype(np.float32),
+        ego_to_world=np.stack([pose for pose, _ in refs]),
         timestamps=times,
         camera_names=tuple(order),
         camera_ego_to_world=np.stack([f.camera_ego_to_world for f in frames]),
         camera_timestamps=np.stack([f.camera_seconds for f in frames]),
     )
-    if all(f.depth is not None for f in frames):
-        out["gt_depth"] = np.stack([f.depth for f in frames]).astype(np.float32)
+    valid = np.stack([fits[c].valid() for c in order])
+    if not valid.all():  # --fit pad
+        out["valid_mask"] = valid
+    if all(lidars):
+        depth = np.stack([_depth(nusc, f, fits, lidar) for f, lidar in zip(frames, lidars)])
+        out["gt_depth"] = np.where(valid[None], depth, 0.0).astype(np.float32)  # none in the padding
     if eval_sweeps:
         out.update(_eval_sweeps(nusc, first, second, order, fits, times))
     return FramePair(**out)
 
 
+def _sweeps_between(nusc, channel: str, start: str, end: str) -> list[str]:
+    """Tokens of ``channel``'s sample_data strictly after ``start`` and before ``end``."""
+    end_time = _record(nusc, "sample_data", end, channel)["timestamp"]
+    chain, token = [], _record(nusc, "sample_data", start, channel)["next"]
+    while token and token != end:
+        sd = _record(nusc, "sample_data", token, channel)
+        if sd["timestamp"] >= end_time:
+            break
+        chain.append(token)
+        token = sd["next"]
+    return chain
+
+
 def _eval_sweeps(nusc, first: dict, second: dict, order: list[str], fits: dict, times: np.ndarray) -> dict:
-    """The camera sweeps strictly between the two frames: frame m holds each camera's m-th sweep."""
-    chains = {}
-    for c in order:
-        chain, token = [], _record(nusc, "sample_data", first[c], c)["next"]
-        while token and token != second[c]:
-            chain.append(token)
-            token = _record(nusc, "sample_data", token, c)["next"]
-        chains[c] = chain
+    """The camera sweeps strictly between the two frames: frame m holds each camera's m-th sweep,
+    at the mean time of its images (kept when inside (t0, t1) and later than the frame before)."""
+    chains = {c: _sweeps_between(nusc, c, first[c], second[c]) for c in order}
     count = min(len(chain) for chain in chains.values())
-    if count == 0:
-        raise InputError(f"{nusc.dataroot}/{nusc.version}/sample_data.json: --eval-sweeps: expected camera sweeps between the two frames, found none")
-    frames = [_frame(nusc, {c: chains[c][m] for c in order}, order, fits, None) for m in range(count)]
-    seconds = np.array([f.camera_seconds[0] for f in frames])
-    keep = (seconds > times[0]) & (seconds < times[1])
-    frames = [f for f, k in zip(frames, keep) if k]
-    if not frames:
-        raise InputError(f"{nusc.dataroot}/{nusc.version}/sample_data.json: --eval-sweeps: expected sweeps strictly between the two frames, found none")
+    kept, last = [], times[0]
+    for m in range(count):
+        frame = _frame(nusc, {c: chains[c][m] for c in order}, order, fits)
+        seconds = float(frame.camera_seconds.mean())
+        if last < seconds < times[1]:
+            kept.append((frame, seconds))
+            last = seconds
+    if not kept:
+        raise InputError(f"{nusc.dataroot}/{nusc.version}/sample_data.json: --eval-sweeps: expected camera sweeps strictly between the two frames, found none")
     return dict(
-        eval_images=np.stack([f.images for f in frames]),
-        eval_timestamps=seconds[keep],
-        eval_ego_to_world=np.stack([f.camera_ego_to_world[0] for f in frames]),
-        eval_camera_ego_to_world=np.stack([f.camera_ego_to_world for f in frames]),
-        eval_camera_timestamps=np.stack([f.camera_seconds for f in frames]),
+        eval_images=np.stack([f.images for f, _ in kept]),
+        eval_timestamps=np.array([s for _, s in kept]),
+        eval_ego_to_world=np.stack([f.front().ego_to_world for f, _ in kept]),
+        eval_camera_ego_to_world=np.stack([f.camera_ego_to_world for f, _ in kept]),
+        eval_camera_timestamps=np.stack([f.camera_seconds for f, _ in kept]),
     )

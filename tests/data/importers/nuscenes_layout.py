@@ -1,8 +1,9 @@
 """A tiny dataset in nuScenes layout (JSON tables + images + LiDAR .pcd.bin) written from a frame
 pair, for reading back through nuscenes-devkit without the real dataset.
 
-One scene of two samples (the pair's keyframes), the pair's eval frame as one camera sweep between
-them, and each camera captured at its own time and ego pose (as nuScenes cameras are). LiDAR: the
+One scene of two samples (the pair's keyframes, at the LiDAR's times and poses), the pair's eval
+frame as one camera sweep between them, and each camera captured at its own time and ego pose, around
+the LiDAR's time (as nuScenes cameras fire when the LiDAR sweeps past them). LiDAR: the
 pixels of ``gt_depth`` (every ``stride``-th), unprojected with the written poses, so that
 projecting them back lands on the same pixels at the same depth.
 """
@@ -19,7 +20,7 @@ from drivingscene.geometry.se3 import matrix_to_quat
 
 VERSION = "v1.0-mini"
 SCENE = "scene-0001"
-CAMERA_DELAY_S = 0.008  # camera i fires i * 8 ms after its frame's time
+CAMERA_DELAY_S = 0.008  # camera i fires (i - 2.5) * 8 ms after its frame's time: their mean is the frame's
 LIDAR_TO_EGO = np.array([[0.0, 1.0, 0.0, 0.9], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.8], [0.0, 0.0, 0.0, 1.0]])
 
 
@@ -38,7 +39,7 @@ def camera_poses(pair) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     (keyframe 0, the eval frame, keyframe 1), and the frames' own times and poses."""
     times = np.array([pair.timestamps[0], pair.eval_timestamps[0], pair.timestamps[1]])
     egos = np.stack([pair.ego_to_world[0], pair.eval_ego_to_world[0], pair.ego_to_world[1]])
-    delays = CAMERA_DELAY_S * np.arange(pair.num_views)
+    delays = CAMERA_DELAY_S * (np.arange(pair.num_views) - (pair.num_views - 1) / 2)
     cam_times = times[:, None] + delays[None]
     speed = (pair.ego_to_world[1, :3, 3] - pair.ego_to_world[0, :3, 3]) / pair.duration
     cam_egos = np.repeat(egos[:, None], pair.num_views, axis=1).copy()

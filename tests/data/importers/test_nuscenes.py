@@ -27,10 +27,11 @@ def test_keyframes_equal_the_pair(synth_pair, dataset):
     assert np.array_equal(pair.images, synth_pair.images)
     assert np.allclose(pair.intrinsics, synth_pair.intrinsics, atol=1e-4)
     assert np.allclose(pair.cam_to_ego, synth_pair.cam_to_ego, atol=1e-6)
-    cam_times, cam_egos, _, _ = camera_poses(synth_pair)
+    cam_times, cam_egos, times, egos = camera_poses(synth_pair)
     assert np.allclose(pair.camera_ego_to_world, cam_egos[[0, 2]], atol=1e-6)
     assert np.allclose(pair.camera_timestamps, cam_times[[0, 2]], atol=1e-6)
-    assert np.allclose(pair.ego_to_world, cam_egos[[0, 2], 0], atol=1e-6)  # CAM_FRONT's
+    assert np.allclose(pair.ego_to_world, egos[[0, 2]], atol=1e-6)  # the LiDAR records'
+    assert np.allclose(pair.timestamps, times[[0, 2]], atol=1e-6)
     # LiDAR back on the pixels it was made from (every 3rd row and column), at their depth; points
     # of the other cameras also land elsewhere (LiDAR sees what a camera may not), nearest first
     grid = np.zeros(pair.gt_depth.shape, bool)
@@ -45,13 +46,32 @@ def test_keyframes_equal_the_pair(synth_pair, dataset):
 
 def test_sweeps_as_eval_frames_and_as_second_frame(synth_pair, dataset):
     pair = import_nuscenes(dataset, VERSION, SCENE, 0, eval_sweeps=True, size=synth_pair.image_size)
+    assert pair.validate() == []
     assert np.array_equal(pair.eval_images, synth_pair.eval_images)
     cam_times, cam_egos, _, _ = camera_poses(synth_pair)
     assert np.allclose(pair.eval_camera_timestamps[0], cam_times[1], atol=1e-6)
     assert np.allclose(pair.eval_camera_ego_to_world[0], cam_egos[1], atol=1e-6)
+    assert np.allclose(pair.eval_timestamps, synth_pair.eval_timestamps, atol=1e-6)  # the mean camera time
+    assert np.allclose(pair.eval_ego_to_world[0], cam_egos[1, 0], atol=1e-6)  # CAM_FRONT's
     swept = import_nuscenes(dataset, VERSION, SCENE, 0, next_frame="sweep", size=synth_pair.image_size)
+    assert swept.validate() == []
     assert np.array_equal(swept.images[1], synth_pair.eval_images[0])
-    assert swept.gt_depth is not None  # the LiDAR record nearest to the sweep
+    assert np.allclose(swept.camera_timestamps[1], cam_times[1], atol=1e-6)
+    assert np.allclose(swept.camera_ego_to_world[1], cam_egos[1], atol=1e-6)
+    assert np.isclose(swept.timestamps[1], synth_pair.eval_timestamps[0], atol=1e-6)
+    assert np.allclose(swept.ego_to_world[1], cam_egos[1, 0], atol=1e-6)
+    assert (swept.gt_depth[1] > 0).any()  # the LiDAR record nearest to the sweep
+
+
+def test_without_lidar_the_front_camera_is_the_reference(synth_pair, tmp_path):
+    root = write_nuscenes(synth_pair, tmp_path / "nolidar")
+    table = root / VERSION / "sample_data.json"
+    table.write_text(json.dumps([r for r in json.loads(table.read_text()) if "LIDAR" not in r["filename"]]))
+    pair = import_nuscenes(root, VERSION, SCENE, 0, size=synth_pair.image_size)
+    cam_times, cam_egos, _, _ = camera_poses(synth_pair)
+    assert pair.gt_depth is None
+    assert np.allclose(pair.ego_to_world, cam_egos[[0, 2], 0], atol=1e-6)
+    assert np.allclose(pair.timestamps, cam_times[[0, 2], 0], atol=1e-6)
 
 
 def test_other_resolution_scales_intrinsics(synth_pair, dataset):
@@ -60,6 +80,10 @@ def test_other_resolution_scales_intrinsics(synth_pair, dataset):
     assert pair.images.shape[2:4] == (h // 2, w // 2)
     assert np.allclose(pair.intrinsics[:, 0, 0], synth_pair.intrinsics[:, 0, 0] / 2, rtol=1e-5)
     assert np.allclose(pair.intrinsics[:, 0, 2], (synth_pair.intrinsics[:, 0, 2] + 0.5) / 2 - 0.5, atol=1e-4)
+    assert pair.gt_depth.shape == (2, 6, h // 2, w // 2)
+    wide = import_nuscenes(dataset, VERSION, SCENE, 0, size=(h, 2 * w), fit="pad")
+    assert wide.images.shape[2:4] == (h, 2 * w) and not wide.valid_mask[:, :, 0].any()
+    assert not wide.gt_depth[:, ~wide.valid_mask].any()
 
 
 def _run(capsys, *args):
@@ -74,6 +98,7 @@ def _run(capsys, *args):
         (["--scene", SCENE, "--sample", "1"], "--sample: expected 0..0 (scene scene-0001 has 2 samples)"),
         (["--scene", SCENE, "--version", "v1.0-trainval"], "--version: expected a table folder"),
         (["--scene", SCENE, "--sample", "1", "--next", "sweep"], "CAM_FRONT: expected a sweep after"),
+        (["--scene", SCENE, "--next", "sweep", "--eval-sweeps"], "--eval-sweeps: expected --next keyframe"),
     ],
 )
 def test_errors_are_one_line(dataset, tmp_path, capsys, args, expected):
@@ -95,6 +120,9 @@ def test_missing_dataroot_image_and_table(synth_pair, tmp_path, capsys):
     code, err = _run(capsys, "--dataroot", str(tmp_path / "nope"), "--scene", SCENE, "-o", str(out))
     assert code == 2 and "--dataroot: expected the nuScenes folder" in err
     root = write_nuscenes(synth_pair, tmp_path / "broken")
+    (root / "samples" / "LIDAR_TOP" / "LIDAR_TOP_2.pcd.bin").unlink()
+    code, err = _run(capsys, "--dataroot", str(root), "--scene", SCENE, "-o", str(out))
+    assert code == 2 and "LIDAR_TOP_2.pcd.bin: expected the LiDAR sweep" in err and "\n" not in err
     (root / "samples" / "CAM_BACK" / "CAM_BACK_0.jpg").unlink()
     code, err = _run(capsys, "--dataroot", str(root), "--scene", SCENE, "-o", str(out))
     assert code == 2 and "CAM_BACK_0.jpg: expected a readable image file" in err and "\n" not in err
@@ -102,3 +130,13 @@ def test_missing_dataroot_image_and_table(synth_pair, tmp_path, capsys):
     code, err = _run(capsys, "--dataroot", str(root), "--scene", SCENE, "-o", str(out))
     assert code == 2 and "expected valid nuScenes tables" in err and "\n" not in err
     assert not out.exists()
+
+
+def test_missing_devkit_is_one_line(dataset, monkeypatch):
+    import sys
+
+    from drivingscene.errors import InputError
+
+    monkeypatch.setitem(sys.modules, "nuscenes.nuscenes", None)  # `import` raises ImportError
+    with pytest.raises(InputError, match=r"expected nuscenes-devkit to be installed \(make setup, or pip install"):
+        import_nuscenes(dataset, VERSION, SCENE, 0)
