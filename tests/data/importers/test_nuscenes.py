@@ -140,3 +140,16 @@ def test_missing_devkit_is_one_line(dataset, monkeypatch):
     monkeypatch.setitem(sys.modules, "nuscenes.nuscenes", None)  # `import` raises ImportError
     with pytest.raises(InputError, match=r"expected nuscenes-devkit to be installed \(make setup, or pip install"):
         import_nuscenes(dataset, VERSION, SCENE, 0)
+
+
+def test_eval_frames_need_a_sweep_of_every_camera(synth_pair, tmp_path, capsys):
+    root = write_nuscenes(synth_pair, tmp_path / "gap")
+    table = root / VERSION / "sample_data.json"
+    rows = [r for r in json.loads(table.read_text()) if r["token"] != "sd_CAM_BACK_1"]  # CAM_BACK's only sweep
+    for r in rows:
+        r["next"] = "sd_CAM_BACK_2" if r["next"] == "sd_CAM_BACK_1" else r["next"]
+        r["prev"] = "sd_CAM_BACK_0" if r["prev"] == "sd_CAM_BACK_1" else r["prev"]
+    table.write_text(json.dumps(rows))
+    assert import_nuscenes(root, VERSION, SCENE, 0, size=synth_pair.image_size).validate() == []
+    code, err = _run(capsys, "--dataroot", str(root), "--scene", SCENE, "--eval-sweeps", "-o", str(tmp_path / "o.npz"))
+    assert code == 2 and "--eval-sweeps: expected camera sweeps strictly between the two frames, found none" in err
