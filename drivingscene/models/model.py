@@ -12,6 +12,7 @@ from torch import Tensor, nn
 
 from drivingscene.models.depth import DepthConfig, DepthNet, DepthOutput
 from drivingscene.models.gaussian_head import GaussianHead, GaussianHeadConfig, PixelGaussians
+from drivingscene.models.matching import ViewGeometry
 from drivingscene.models.residual_flow import FlowConfig, ResidualFlowNet, decoder_slots
 
 
@@ -37,8 +38,10 @@ class ModelConfig:
         size = data.get("input_size")
         # configs written before these FlowConfig fields existed describe the network without them
         flow = {"coarse_radius": None, "hypotheses": (1.0,), "scale_flow": False, **data.get("flow", {})}
+        # and before D had the road prior and matching: a monocular D
+        depth = {"road_prior": False, "match_planes": 0, **data.get("depth", {})}
         return cls(
-            depth=DepthConfig(**tuples(data.get("depth", {}))),
+            depth=DepthConfig(**tuples(depth)),
             gaussians=GaussianHeadConfig(**tuples(data.get("gaussians", {}))),
             flow=FlowConfig(**tuples(flow)),
             input_size=None if size is None else (int(size[0]), int(size[1])),
@@ -55,15 +58,20 @@ class DrivingSceneModel(nn.Module):
         self.gaussian_head = GaussianHead(self.depth_net.encoder.channels, config.depth.decoder_channels[0], config.gaussians)
         self.flow_net = ResidualFlowNet(config.flow)
 
-    def static(self, images: Tensor, intrinsics: Tensor) -> tuple[DepthOutput, PixelGaussians]:
-        """Stage-1 networks on images ``[B, 3, H, W]`` with intrinsics ``[B, 3, 3]``."""
-        depth = self.depth_net(images, intrinsics)
+    def static(
+        self, images: Tensor, intrinsics: Tensor, geometry: ViewGeometry | None = None
+    ) -> tuple[DepthOutput, PixelGaussians]:
+        """Stage-1 networks on images ``[B, 3, H, W]`` with intrinsics ``[B, 3, 3]`` taken as
+        ``geometry`` says (D's road prior and matching need it)."""
+        depth = self.depth_net(images, intrinsics, geometry)
         params = self.gaussian_head(images, depth.depth, intrinsics, depth.features, depth.decoder_features)
         return depth, params
 
-    def static_raw(self, images: Tensor, intrinsics: Tensor) -> tuple[DepthOutput, Tensor]:
+    def static_raw(
+        self, images: Tensor, intrinsics: Tensor, geometry: ViewGeometry | None = None
+    ) -> tuple[DepthOutput, Tensor]:
         """D and P's raw outputs ``[B, H, W, C]`` (to be resized, then ``gaussian_head.activate``)."""
-        depth = self.depth_net(images, intrinsics)
+        depth = self.depth_net(images, intrinsics, geometry)
         raw = self.gaussian_head.predict_raw(images, depth.depth, depth.features, depth.decoder_features)
         return depth, raw
 

@@ -38,6 +38,7 @@ from drivingscene.geometry.flow_search import flow_from_choice, luma, median_of_
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels, scene_flow_from_optical_flow
 from drivingscene.geometry.se3 import rotate_vectors
 from drivingscene.models.depth import DepthOutput
+from drivingscene.models.matching import ViewGeometry, neighbour_views
 from drivingscene.models.gaussian_head import PixelGaussians
 from drivingscene.models.model import DrivingSceneModel
 from drivingscene.render.cpp import select_op
@@ -163,6 +164,38 @@ def _scaled_intrinsics(intrinsics: Tensor, src: tuple[int, int], dst: tuple[int,
     return scale_intrinsics(intrinsics, dst[1] / src[1], dst[0] / src[0])
 
 
+def matching_sources(cam_to_ego: Tensor) -> Tensor:
+    """``[2V, 3]`` batch index of each image's matching sources (`ViewGeometry`): the same camera
+    at the other keyframe, then the left and right neighbours (`neighbour_views`) at the same
+    keyframe; -1 where there is none (one camera: no neighbours; two: one)."""
+    num_views = cam_to_ego.shape[0]
+    neighbours = neighbour_views(cam_to_ego) or [(-1, -1)] * num_views
+    if num_views == 2:
+        neighbours = [(left, -1) for left, _ in neighbours]
+    rows = [
+        [(1 - k) * num_views + v] + [k * num_views + n if n >= 0 else -1 for n in neighbours[v]]
+        for k in (0, 1)
+        for v in range(num_views)
+    ]
+    return torch.tensor(rows, dtype=torch.long, device=cam_to_ego.device)
+
+
+def view_geometry(batch: PairTensors, size: tuple[int, int]) -> ViewGeometry:
+    """Where the pair's 2V images were taken, for D at the network input ``size``."""
+    valid = None
+    if batch.valid_mask is not None:
+        mask = batch.valid_mask.repeat(2, 1, 1)
+        if tuple(size) != tuple(batch.image_size):
+            mask = F.interpolate(mask[:, None].float(), size=size, mode="area")[:, 0] > 0.5
+        valid = mask
+    return ViewGeometry(
+        cam_to_ego=batch.cam_to_ego.repeat(2, 1, 1),
+        cam_to_local=batch.cam_to_local.flatten(0, 1),
+        sources=matching_sources(batch.cam_to_ego),
+        valid=valid,
+    )
+
+
 def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPrediction:
     """D and P on both keyframes' V images.
 
@@ -175,12 +208,13 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPredic
     net_size = model.config.input_size or size
     images = batch.images.flatten(0, 1)
     intrinsics = batch.intrinsics.repeat(2, 1, 1)
+    geometry = view_geometry(batch, net_size)
     if tuple(net_size) == tuple(size):
-        depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics)
+        depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics, geometry)
         depth = depth_out.depth
     else:
         small = batch.resized_images(net_size).flatten(0, 1).contiguous(memory_format=torch.channels_last)
-        depth_out, raw = model.static_raw(small, _scaled_intrinsics(intrinsics, size, net_size))
+        depth_out, raw = model.static_raw(small, _scaled_intrinsics(intrinsics, size, net_size), geometry)
         depth = 1.0 / _resize(1.0 / depth_out.depth.float()[:, None], size, "bilinear")[:, 0]
         # channels-last in, channels-last out: the upsampled [B, H, W, C] view is then contiguous
         raw = raw.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)

@@ -1,6 +1,7 @@
 """Loader of the optional compiled CPU kernels: the rasterizer's pair finding (``csrc/find_pairs.cpp``),
 the per-pixel surfel frames of the Gaussian assembly (``csrc/surfels.cpp``), and the inference-time
-search along the rigid flow, residual-flow cost volume and dense lift (``csrc/flow.cpp``).
+search along the rigid flow, residual-flow cost volume and dense lift (``csrc/flow.cpp``), and the
+plane-sweep correlation of the depth network's matching (``csrc/matching.cpp``).
 
 Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenMP, ninja) into
 ``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
@@ -25,7 +26,7 @@ from torch import Tensor
 log = logging.getLogger(__name__)
 
 EXTENSION_NAME = "drivingscene_render"
-SOURCES = tuple(Path(__file__).parent / "csrc" / name for name in ("find_pairs.cpp", "surfels.cpp", "flow.cpp"))
+SOURCES = tuple(Path(__file__).parent / "csrc" / name for name in ("find_pairs.cpp", "surfels.cpp", "flow.cpp", "matching.cpp"))
 # -ffp-contract=off: no fused multiply-adds, so the kernels round like the torch paths. No errno
 # from sqrt and no trapping floating-point exceptions (neither changes a result) let the compiler
 # vectorise branch-free per-pixel loops (the surfel frames: ~2x).

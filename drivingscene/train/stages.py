@@ -24,6 +24,7 @@ from drivingscene.geometry.camera import pixel_grid
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.oracle import fit_sky_from_pixels
+from drivingscene.models.matching import neighbour_views
 from drivingscene.models.model import DrivingSceneModel
 from drivingscene.models.pipeline import (
     FlowPrediction,
@@ -53,20 +54,12 @@ from drivingscene.train.losses import (
     warp_loss,
 )
 
+# Weight of the supervised depth of D's monocular and matching parts (each alone) beside the
+# supervised depth of their combination.
+AUX_DEPTH = 0.5
 # Lift every consistent pixel while training so L_render reaches R everywhere; inference gates
 # small residuals to static (LiftConfig default).
 TRAIN_LIFT = LiftConfig(dynamic_threshold_px=0.0)
-
-
-def neighbour_views(cam_to_ego: Tensor) -> list[tuple[int, int]]:
-    """For each camera, its left and right neighbours by viewing yaw (empty for one camera)."""
-    axis = cam_to_ego[:, :3, 2]
-    order = torch.atan2(axis[:, 1], axis[:, 0]).argsort().tolist()
-    n = len(order)
-    out = [(-1, -1)] * n
-    for i, v in enumerate(order):
-        out[v] = (order[(i - 1) % n], order[(i + 1) % n])
-    return out if n > 1 else []
 
 
 def _world(batch: PairTensors) -> Tensor | None:
@@ -163,19 +156,36 @@ class TrainStep(nn.Module):
         smooth = sum(
             smoothness_loss(disp.float(), targets, world) / (2**s) for s, disp in enumerate(static.depth_output.disparities)
         )
+        if static.depth_output.matching is not None:  # the corrected depth too (the correction field is D's)
+            smooth = smooth + smoothness_loss(1.0 / static.depth_output.depth.float()[:, None], targets, world)
         terms = {"loc": loc, "smooth": smooth}
         if self.config.weights.depth_sup > 0:
-            if batch.gt_depth is None:
-                raise InputError("--depth-supervision: the training pairs carry no gt_depth (synthetic pairs do)")
-            gt, dyn = batch.gt_depth.float(), batch.gt_dynamic
-            if batch.valid_mask is not None:  # 0: no ground truth
-                gt = torch.where(batch.valid_mask, gt, torch.zeros_like(gt))
-            dyn = torch.zeros_like(gt, dtype=torch.bool) if dyn is None else dyn
-            terms["depth_sup"] = sum(
-                supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), gt, dyn) for d in out_depths
-            ) / len(out_depths)
+            terms.update(self.depth_supervision(static, batch))
         if step % self.config.render_every == 0:
             terms["render"] = self.render_term(static, batch, step, scene_flow=None)
+        return terms
+
+    def depth_supervision(self, static: StaticPrediction, batch: PairTensors) -> dict[str, Tensor]:
+        """L_depth_sup of D's depth at every scale and, with matching, of its two parts on their
+        own (weight ``AUX_DEPTH``): the monocular depths and the matching depth, so that each stays a
+        depth estimator the gate can choose between (models/depth.py)."""
+        if batch.gt_depth is None:
+            raise InputError("--depth-supervision: the training pairs carry no gt_depth (synthetic pairs do)")
+        gt, dyn = batch.gt_depth.float(), batch.gt_dynamic
+        if batch.valid_mask is not None:  # 0: no ground truth
+            gt = torch.where(batch.valid_mask, gt, torch.zeros_like(gt))
+        dyn = torch.zeros_like(gt, dtype=torch.bool) if dyn is None else dyn
+
+        def sup(depths: list[Tensor]) -> Tensor:
+            return sum(supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), gt, dyn) for d in depths) / len(depths)
+
+        out = static.depth_output
+        terms = {"depth_sup": sup(out.depths)}
+        if out.matching is not None:
+            terms["depth_sup_mono"] = sup(out.mono_depths)
+            terms["depth_sup_match"] = sup([out.match_depth])
+            terms["depth_sup"] = terms["depth_sup"] + AUX_DEPTH * (terms["depth_sup_mono"] + terms["depth_sup_match"])
+            terms["gate"] = out.matching.gate.detach().mean()
         return terms
 
     def location_loss(self, depth: Tensor, batch: PairTensors, targets: Tensor) -> Tensor:

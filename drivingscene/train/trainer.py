@@ -60,6 +60,23 @@ def _param_groups(model: DrivingSceneModel, params: list[torch.nn.Parameter], co
     return [g for g in groups if g["params"]]
 
 
+# Convolutions whose new input channels come after the old ones, so old weights still apply to them.
+WIDENED_INPUTS = ("depth_net.encoder.stem.0.weight",)
+
+
+def _widened(loaded: torch.Tensor, own: torch.Tensor) -> torch.Tensor:
+    """A convolution weight that gained input channels (D's encoder with the road prior: 3 -> 5)
+    starts with the loaded weights on the old channels and 0 on the new ones, so the network
+    computes what it did until training uses them; any other shape is returned as loaded."""
+    if loaded.ndim != 4 or own.ndim != 4 or loaded.shape[0] != own.shape[0] or loaded.shape[2:] != own.shape[2:]:
+        return loaded
+    if own.shape[1] <= loaded.shape[1]:
+        return loaded
+    out = torch.zeros_like(own)
+    out[:, : loaded.shape[1]] = loaded.to(own.dtype)
+    return out
+
+
 def _load_init(model: DrivingSceneModel, path: str) -> None:
     from safetensors.torch import load_file
 
@@ -69,6 +86,7 @@ def _load_init(model: DrivingSceneModel, path: str) -> None:
         raise InputError(f"{path}: --init: expected a .safetensors weights file: {e}") from None
     state = {k[len("model.model.") :] if k.startswith("model.model.") else k: v for k, v in state.items()}
     own = model.state_dict()
+    state = {k: _widened(v, own[k]) if k in WIDENED_INPUTS and k in own else v for k, v in state.items()}
     reshaped = sorted(k for k, v in state.items() if k in own and own[k].shape != v.shape)
     if reshaped:  # e.g. stage 2 with a differently shaped R on stage 1's weights: those stay fresh
         log.warning(
