@@ -15,8 +15,12 @@ from drivingscene.errors import InputError
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train the model: --stage static, then dynamic (or joint for the ablation)")
     p.add_argument("--stage", choices=("static", "dynamic", "joint"), required=True)
-    p.add_argument("--data", type=Path, required=True, metavar="DIR", help="training pairs (drivingscene synth --split train)")
-    p.add_argument("--val-data", type=Path, default=None, metavar="DIR", help="validation pairs (drivingscene synth --split val)")
+    p.add_argument(
+        "--data", type=Path, required=True, nargs="+", metavar="DIR", help="training pairs (drivingscene synth --split train); several folders: a mix"
+    )
+    p.add_argument(
+        "--val-data", type=Path, default=None, nargs="+", metavar="DIR", help="validation pairs (drivingscene synth --split val); several: interleaved"
+    )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="run folder: checkpoints, log.jsonl, model.safetensors")
     p.add_argument("--init", type=Path, default=None, metavar="WEIGHTS", help="start from these weights (stage 2: stage 1's)")
     p.add_argument("--steps", type=positive_int, default=None)
@@ -117,8 +121,8 @@ def run(args: argparse.Namespace) -> int:
             base = replace(base, weights=replace(base.weights, **{field: value}))
     config = base.with_overrides(
         stage=args.stage,
-        data=str(args.data),
-        val_data=str(args.val_data) if args.val_data else None,
+        data=",".join(str(d) for d in args.data),
+        val_data=",".join(str(d) for d in args.val_data) if args.val_data else None,
         out=str(args.out),
         init=str(args.init) if args.init else None,
         steps=args.steps,

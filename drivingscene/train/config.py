@@ -38,8 +38,8 @@ class LossWeights:
 @dataclass(frozen=True)
 class TrainConfig:
     stage: str = "static"
-    data: str = ""  # folder of pair_*.npz (drivingscene synth --split train)
-    val_data: str = ""  # folder for periodic validation ("" = none)
+    data: str = ""  # folder of pair_*.npz (drivingscene synth --split train); several: comma-separated
+    val_data: str = ""  # folder(s) for periodic validation ("" = none), as ``data``
     out: str = "runs/static"
     init: str = ""  # weights to start from (stage 2 starts from stage 1's)
     steps: int = 10000

@@ -12,8 +12,18 @@ from drivingscene.data.tensors import PairTensors, pair_to_tensors
 from drivingscene.errors import InputError
 
 
-def list_pairs(folder: str | Path) -> list[Path]:
-    folder = Path(folder)
+def list_pairs(folders: str | Path) -> list[Path]:
+    """The pair files of a folder, or of several folders given as one string separated by commas
+    (training on a mix of datasets: ``data/train96,data/train96r``), interleaved folder by folder
+    (so that the first N files, e.g. validation pairs, come from every folder)."""
+    per_folder = [_folder_pairs(Path(f)) for f in str(folders).split(",") if f]
+    if not per_folder:
+        raise InputError(f"{folders!r}: expected a folder of pair_*.npz files (drivingscene synth --split train --out DIR)")
+    longest = max(len(files) for files in per_folder)
+    return [files[i] for i in range(longest) for files in per_folder if i < len(files)]
+
+
+def _folder_pairs(folder: Path) -> list[Path]:
     if not folder.is_dir():
         raise InputError(f"{folder}: expected a folder of pair_*.npz files (drivingscene synth --split train --out DIR)")
     files = sorted(folder.glob("pair_*.npz"))
