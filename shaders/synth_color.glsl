@@ -231,6 +231,102 @@ vec3 facade(vec2 uv, float fw, inout float gloss) {
     return windows(wall, uv, fw, gloss);
 }
 
+// Suburb ------------------------------------------------------------------------------------------
+// Lawn and verge: lush and dry patches at lawn scale, clumps of darker and yellower grass at metre
+// scale, tufts and blades near the camera (band-limited so the far lawn settles to its mean), and
+// damp darker patches. uv: metres on the ground.
+vec3 grass(vec2 uv, float fw) {
+    float t = u_texture;
+    float patches = fbm2(uv + v_param * 37.0, 0.05, fw);
+    float clumps = fbm2(uv * vec2(1.0, 1.3) + 11.0, 0.6, fw);
+    float tufts = vnoise(uv * 4.5 + 2.0) * band(4.5, fw);
+    float blades = 0.6 * vnoise(uv * vec2(13.0, 17.0)) * band(15.0, fw) + 0.4 * vnoise(uv * vec2(31.0, 41.0) + 5.0) * band(36.0, fw);
+    float dry = clamp(smoothstep(-0.1, 0.5, patches + 0.6 * (fract(v_param * 3.7) - 0.6)) + 0.35 * clumps, 0.0, 1.0);
+    vec3 c = mix(v_color, vec3(0.47, 0.45, 0.28), 0.6 * dry * min(t, 1.0));
+    c = mix(c, c * vec3(0.7, 0.85, 0.6), 0.35 * t * max(-clumps, 0.0));  // dense dark-green clumps
+    float damp = smoothstep(0.2, 0.7, vnoise(uv * 0.21 + 3.0));
+    return c * (1.0 + t * (0.18 * clumps + 0.22 * tufts + 0.35 * blades - 0.15 * damp));
+}
+
+// Concrete slabs: joints every 1.5 m, slab-to-slab tone, stains.
+vec3 slab(vec2 uv, float fw) {
+    float t = u_texture;
+    float joints = max(grid_line(uv.x, 1.5, 0.02, fw), grid_line(uv.y, 1.5, 0.02, fw));
+    float tone = (hash2(floor(uv / 1.5) + v_param * 13.0) - 0.5) * 0.12 * band(0.67, fw);
+    float stain = smoothstep(0.5, 0.8, vnoise(uv * 0.5 + 9.0)) * 0.12 * band(0.5, fw);
+    return v_color * (1.0 + t * (tone + 0.16 * fbm2(uv, 0.7, fw) - stain)) * (1.0 - 0.35 * t * joints);
+}
+
+// Roof shingles: courses along the slope (uv.y from the eave), staggered tabs of varied tone.
+vec3 shingle(vec2 uv, float fw) {
+    float t = u_texture;
+    float row = floor(uv.y / 0.22);
+    vec2 tab = vec2(floor(uv.x / 0.34 + 0.5 * mod(row, 2.0)), row);
+    float courses = grid_line(uv.y, 0.22, 0.035, fw);
+    float tone = (hash2(tab + v_param * 31.0) - 0.5) * 0.3 * band(3.0, fw);
+    return v_color * (1.0 + t * (tone + 0.18 * fbm2(uv, 0.35, fw))) * (1.0 - 0.35 * t * courses);
+}
+
+// Window (white frame, dark glass reflecting the sky) of half size hw x hh at offset d from its centre.
+vec3 house_window(vec3 c, vec2 d, vec2 half_size, float fw, float id, inout float gloss) {
+    float frame = aa_band(d.x, half_size.x + 0.08, fw) * aa_band(d.y, half_size.y + 0.08, fw);
+    float glass = aa_band(d.x, half_size.x, fw) * aa_band(d.y, half_size.y, fw);
+    float bars = max(aa_band(d.x, 0.025, fw), aa_band(d.y, 0.025, fw)) * step(0.4, id);
+    vec3 pane = mix(vec3(0.08, 0.1, 0.12), vec3(0.45, 0.52, 0.6), 0.3 + 0.5 * clamp(d.y / half_size.y * 0.5 + 0.5, 0.0, 1.0) * id);
+    c = mix(c, vec3(0.9, 0.9, 0.87), frame);
+    c = mix(c, mix(pane, vec3(0.9, 0.9, 0.87), bars), glass);
+    gloss = max(gloss, glass * (1.0 - bars));
+    return c;
+}
+
+// House walls: uv = (metres from the face centre, height), v_extra = (face half width, wall height).
+// Clapboard, brick or stucco by v_param; windows on each storey; a door and sometimes a garage door
+// on the street face (-y in the object frame).
+vec3 house_wall(vec2 uv, float fw, inout float gloss) {
+    float t = u_texture;
+    vec3 c = v_color;
+    float kind = fract(v_param * 5.1);
+    if (kind < 0.6) {  // clapboard: a shadow line under every board
+        float board = fract(uv.y / 0.18);
+        c *= 1.0 - t * 0.22 * smoothstep(0.7, 1.0, board) * band(5.5, fw);
+    } else if (kind < 0.82) {
+        float row = floor(uv.y / 0.075);
+        vec2 brick = vec2(floor(uv.x / 0.24 + 0.5 * mod(row, 2.0)), row);
+        float mortar = max(grid_line(uv.y, 0.075, 0.012, fw), grid_line(uv.x + 0.12 * mod(row, 2.0), 0.24, 0.012, fw));
+        c *= 1.0 + t * 0.2 * (hash2(brick) - 0.5) * band(13.0, fw);
+        c = mix(c, vec3(0.66, 0.63, 0.58), 0.5 * t * mortar);
+    }
+    c *= 1.0 + t * 0.1 * fbm2(uv, 0.4, fw);
+    c = mix(c, c * 0.6, aa_band(uv.y, 0.35, fw));  // foundation
+    float storey = 2.8;
+    float spacing = 2.6 + 1.4 * fract(v_param * 13.7);
+    float cols = floor((2.0 * v_extra.x - 1.2) / spacing);
+    float street = step(0.7, -v_normal_obj.y);
+    float door_col = floor(fract(v_param * 7.9) * max(cols, 1.0));
+    if (cols >= 1.0 && uv.y < v_extra.y - 0.3) {
+        float fx = uv.x / spacing + 0.5 * mod(cols, 2.0);
+        float col = floor(fx) + floor(cols / 2.0);
+        float dx = (fract(fx) - 0.5) * spacing;
+        float k = floor(uv.y / storey);
+        float inside = aa_band(uv.x, cols * spacing * 0.5, fw) * step(k * storey + 2.3, v_extra.y);
+        vec2 half_size = vec2(0.45 + 0.25 * fract(v_param * 3.3), 0.62);
+        float id = hash2(vec2(col, k) + v_param * 50.0);
+        bool is_door = street > 0.5 && k < 0.5 && abs(col - door_col) < 0.5;
+        if (is_door) {
+            float door = aa_band(dx, 0.5, fw) * aa_band(uv.y - 1.1, 1.05, fw) * inside;
+            vec3 door_c = mix(vec3(0.25, 0.12, 0.08), vec3(0.85, 0.85, 0.82), step(0.5, fract(v_param * 9.1)));
+            c = mix(c, door_c, door);
+        } else {
+            c = mix(c, house_window(c, vec2(dx, uv.y - k * storey - 1.5), half_size, fw, id, gloss), inside);
+        }
+    }
+    float garage = street * step(0.6, fract(v_param * 17.3)) * step(4.5, v_extra.x);
+    float gx = uv.x - sign(fract(v_param * 2.9) - 0.5) * (v_extra.x - 2.0);
+    float gdoor = garage * aa_band(gx, 1.4, fw) * aa_band(uv.y - 1.1, 1.1, fw);
+    vec3 gcol = vec3(0.88, 0.88, 0.85) * (1.0 - 0.15 * t * grid_line(uv.y, 0.55, 0.03, fw));
+    return mix(c, gcol, gdoor);
+}
+
 // Vehicle body in the object frame (x forward, z up); v_extra = (half length, half width).
 vec3 car_body(float fw, inout float gloss) {
     vec3 p = v_obj, n = v_normal_obj, c = v_color;
@@ -276,6 +372,14 @@ vec3 albedo(float fw_uv, float fw_obj, inout float gloss) {
     return facade(v_uv, fw_uv, gloss);
 #elif MATERIAL == MAT_roof
     return v_color * (1.0 + t * 0.3 * fbm2(v_uv, 0.5, fw_uv));
+#elif MATERIAL == MAT_grass
+    return grass(v_uv, fw_uv);
+#elif MATERIAL == MAT_slab
+    return slab(v_uv, fw_uv);
+#elif MATERIAL == MAT_shingle
+    return shingle(v_uv, fw_uv);
+#elif MATERIAL == MAT_siding
+    return house_wall(v_uv, fw_uv, gloss);
 #elif MATERIAL == MAT_ground
     float n = fbm2(v_uv, 0.05, fw_uv);
     return mix(v_color, vec3(0.45, 0.4, 0.32), 0.5 + 0.5 * n) * (1.0 + t * 0.2 * fbm2(v_uv, 0.6, fw_uv));

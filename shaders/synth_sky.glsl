@@ -19,6 +19,8 @@ uniform vec3 u_zenith;
 uniform vec3 u_horizon;
 uniform float u_cloud_cover;
 uniform vec2 u_cloud_offset;
+uniform vec3 u_cloud_color;  // lit cloud (grey for overcast)
+uniform vec3 u_glow_color;   // sun disc and halo (black behind full cloud)
 
 out vec4 fragColor;
 
@@ -43,7 +45,7 @@ void main() {
     float up = clamp(dir.z, 0.0, 1.0);
     vec3 c = mix(u_horizon, u_zenith, pow(up, 0.55));
     float sun = max(dot(dir, u_sun_dir), 0.0);
-    c += vec3(1.0, 0.9, 0.7) * (0.25 * pow(sun, 12.0) + 0.6 * pow(sun, 400.0));
+    c += u_glow_color * (0.25 * pow(sun, 12.0) + 0.6 * pow(sun, 400.0));
     if (dir.z > 0.01) {
         vec2 p = dir.xy / dir.z * 0.6 + u_cloud_offset;
         float fw = length(fwidth(p));
@@ -53,7 +55,7 @@ void main() {
             amp *= 0.5; freq *= 2.3;
         }
         float cloud = smoothstep(1.0 - u_cloud_cover, 1.25 - 0.6 * u_cloud_cover, n + 0.1) * smoothstep(0.01, 0.12, dir.z);
-        c = mix(c, vec3(0.93, 0.94, 0.96) - 0.12 * n, cloud * 0.9);
+        c = mix(c, u_cloud_color - 0.12 * n, cloud * 0.9);
     }
     fragColor = vec4(c, 1.0);
 }

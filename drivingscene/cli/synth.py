@@ -18,10 +18,22 @@ KNOBS = {  # flag: (config field, parser, meaning)
     "--texture-strength": ("texture_strength", "float", "procedural texture amplitude (0 = flat colours)"),
     "--exposure-change": ("exposure_change", "float", "brightness gain of keyframe 1 relative to keyframe 0"),
     "--noise-std": ("noise_std", "float", "Gaussian image noise std in [0, 1] units"),
-    "--blackout-camera": ("blackout_camera", "camera", "camera whose images are black, or 'none'"),
+    "--blackout-camera": (
+        "blackout_camera",
+        "camera",
+        "camera (a name of the rig or an index) whose images are black, or 'none'",
+    ),
     "--num-eval": ("num_eval", "int", "evaluation frames between the keyframes"),
     "--supersample": ("supersample", "int", "colour supersampling factor per axis"),
+    "--rig": ("rig", "text", "camera rig: nuscenes, ddad or random (5-8 cameras drawn per seed)"),
+    "--scene-style": ("scene_style", "text", "town, suburban or mixed (either, per seed)"),
+    "--lighting": ("lighting", "text", "default, or varied (clear, hazy, overcast, golden, bright white sky)"),
+    "--photometric": ("photometric", "float", "per-camera exposure, colour, lens, noise and JPEG jitter, strength in [0, 1]"),
+    "--ego-body": ("ego_body", "float", "probability per camera of the ego car's body at the image bottom (masked)"),
+    "--capture-spread": ("capture_spread", "float", "seconds spanned by one frame's camera triggers, in [0, 0.1]"),
+    "--randomise-motion": ("randomise_motion", "bool", "true: ego speed, keyframe gap and object speeds drawn per seed"),
 }
+BOOLEANS = {"true": True, "yes": True, "on": True, "1": True, "false": False, "no": False, "off": False, "0": False}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -68,7 +80,6 @@ def parse_resolution(text: str) -> tuple[int, int]:
 def config_from_args(args: argparse.Namespace):
     """The resolved ``SynthConfig``: the preset, then every flag given."""
     from drivingscene.synth.config import resolve_config
-    from drivingscene.synth.rig import CAMERA_NAMES
 
     overrides = {}
     if args.res is not None:
@@ -77,21 +88,17 @@ def config_from_args(args: argparse.Namespace):
         text = getattr(args, field)
         if text is None:
             continue
-        if kind == "camera":
-            if text.lower() == "none":
-                overrides[field] = "none"
-            elif text not in CAMERA_NAMES:
-                raise InputError(f"{flag}: expected one of {', '.join(CAMERA_NAMES)} or none, found {text!r}")
-            else:
-                overrides[field] = text
+        if kind == "camera":  # checked against the rig by resolve_config
+            overrides[field] = "none" if text.lower() == "none" else text
+        elif kind == "text":
+            overrides[field] = text
+        elif kind == "bool":
+            if text.lower() not in BOOLEANS:
+                raise InputError(f"{flag}: expected true or false, found {text!r}")
+            overrides[field] = BOOLEANS[text.lower()]
         else:
             overrides[field] = _number(flag, text, kind)
-    config = resolve_config(args.preset, **{k: v for k, v in overrides.items() if v != "none"})
-    if overrides.get("blackout_camera") == "none":
-        from dataclasses import replace
-
-        config = replace(config, blackout_camera=None)
-    return config
+    return resolve_config(args.preset, **overrides)
 
 
 def list_presets() -> str:

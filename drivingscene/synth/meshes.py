@@ -39,6 +39,10 @@ MATERIALS: dict[str, int] = {
             "lamp",
             "concrete",
             "hair",
+            "grass",  # lawns and verges of the suburb
+            "siding",  # detached houses: clapboard, brick or stucco walls with windows and doors
+            "shingle",  # pitched roofs
+            "slab",  # concrete sidewalks and driveways
             "shadow",  # last: contact shadows, colour pass only (multiplied onto the ground, no ground truth)
         )
     )
@@ -225,3 +229,32 @@ def prism(profile: np.ndarray, y0: float, y1: float, caps: bool = True) -> list[
 def _xz_uv(tris):
     pos, nrm, _ = tris
     return pos, nrm, pos[:, [0, 2]].copy()
+
+
+def frustum(r0: float, r1: float, z0: float, z1: float, segments: int = 8) -> tuple:
+    """A z-axis cone frustum (radius r0 at z0, r1 at z1; r1 = 0 is a cone) with smooth slanted side
+    normals and a bottom cap; uv = (arc length at the base, z)."""
+    ang = np.linspace(0, 2 * np.pi, segments + 1)
+    c, s = np.cos(ang), np.sin(ang)
+    ring = lambda r, z: np.stack([r * c, r * s, np.full(segments + 1, z)], -1)  # noqa: E731
+    lo, hi = ring(r0, z0), ring(max(r1, 1e-4), z1)
+    corners = np.stack([lo[:-1], lo[1:], hi[1:], hi[:-1]], axis=1)
+    arc = r0 * ang
+    uvs = np.stack(
+        [
+            np.stack([arc[:-1], np.full(segments, z0)], -1),
+            np.stack([arc[1:], np.full(segments, z0)], -1),
+            np.stack([arc[1:], np.full(segments, z1)], -1),
+            np.stack([arc[:-1], np.full(segments, z1)], -1),
+        ],
+        axis=1,
+    )
+    pos, _, uv = quads_to_tris(corners, np.zeros((segments, 3)), uvs)
+    slope = (r0 - r1) / max(z1 - z0, 1e-6)  # outward normal tilts up by the cone's slope
+    nrm = pos.copy()
+    nrm[:, 2] = 0
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
+    nrm[:, 2] = slope
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    cap = _fan(lo[:-1][::-1], (0, 0, -1))
+    return merge((pos, nrm, uv), cap)

@@ -1,4 +1,4 @@
-"""Preview images of a generated pair: the 6 cameras at keyframe 0, the evaluation frames and
+"""Preview images of a generated pair: the cameras at keyframe 0, the evaluation frames and
 keyframe 1, and the ground truth (depth, flow, dynamic mask) of a few cameras."""
 
 from __future__ import annotations
@@ -16,8 +16,25 @@ PANORAMA = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", 
 
 
 def _order(pair: FramePair) -> list[int]:
+    """Cameras left to right as seen from inside the car: the nuScenes panorama, else by yaw from
+    about 60 degrees left of forward, clockwise."""
     names = list(pair.camera_names)
-    return [names.index(n) for n in PANORAMA if n in names] or list(range(pair.num_views))
+    if all(n in names for n in PANORAMA):
+        return [names.index(n) for n in PANORAMA]
+    forward = np.asarray(pair.cam_to_ego, np.float64)[:, :3, 2]
+    yaws = np.degrees(np.arctan2(forward[:, 1], forward[:, 0]))
+    return [int(i) for i in np.argsort((60.0 - yaws) % 360.0, kind="stable")]
+
+
+def _default_views(pair: FramePair, cameras: tuple[str, ...]) -> list[int]:
+    """Indices of ``cameras`` in the pair; for another rig its first camera, the last and one
+    half way round."""
+    names = list(pair.camera_names)
+    views = [names.index(c) for c in cameras if c in names]
+    if views:
+        return views
+    count = pair.num_views
+    return sorted({0, count - 1, count // 2})
 
 
 def camera_sheet(pair: FramePair) -> np.ndarray:
@@ -38,7 +55,7 @@ def ground_truth_sheet(
     """Per camera (rows): image, inverse depth, flow keyframe 0->1 (colour wheel), dynamic mask, and
     the flow legend at the end of the first row."""
     names = list(pair.camera_names)
-    views = [names.index(c) for c in cameras if c in names]
+    views = _default_views(pair, cameras)
     rows, labels = [], []
     for v in views:
         image, flow = pair.images[keyframe, v], pair.gt_flow[keyframe, v]

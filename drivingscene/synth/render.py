@@ -38,6 +38,8 @@ DRAW_ORDER = tuple(
         "bark",
         "foliage",
         "plaster",
+        "siding",
+        "shingle",
         "brick",
         "concrete",
         "glass_facade",
@@ -45,7 +47,9 @@ DRAW_ORDER = tuple(
         "kerb",
         "sidewalk",
         "paint",
+        "slab",
         "asphalt",
+        "grass",
         "ground",
     )
 )
@@ -129,7 +133,11 @@ class View:
 
     cams_to_world: np.ndarray  # [V, 4, 4] float64
     static_to_world: np.ndarray  # [4, 4] float64
-    agents_to_world: np.ndarray  # [A, 4, 4] float64
+    agents_to_world: np.ndarray  # [A, 4, 4] float64, or [V, A, 4, 4] when each camera has its own time
+
+    def agents_seen_by(self, v: int) -> np.ndarray:
+        """``[A, 4, 4]`` agent poses when camera v took its image."""
+        return self.agents_to_world[v] if self.agents_to_world.ndim == 4 else self.agents_to_world
 
 
 class SynthRenderer:
@@ -209,8 +217,8 @@ class SynthRenderer:
         for prog in [*self.color_progs.values(), self.sky_prog]:
             for name, value in shading.items():
                 _set(prog, name, value)
-        meshes = [*zip(gpu.agents, view.agents_to_world), (gpu.static, view.static_to_world)]
         for v in range(views):
+            meshes = [*zip(gpu.agents, view.agents_seen_by(v)), (gpu.static, view.static_to_world)]
             fbo.viewport = (0, v * hs, ws, hs)
             cam_to_world = view.cams_to_world[v]
             world_to_cam = np.linalg.inv(cam_to_world)
@@ -286,11 +294,10 @@ class SynthRenderer:
         self.ctx.front_face = FRONT_FACE
         self.ctx.depth_func = "<"
         prog = self.geometry_prog
-        objects = [
-            (m, a, b, 1.0, i + 1.0) for i, (m, a, b) in enumerate(zip(gpu.agents, now.agents_to_world, other.agents_to_world))
-        ]
-        objects.append((gpu.static, now.static_to_world, other.static_to_world, 0.0, 0.0))
         for v in range(views):
+            agents = zip(gpu.agents, now.agents_seen_by(v), other.agents_seen_by(v))
+            objects = [(m, a, b, 1.0, i + 1.0) for i, (m, a, b) in enumerate(agents)]
+            objects.append((gpu.static, now.static_to_world, other.static_to_world, 0.0, 0.0))
             fbo.viewport = (0, v * height, width, height)
             world_to_now = np.linalg.inv(now.cams_to_world[v])
             world_to_other = np.linalg.inv(other.cams_to_world[v])

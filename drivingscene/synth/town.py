@@ -72,7 +72,7 @@ def sample_layout(rng: np.random.Generator) -> Layout:
     )
 
 
-def _strip(b: MeshBuilder, road: RoadFrame, s0, s1, d0, d1, z, material, color, param=0.0, ds=2.0):
+def strip(b: MeshBuilder, road: RoadFrame, s0, s1, d0, d1, z, material, color, param=0.0, ds=2.0):
     """A horizontal surface over road coordinates [s0, s1] x [d0, d1] at height z; uv = (s, d)."""
     n = max(1, int(np.ceil((s1 - s0) / ds)))
     s = np.linspace(s0, s1, n + 1)
@@ -92,7 +92,7 @@ def _strip(b: MeshBuilder, road: RoadFrame, s0, s1, d0, d1, z, material, color, 
     b.add((pos, np.tile([0.0, 0.0, 1.0], (len(pos), 1)), uv), material, color, param)
 
 
-def _wall_along(b, road: RoadFrame, s0, s1, d, z0, z1, facing: int, material, color, ds=2.0):
+def wall_along(b, road: RoadFrame, s0, s1, d, z0, z1, facing: int, material, color, ds=2.0):
     """A vertical face at lateral offset d between s0 and s1, facing +d (facing=1) or -d."""
     n = max(1, int(np.ceil((s1 - s0) / ds)))
     s = np.linspace(s0, s1, n + 1)
@@ -106,7 +106,7 @@ def _wall_along(b, road: RoadFrame, s0, s1, d, z0, z1, facing: int, material, co
     b.add((pos.reshape(-1, 3), nr.reshape(-1, 3), uv.reshape(-1, 2)), material, color)
 
 
-def _wall_across(b, road: RoadFrame, s, d0, d1, z0, z1, facing: int, material, color):
+def wall_across(b, road: RoadFrame, s, d0, d1, z0, z1, facing: int, material, color):
     """A vertical face along the road normal at s from d0 to d1, facing +s (facing=1) or -s."""
     x, y = road.to_xy(np.array([s, s]), np.array([d0, d1]))
     h = float(road.heading(s))
@@ -123,7 +123,7 @@ def road_surfaces(b: MeshBuilder, lay: Layout, rng: np.random.Generator) -> None
     asphalt = np.array([0.30, 0.30, 0.31]) * rng.uniform(0.85, 1.1)
     walk = np.array([0.62, 0.60, 0.56]) * rng.uniform(0.85, 1.05)
     kerb = (0.55, 0.55, 0.53)
-    _strip(b, road, s_lo, s_hi, -lay.half_right, lay.half_left, 0.0, "asphalt", asphalt, ds=2.0)
+    strip(b, road, s_lo, s_hi, -lay.half_right, lay.half_left, 0.0, "asphalt", asphalt, ds=2.0)
     gap_lo, gap_hi = (lay.cross_s - lay.cross_half, lay.cross_s + lay.cross_half) if lay.cross_s is not None else (s_hi, s_hi)
     for side in (1, -1):
         half = lay.half(side)
@@ -131,10 +131,10 @@ def road_surfaces(b: MeshBuilder, lay: Layout, rng: np.random.Generator) -> None
             if s1 <= s0:
                 continue
             d0, d1 = sorted((side * half, side * (half + 0.25)))
-            _strip(b, road, s0, s1, d0, d1, SIDEWALK_HEIGHT, "kerb", kerb)
+            strip(b, road, s0, s1, d0, d1, SIDEWALK_HEIGHT, "kerb", kerb)
             d0, d1 = sorted((side * (half + 0.25), side * (half + lay.sidewalk + 3.0)))
-            _strip(b, road, s0, s1, d0, d1, SIDEWALK_HEIGHT, "sidewalk", walk, param=0.2)
-            _wall_along(b, road, s0, s1, side * half, GROUND_HEIGHT, SIDEWALK_HEIGHT, -side, "kerb", kerb)
+            strip(b, road, s0, s1, d0, d1, SIDEWALK_HEIGHT, "sidewalk", walk, param=0.2)
+            wall_along(b, road, s0, s1, side * half, GROUND_HEIGHT, SIDEWALK_HEIGHT, -side, "kerb", kerb)
         if lay.cross_s is not None:
             _cross_surfaces(b, lay, side, asphalt, walk, kerb)
     ground = np.array([0.36, 0.38, 0.26]) * rng.uniform(0.8, 1.1)
@@ -149,24 +149,24 @@ def _cross_surfaces(b: MeshBuilder, lay: Layout, side: int, asphalt, walk, kerb)
     road, sx, hw = lay.road, lay.cross_s, lay.cross_half
     half, far = lay.half(side), lay.cross_range
     d0, d1 = sorted((side * half, side * far))
-    _strip(b, road, sx - hw, sx + hw, d0, d1, 0.0, "asphalt", asphalt, ds=1.0)
+    strip(b, road, sx - hw, sx + hw, d0, d1, 0.0, "asphalt", asphalt, ds=1.0)
     e0, e1 = sorted((side * (half + lay.sidewalk + 3.0), side * far))
     for edge in (-1, 1):
         s_kerb = sx + edge * hw
         s0, s1 = sorted((s_kerb, s_kerb + edge * 0.25))
-        _strip(b, road, s0, s1, e0, e1, SIDEWALK_HEIGHT, "kerb", kerb, ds=1.0)
+        strip(b, road, s0, s1, e0, e1, SIDEWALK_HEIGHT, "kerb", kerb, ds=1.0)
         s0, s1 = sorted((s_kerb + edge * 0.25, s_kerb + edge * (lay.sidewalk + 0.25)))
-        _strip(b, road, s0, s1, e0, e1, SIDEWALK_HEIGHT, "sidewalk", walk, param=0.2, ds=1.0)
-        _wall_across(b, road, s_kerb, d0, d1, GROUND_HEIGHT, SIDEWALK_HEIGHT, -edge, "kerb", kerb)
+        strip(b, road, s0, s1, e0, e1, SIDEWALK_HEIGHT, "sidewalk", walk, param=0.2, ds=1.0)
+        wall_across(b, road, s_kerb, d0, d1, GROUND_HEIGHT, SIDEWALK_HEIGHT, -edge, "kerb", kerb)
 
 
-def _rects(b: MeshBuilder, road: RoadFrame, rects: list[tuple], color, ds: float = 3.0) -> None:
+def paint_rects(b: MeshBuilder, road: RoadFrame, rects: list[tuple], color, ds: float = 3.0) -> None:
     """Paint rectangles (s0, s1, d0, d1) just above the carriageway."""
     for s0, s1, d0, d1 in rects:
-        _strip(b, road, s0, s1, d0, d1, PAINT_HEIGHT, "paint", color, ds=ds)
+        strip(b, road, s0, s1, d0, d1, PAINT_HEIGHT, "paint", color, ds=ds)
 
 
-def _dashes(s0: float, s1: float, d: float, width: float, dash: float, period: float, phase: float) -> list[tuple]:
+def dashes(s0: float, s1: float, d: float, width: float, dash: float, period: float, phase: float) -> list[tuple]:
     starts = np.arange(s0 + (phase - s0) % period, s1, period)
     return [(a, min(a + dash, s1), d - width / 2, d + width / 2) for a in starts]
 
@@ -184,17 +184,17 @@ def road_markings(b: MeshBuilder, lay: Layout, rng: np.random.Generator) -> None
     rects, yellow_rects = [], []
     for s0, s1 in pieces:
         if lanes == 1:
-            rects += _dashes(s0, s1, 0.0, 0.12, 3.0, 9.0, phase)
+            rects += dashes(s0, s1, 0.0, 0.12, 3.0, 9.0, phase)
         else:
             yellow_rects += [(s0, s1, -0.2, -0.08), (s0, s1, 0.08, 0.2)]
-            rects += _dashes(s0, s1, w, 0.12, 3.0, 9.0, phase) + _dashes(s0, s1, -w, 0.12, 3.0, 9.0, phase)
+            rects += dashes(s0, s1, w, 0.12, 3.0, 9.0, phase) + dashes(s0, s1, -w, 0.12, 3.0, 9.0, phase)
         for side in (1, -1):
             edge = side * lanes * w if lay.parking_left + lay.parking_right > 0 else side * (lay.half(side) - 0.3)
             rects.append((s0, s1, edge - 0.07, edge + 0.07))
     if lay.cross_s is not None:
         rects += _crossing_marks(lay)
-    _rects(b, lay.road, rects, white)
-    _rects(b, lay.road, yellow_rects, yellow)
+    paint_rects(b, lay.road, rects, white)
+    paint_rects(b, lay.road, yellow_rects, yellow)
 
 
 def _crossing_marks(lay: Layout) -> list[tuple]:
