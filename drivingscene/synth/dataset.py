@@ -55,11 +55,13 @@ def _check_existing(folder: Path, split: str, config: SynthConfig) -> list[int]:
     if old.get("split") != split:
         raise InputError(f"--out: {folder} holds split {old.get('split')!r}, not {split!r}; use another folder")
     new = config.to_dict()
-    diff = [k for k in sorted(set(new) | set(old.get("config", {}))) if old.get("config", {}).get(k) != new.get(k)]
+    # knobs added since the folder was written had their default value then
+    recorded = {**SynthConfig().to_dict(), **old.get("config", {})}
+    diff = [k for k in sorted(set(new) | set(recorded)) if recorded.get(k) != new.get(k)]
     if diff:
         k = diff[0]
         raise InputError(
-            f"--out: {folder} was generated with a different config ({k}={old['config'].get(k)!r} there, "
+            f"--out: {folder} was generated with a different config ({k}={recorded.get(k)!r} there, "
             f"{new.get(k)!r} now); use another folder or the same flags"
         )
     return [int(s) for s in old.get("seeds", [])]

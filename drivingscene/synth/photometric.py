@@ -22,7 +22,7 @@ class CameraLooks:
     """One look per camera (V cameras) and the per-frame drift of T frames."""
 
     gains: np.ndarray  # [T, V] exposure gain of each image (per-camera log-normal times a small drift)
-    white_balance: np.ndarray  # [T, V, 3] per-channel gains (mean 1)
+    white_balance: np.ndarray  # [T, V, 3] per-channel gains relative to green (red and blue +-8 %)
     gammas: np.ndarray  # [V] tone curve exponent: out = in ** gamma
     vignettes: np.ndarray  # [V] brightness lost at the image corners, fraction
     blurs: np.ndarray  # [V] Gaussian blur sigma, pixels
@@ -43,10 +43,11 @@ def sample_looks(rng: np.random.Generator, strength: float, frames: int, views: 
     noise = s * rng.uniform(0.0, 0.02, views)
     compressed = rng.uniform(size=views) < JPEG_PROBABILITY * s
     qualities = np.round(95 - s * rng.uniform(0.0, 55.0, views)).astype(np.int64)
+    balance[:, 1] = 1.0  # a camera's white balance sets red and blue against green
     white = balance[None] * np.exp(balance_drift)
     return CameraLooks(
         gains=np.exp(log_gain[None] + drift),
-        white_balance=white / white.mean(-1, keepdims=True),
+        white_balance=white / white[..., 1:2],
         gammas=gammas,
         vignettes=vignettes,
         blurs=blurs,

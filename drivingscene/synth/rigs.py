@@ -30,7 +30,8 @@ DDAD_SPEC: dict[str, tuple[float, float, float, float, float, float, float]] = {
 
 def camera_to_ego(x: float, y: float, z: float, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
     """``[4, 4]`` camera-to-ego of a camera looking along ``yaw`` (0 = ego forward, + = left), tilted
-    up by ``pitch`` (about its x axis) and rolled clockwise in its image by ``roll`` (about its z axis)."""
+    up by ``pitch`` (about its x axis) and rolled by ``roll`` about its optical axis (+ = its x axis
+    tilts down: clockwise seen from behind the camera)."""
     out = yaw_camera_to_ego(x, y, z, yaw_deg)
     p, r = np.radians(pitch_deg), np.radians(roll_deg)
     tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(p), -np.sin(p)], [0.0, np.sin(p), np.cos(p)]])  # z -> (0, -sin p, cos p): up

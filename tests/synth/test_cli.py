@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from drivingscene.cli import main
@@ -115,6 +116,19 @@ def test_dataset_refuses_a_folder_made_with_other_flags(tmp_path, capsys):
         (["--split", "val", "--count", "0", "--out", "d"], "--count"),
         (["--split", "val", "--out", "d"], "--count"),
         (["--out", "d"], "--seed/--split"),
+        (["--seed", "1", "--out", "x.npz", "--rig", "fisheye"], "--rig"),
+        (["--seed", "1", "--out", "x.npz", "--scene-style", "desert"], "--scene-style"),
+        (["--seed", "1", "--out", "x.npz", "--lighting", "night"], "--lighting"),
+        (["--seed", "1", "--out", "x.npz", "--photometric", "1.5"], "--photometric"),
+        (["--seed", "1", "--out", "x.npz", "--photometric", "strong"], "--photometric"),
+        (["--seed", "1", "--out", "x.npz", "--ego-body", "-0.1"], "--ego-body"),
+        (["--seed", "1", "--out", "x.npz", "--ego-body", "nan"], "--ego-body"),
+        (["--seed", "1", "--out", "x.npz", "--capture-spread", "0.5"], "--capture-spread"),
+        (["--seed", "1", "--out", "x.npz", "--randomise-motion", "maybe"], "--randomise-motion"),
+        (["--seed", "1", "--out", "x.npz", "--rig", "random", "--blackout-camera", "CAM_7"], "--blackout-camera"),
+        (["--seed", "1", "--out", "x.npz", "--rig", "ddad", "--blackout-camera", "CAM_FRONT"], "--blackout-camera"),
+        (["--seed", "1", "--out", "x.npz", "--rig", "ddad", "--blackout-camera", "6"], "--blackout-camera"),
+        (["--seed", "1", "--out", "x.npz", "--preset", "blackout", "--rig", "ddad"], "--blackout-camera"),
     ],
 )
 def test_bad_arguments_are_one_line_errors(argv, flag, tmp_path, monkeypatch, capsys):
@@ -140,5 +154,55 @@ def test_list_presets(capsys):
         "exposure",
         "noisy",
         "blackout",
+        "randomised",
     ):
         assert any(line.startswith(f"{name} ") for line in out.splitlines())
+    line = next(line for line in out.splitlines() if line.startswith("randomised "))
+    assert "--rig random" in line and "--ego-body 0.6" in line and "--randomise-motion True" in line
+
+
+def test_randomised_flags_reach_the_file(tmp_path):
+    out = tmp_path / "r.npz"
+    args = ["synth", "--seed", "200004", "--out", str(out), *TINY, "--preset", "randomised", "--ego-body", "1"]
+    assert main([*args, "--randomise-motion", "off", "--capture-spread", "0.02", "--blackout-camera", "none"]) == 0
+    pair = load_frame_pair(out)
+    assert 5 <= pair.num_views <= 8 and pair.camera_names[0] == "CAM_0"
+    assert pair.valid_mask is not None and not pair.valid_mask.all(axis=(1, 2)).all()
+    assert pair.duration == pytest.approx(0.5)  # --randomise-motion off: the preset's gap
+    assert np.ptp(pair.camera_timestamps[0]) <= 0.02
+    again = tmp_path / "again.npz"
+    assert (
+        main(
+            [
+                "synth",
+                "--seed",
+                "200004",
+                "--out",
+                str(again),
+                *TINY,
+                "--preset",
+                "randomised",
+                "--ego-body",
+                "1",
+                "--randomise-motion",
+                "off",
+                "--capture-spread",
+                "0.02",
+            ]
+        )
+        == 0
+    )
+    assert again.read_bytes() == out.read_bytes()
+
+
+def test_dataset_written_before_the_randomisation_knobs_resumes(tmp_path, capsys):
+    out = tmp_path / "ds"
+    assert main(["synth", "--split", "test", "--count", "1", "--out", str(out), *TINY, "--no-progress"]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    for key in ("rig", "scene_style", "lighting", "photometric", "ego_body", "capture_spread", "randomise_motion"):
+        del manifest["config"][key]  # as an older version wrote it
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["synth", "--split", "test", "--count", "2", "--out", str(out), *TINY, "--no-progress"]) == 0
+    assert "1 pair(s) written, 1 already present" in capsys.readouterr().out
+    assert main(["synth", "--split", "test", "--count", "2", "--out", str(out), *TINY, "--rig", "ddad"]) == 2
+    assert "rig='nuscenes' there" in capsys.readouterr().err

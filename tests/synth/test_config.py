@@ -29,6 +29,14 @@ def test_presets_resolve_and_flags_override_them():
         ({"noise_std": 2.0}, "--noise-std"),
         ({"blackout_camera": "CAM_TOP"}, "--blackout-camera"),
         ({"supersample": 0}, "--supersample"),
+        ({"rig": "fisheye"}, "--rig"),
+        ({"rig": "random", "blackout_camera": "CAM_5"}, "--blackout-camera"),
+        ({"scene_style": "rural"}, "--scene-style"),
+        ({"lighting": "night"}, "--lighting"),
+        ({"photometric": -0.5}, "--photometric"),
+        ({"ego_body": 1.01}, "--ego-body"),
+        ({"capture_spread": float("inf")}, "--capture-spread"),
+        ({"randomise_motion": 1}, "--randomise-motion"),
     ],
 )
 def test_bad_values_name_their_flag(overrides, flag):
@@ -58,3 +66,11 @@ def test_eval_fractions_and_config_round_trip():
     assert SynthConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(InputError, match="unknown key"):
         SynthConfig.from_dict({**cfg.to_dict(), "fog": 1})
+
+
+def test_old_config_dicts_get_the_fixed_benchmark_defaults():
+    old = {k: v for k, v in SynthConfig().to_dict().items() if k not in ("rig", "photometric", "randomise_motion")}
+    cfg = SynthConfig.from_dict(old)
+    assert (cfg.rig, cfg.photometric, cfg.randomise_motion) == ("nuscenes", 0.0, False)
+    assert resolve_config("blackout", blackout_camera="none").blackout_camera is None
+    assert resolve_config("default", rig="random", blackout_camera="4").blackout_camera == "4"
