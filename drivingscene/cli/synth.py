@@ -54,6 +54,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     for flag, (_, _, meaning) in KNOBS.items():
         p.add_argument(flag, metavar="X", help=f"{meaning} (overrides the preset)")
     p.add_argument("--preview", metavar="DIR", help="also write contact-sheet and ground-truth PNGs (of the first pair)")
+    p.add_argument(
+        "--preview-name",
+        metavar="NAME",
+        default="synth",
+        help="file name prefix of the previews: NAME_contact_sheet.png (default synth)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -117,6 +123,10 @@ def run(args: argparse.Namespace) -> int:
         print(list_presets())
         return 0
     config = config_from_args(args)
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", args.preview_name):
+        raise InputError(
+            f"--preview-name: expected a file name prefix of letters, digits, '_', '-' or '.', found {args.preview_name!r}"
+        )
     if args.out is None:
         raise InputError("--out: expected a file.npz (with --seed) or a folder (with --split)")
     if args.seed is not None:
@@ -143,7 +153,7 @@ def _run_single(args: argparse.Namespace, config) -> int:
     save_frame_pair(pair, out)
     print(f"{out}: seed {seed}, {config.height}x{config.width}, {pair.num_eval} eval frame(s)")
     if args.preview:
-        _preview(pair, args.preview)
+        _preview(pair, args.preview, args.preview_name)
     return 0
 
 
@@ -171,12 +181,12 @@ def _run_dataset(args: argparse.Namespace, config) -> int:
     if args.preview:
         from drivingscene.data import load_frame_pair
 
-        _preview(load_frame_pair(pair_path(args.out, seeds.start)), args.preview)
+        _preview(load_frame_pair(pair_path(args.out, seeds.start)), args.preview, args.preview_name)
     return 0
 
 
-def _preview(pair, folder: str) -> None:
+def _preview(pair, folder: str, name: str = "synth") -> None:
     from drivingscene.synth.preview import write_previews
 
-    for path in write_previews(pair, folder):
+    for path in write_previews(pair, folder, prefix=name):
         print(f"{path}: preview", file=sys.stderr)

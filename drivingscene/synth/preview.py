@@ -67,11 +67,17 @@ def ground_truth_sheet(
                 image,
                 viz.depth_to_rgb(pair.gt_depth[keyframe, v], vmin=3.0, vmax=80.0),
                 viz.flow_to_rgb(flow, scale),
-                viz.mask_to_rgb(pair.gt_dynamic[keyframe, v], background=image),
+                _moving_and_masked(pair, keyframe, v),
             ]
         )
+        masked = ", masked: magenta" if pair.valid_mask is not None else ""
         labels.append(
-            [names[v], "depth 3-80 m (1/z)", f"flow {keyframe}->{1 - keyframe}, {scale:.0f} px = full colour", "moving objects"]
+            [
+                names[v],
+                "depth 3-80 m (1/z)",
+                f"flow {keyframe}->{1 - keyframe}, {scale:.0f} px = full colour",
+                f"moving objects{masked}",
+            ]
         )
     legend = viz.flow_legend(min(96, pair.image_size[0]))
     rows[0].append(legend)
@@ -80,6 +86,14 @@ def ground_truth_sheet(
         row.append(np.full_like(legend, 255))
         lab.append("")
     return viz.contact_sheet(rows, labels)
+
+
+def _moving_and_masked(pair: FramePair, keyframe: int, v: int) -> np.ndarray:
+    """``[H, W, 3]`` moving objects over the dimmed image, pixels off ``valid_mask`` in magenta."""
+    out = viz.mask_to_rgb(pair.gt_dynamic[keyframe, v], background=pair.images[keyframe, v])
+    if pair.valid_mask is not None:
+        out[~pair.valid_mask[v]] = (255, 0, 255)
+    return out
 
 
 def write_previews(pair: FramePair, folder: str | os.PathLike, prefix: str = "synth") -> list[Path]:

@@ -58,7 +58,8 @@ def _surfaces(b: MeshBuilder, lay: SuburbLayout, rng: np.random.Generator) -> No
     road, (s_lo, s_hi) = lay.road, lay.s_range
     asphalt = np.array([0.34, 0.34, 0.35]) * rng.uniform(0.85, 1.2)
     kerb, concrete = (0.6, 0.6, 0.57), np.array([0.66, 0.65, 0.62]) * rng.uniform(0.9, 1.05)
-    lawn = np.array([0.2, 0.33, 0.1]) * rng.uniform(0.85, 1.15, 3)
+    lawns = np.array([[0.2, 0.33, 0.1], [0.26, 0.35, 0.13], [0.31, 0.34, 0.17], [0.17, 0.28, 0.1]])  # lush to dry
+    lawn = lawns[rng.integers(len(lawns))] * rng.uniform(0.85, 1.15, 3)
     strip(b, road, s_lo, s_hi, -lay.half_right, lay.half_left, 0.0, "asphalt", asphalt, ds=2.0)
     gap = (lay.cross_s - lay.cross_half, lay.cross_s + lay.cross_half) if lay.cross_s is not None else (s_hi, s_hi)
     for side in (1, -1):

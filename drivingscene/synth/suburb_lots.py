@@ -211,8 +211,8 @@ def tree_lines(b: MeshBuilder, lay, rng: np.random.Generator) -> None:
     """Woodland behind the lots on both sides, and across the far ends of the streets."""
     for side in (1, -1):
         front = Frontage(lay, side)
-        for s in _along(rng, lay, (6.0, 10.0), 6.0):
-            for row in range(1 + int(rng.uniform() < 0.5)):
+        for s in _along(rng, lay, (7.0, 11.0), 6.0):
+            for row in range(1 + int(rng.uniform() < 0.35)):
                 mass = suburb_objects.plant(rng, "mass", rng.uniform(12, 22))
                 front.place(b, mass, s + rng.uniform(-3, 3), rng.uniform(55, 70) + 12.0 * row, 0.0, 0.0)
     for s_end, edge in ((lay.s_range[0], -1), (lay.s_range[1], 1)):

@@ -117,7 +117,7 @@ def broadleaf_mesh(rng: np.random.Generator, height: float, param: float) -> np.
     half_w = half_h * {"round": 1.0, "oval": 0.75, "spreading": 1.45, "columnar": 0.5}[shape] * rng.uniform(0.85, 1.15)
     green = np.clip(FOLIAGE[rng.integers(len(FOLIAGE))] * rng.uniform(0.8, 1.2, 3), 0, 1)
     detail = (4, 8)
-    lobes = int(rng.integers(3, 6))
+    lobes = int(rng.integers(3, 5))
     for i in range(lobes):
         r = rng.uniform(0.5, 0.72)
         offset = rng.uniform(-1, 1, 3) * np.array([half_w, half_w, half_h]) * (1 - r) * (0 if i == 0 else 1)
