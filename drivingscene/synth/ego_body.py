@@ -86,7 +86,8 @@ def sample_ego_body(rng: np.random.Generator, probability: float, yaws: np.ndarr
     profiles = np.stack([_profile(rng, float(y), u) for y in yaws])
     reflectance = (rng.uniform(0.1, 0.3, views) + 0.3 * (1.0 - paint.mean())) * (1.0 - 0.5 * paint.mean())
     squash = rng.uniform(0.35, 0.9, views)
-    band = np.stack([rng.uniform(0.005, 0.05, views), rng.uniform(0.006, 0.02, views), rng.uniform(0.15, 0.5, views)], -1)
+    strength = rng.uniform(0.15, 0.5, views) * (1.0 - 0.6 * paint.mean())  # a highlight shows less on light paint
+    band = np.stack([rng.uniform(0.005, 0.05, views), rng.uniform(0.006, 0.02, views), strength], -1)
     if not has.any():
         return None
     profiles = np.where(has[:, None], profiles, 0.0)

@@ -124,29 +124,34 @@ def _yard_trees(b, front: Frontage, u: float, width: float, w_front: float, dept
                 front.place(b, random_tree(rng), tu, rng.uniform(walk_end, w_front - 3.0))
     for _ in range(int(rng.integers(1, 5))):
         tu = u + rng.choice([-1, 1]) * rng.uniform(0.35, 0.5) * width
-        front.place(b, random_tree(rng, 7.0, 20.0), tu, w_front + rng.uniform(0, depth + 14))
+        front.place(b, random_tree(rng, 8.0, 22.0), tu, w_front + rng.uniform(0, depth + 14))
 
 
 def _empty_lot(b, front: Frontage, u: float, width: float, rng) -> None:
-    """A lawn with a copse of trees and some shrubs."""
+    """A lawn with a copse of trees and some shrubs, or a stand of woodland."""
     walk_end = front.lay.verge + front.lay.walk + 3.0
     for _ in range(int(rng.integers(2, 8))):
         front.place(b, random_tree(rng), u + rng.uniform(-width / 2, width / 2), rng.uniform(walk_end + 3.0, 45.0))
+    if rng.uniform() < 0.5:  # dense woodland down to the ground, close to the road
+        for _ in range(int(rng.integers(2, 5))):
+            mass = suburb_objects.plant(rng, "mass", rng.uniform(10, 20))
+            front.place(b, mass, u + rng.uniform(-width / 2, width / 2), rng.uniform(walk_end + 6.0, 40.0), 0.0, 0.0)
     for _ in range(int(rng.integers(0, 4))):
         bush = random_bush(rng, (1.0, 3.0), (0.8, 1.6), (0.7, 1.6))
         front.place(b, bush, u + rng.uniform(-width / 2, width / 2), rng.uniform(walk_end, 30.0))
 
 
 def lots(b: MeshBuilder, lay: Layout, rng: np.random.Generator, obstacles: Obstacles) -> None:
-    """Lots 18-32 m wide along every frontage: a house (85 %) or a lawn with trees."""
+    """Lots 18-32 m wide along every frontage: a house (85 %, on some streets 50 %) or trees."""
     for front, u_lo, u_hi, free in _frontages(lay):
         setback = (12.0, 35.0) if front.edge == 0 else (10.0, 22.0)
+        houses = 0.85 if rng.uniform() < 0.7 else 0.5  # some streets run past woods and open lots
         u = u_lo + rng.uniform(0, 10)
         while u < u_hi:
             width = rng.uniform(18, 32)
             centre = u + width / 2
             if not (free[0] < centre + width / 2 and centre - width / 2 < free[1]):
-                if rng.uniform() < 0.85:
+                if rng.uniform() < houses:
                     _house_lot(b, front, centre, width, rng, obstacles, setback)
                 else:
                     _empty_lot(b, front, centre, width, rng)
@@ -168,8 +173,8 @@ def roadside(b: MeshBuilder, lay, rng: np.random.Generator, obstacles: Obstacles
         front = Frontage(lay, side)
         if rng.uniform() < 0.7:  # big trees near the road: in a wide verge, else just behind it
             w = 0.25 + lay.verge / 2 if lay.verge >= 2.2 else lay.verge + lay.walk + rng.uniform(1.5, 4.0)
-            for s in _along(rng, lay, (9.0, 24.0), 2.0):
-                obstacles.add(*front.place(b, random_tree(rng, 8.0, 22.0), s, w + rng.uniform(-0.3, 0.3)), 0.5)
+            for s in _along(rng, lay, (8.0, 22.0), 2.0):
+                obstacles.add(*front.place(b, random_tree(rng, 10.0, 24.0), s, w + rng.uniform(-0.3, 0.3)), 0.5)
         if rng.uniform() < 0.4:
             lamp = objects.streetlamp_mesh(rng.uniform(6.5, 8.5), rng.uniform(1.0, 2.0), rng.uniform())
             for s in _along(rng, lay, (40.0, 60.0), 1.0):

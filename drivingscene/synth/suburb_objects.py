@@ -113,7 +113,7 @@ def broadleaf_mesh(rng: np.random.Generator, height: float, param: float) -> np.
         param,
     )
     half_h = (height - trunk_top) / 2
-    shape = rng.choice(["round", "oval", "spreading", "columnar"], p=[0.4, 0.25, 0.25, 0.1])
+    shape = rng.choice(["round", "oval", "spreading", "columnar"], p=[0.4, 0.2, 0.32, 0.08])
     half_w = half_h * {"round": 1.0, "oval": 0.75, "spreading": 1.45, "columnar": 0.5}[shape] * rng.uniform(0.85, 1.15)
     green = np.clip(FOLIAGE[rng.integers(len(FOLIAGE))] * rng.uniform(0.8, 1.2, 3), 0, 1)
     detail = (4, 8)
