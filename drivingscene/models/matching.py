@@ -194,6 +194,36 @@ def correlate(features: Tensor, sources: Tensor, uv: Tensor, valid: Tensor, back
     return _CompiledCorrelation.apply(features.contiguous(), sources.contiguous(), uv.contiguous(), valid.contiguous())
 
 
+def sweep_volume(
+    features: Tensor,  # [B, C, H, W] unit length along C
+    rays: Tensor,  # [B, H, W, 3]
+    a: Tensor,  # [B, S, 3, 3]
+    b: Tensor,  # [B, S, 3]
+    present: Tensor,  # [B, S] bool
+    sources: Tensor,  # [B, S] long
+    depths: Tensor,  # [P]
+    source_valid: Tensor | None,  # [B, H, W] bool
+    backend: str = "auto",
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The sweep: costs ``[B, S, P, H, W]`` (`correlate`), the share of valid planes ``[B, S, H, W]``
+    and the parallax ``[B, S, H, W]`` (`sweep_parallax`). Without gradients on float32 CPU tensors
+    one compiled pass (render/csrc/matching.cpp) does all of it; otherwise the steps above."""
+    from drivingscene.render.cpp import select_op
+
+    op = select_op("plane_sweep_volume", backend, features, rays)
+    if op is not None:
+        mask = source_valid if source_valid is not None else torch.zeros(0, dtype=torch.bool)
+        sources = torch.where(present, sources, torch.full_like(sources, -1))
+        cost, share, parallax = op(features, rays, a, b, sources, depths, mask, MIN_SOURCE_Z)
+        return cost, share, parallax
+    with torch.no_grad():
+        uv, z = sweep_coordinates(rays, a, b, depths)
+        valid = sample_validity(uv, z, present, sources, source_valid)
+        parallax = sweep_parallax(uv, valid)
+    cost = correlate(features, sources, uv, valid, backend)
+    return cost, valid.float().mean(2), parallax
+
+
 @dataclass
 class MatchingOutput:
     """Matching results at the matching resolution (1/2 of the network input)."""
@@ -236,12 +266,9 @@ class MatchingHead(nn.Module):
         depths = plane_depths(self.planes, self.near, self.far, device=feats.device)
         with torch.no_grad():
             a, b, present = sweep_homographies(k, geometry)
-            uv, z = sweep_coordinates(target_rays(k, height, width), a, b, depths)
+            rays = target_rays(k, height, width)
             source_valid = None if geometry.valid is None else _resize_mask(geometry.valid, (height, width))
-            valid = sample_validity(uv, z, present, geometry.sources, source_valid)
-            parallax = sweep_parallax(uv, valid)
-        cost = correlate(feats, geometry.sources, uv, valid)  # [B, S, P, h, w]
-        share = valid.float().mean(2)  # [B, S, h, w]
+        cost, share, parallax = sweep_volume(feats, rays, a, b, present, geometry.sources, depths, source_valid)
         x = torch.cat([cost.flatten(1, 2), share, torch.log1p(parallax), feats], dim=1)
         x = self.squeeze(x)
         coarse = self.down(F.avg_pool2d(x, 2, ceil_mode=True))

@@ -22,6 +22,7 @@ from drivingscene.models.matching import (
     sweep_coordinates,
     sweep_homographies,
     sweep_parallax,
+    sweep_volume,
     target_rays,
 )
 from drivingscene.models.pipeline import matching_sources, predict_static, view_geometry
@@ -205,3 +206,23 @@ def test_intrinsics_scaling_is_applied_before_the_sweep():
     half = scale_intrinsics(k, 0.5, 0.5)
     rays = target_rays(half, 16, 24)
     torch.testing.assert_close(rays[0, 0, 0], torch.tensor([(0 - half[0, 0, 2]) / half[0, 0, 0], (0 - half[0, 1, 2]) / half[0, 1, 1], 1.0]))
+
+
+def test_compiled_sweep_equals_the_torch_steps(compiled_kernels):
+    torch.manual_seed(2)
+    pair = make_pair(num_views=3, height=16, width=24)
+    mask = np.ones((3, 16, 24), bool)
+    mask[:, 11:, 4:20] = False  # an ego body at the bottom
+    batch = pair_to_tensors(replace(pair, valid_mask=mask))
+    geometry = view_geometry(batch, batch.image_size)
+    k = batch.intrinsics.repeat(2, 1, 1)
+    a, b, present = sweep_homographies(k, geometry)
+    rays = target_rays(k, 16, 24)
+    depths = plane_depths(12, 1.0, 80.0)
+    features = torch.nn.functional.normalize(torch.randn(6, 8, 16, 24), dim=1)
+    for valid in (None, geometry.valid):
+        reference = sweep_volume(features, rays, a, b, present, geometry.sources, depths, valid, backend="torch")
+        compiled = sweep_volume(features, rays, a, b, present, geometry.sources, depths, valid, backend="cpp")
+        for got, want in zip(compiled, reference):
+            torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+        assert reference[1].min() < 1 and reference[2].max() > 1  # some planes invalid, some parallax

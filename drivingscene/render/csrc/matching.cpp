@@ -171,7 +171,99 @@ at::Tensor plane_sweep_correlate_backward(const at::Tensor& features_in, const a
   return buffers.sum(0).permute({0, 3, 1, 2}).contiguous();
 }
 
+// plane_sweep_volume: the whole sweep of `MatchingHead` at inference in one pass per target row:
+// for each target pixel and slot, the ray's image a r under the slot's homography part a (K_s R),
+// then per plane d: hom = d (a r) + b, z = hom_z, uv = hom_xy / max(z, 1e-6); valid where
+// z > min_z, uv inside [0, W - 1] x [0, H - 1], and (with masks) the source pixel nearest to uv
+// (rounded half to even, as torch.round) sees the world; the cost as plane_sweep_correlate; the
+// share of valid planes; the parallax, the summed |uv_{p+1} - uv_p| over consecutive valid planes
+// (models/matching.py: sweep_coordinates, sample_validity, sweep_parallax, correlate).
+std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const at::Tensor& rays_in, const at::Tensor& a_in,
+                                           const at::Tensor& b_in, const at::Tensor& sources_in, const at::Tensor& depths_in,
+                                           const at::Tensor& source_valid_in, double min_z) {
+  TORCH_CHECK(features_in.dim() == 4, "plane_sweep_volume: expected features [B, C, H, W]");
+  const at::Tensor features = features_in.to(at::kFloat).permute({0, 2, 3, 1}).contiguous();
+  const at::Tensor rays = rays_in.to(at::kFloat).contiguous();
+  const at::Tensor a = a_in.to(at::kFloat).contiguous();
+  const at::Tensor b = b_in.to(at::kFloat).contiguous();
+  const at::Tensor sources = sources_in.to(at::kLong).contiguous();
+  const at::Tensor depths = depths_in.to(at::kFloat).contiguous();
+  const int64_t batch = features.size(0), height = features.size(1), width = features.size(2), channels = features.size(3);
+  const int64_t slots = sources.size(1), planes = depths.size(0);
+  TORCH_CHECK(rays.sizes() == at::IntArrayRef({batch, height, width, 3}), "plane_sweep_volume: expected rays [B, H, W, 3]");
+  TORCH_CHECK(a.sizes() == at::IntArrayRef({batch, slots, 3, 3}) && b.sizes() == at::IntArrayRef({batch, slots, 3}),
+              "plane_sweep_volume: expected a [B, S, 3, 3] and b [B, S, 3]");
+  const bool masked = source_valid_in.numel() > 0;
+  const at::Tensor source_valid = masked ? source_valid_in.to(at::kBool).contiguous() : source_valid_in;
+  TORCH_CHECK(!masked || source_valid.sizes() == at::IntArrayRef({batch, height, width}), "plane_sweep_volume: expected masks [B, H, W]");
+  at::Tensor cost = at::zeros({batch, slots, planes, height, width}, features.options());
+  at::Tensor share = at::zeros({batch, slots, height, width}, features.options());
+  at::Tensor parallax = at::zeros({batch, slots, height, width}, features.options());
+  const float* feat = features.data_ptr<float>();
+  const float* ray = rays.data_ptr<float>();
+  const float* pa = a.data_ptr<float>();
+  const float* pb = b.data_ptr<float>();
+  const int64_t* src = sources.data_ptr<int64_t>();
+  const float* dep = depths.data_ptr<float>();
+  const bool* mask = masked ? source_valid.data_ptr<bool>() : nullptr;
+  float* o_cost = cost.data_ptr<float>();
+  float* o_share = share.data_ptr<float>();
+  float* o_par = parallax.data_ptr<float>();
+  const int64_t pixels = height * width, image = pixels * channels;
+  const float zmin = static_cast<float>(min_z);
+  at::parallel_for(0, batch * slots * height, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t job = begin; job < end; ++job) {
+      const int64_t b_ = job / (slots * height), s = (job / height) % slots, row = job % height;
+      const int64_t source = src[b_ * slots + s];
+      if (source < 0) continue;
+      const float* am = pa + (b_ * slots + s) * 9;
+      const float* bv = pb + (b_ * slots + s) * 3;
+      const float* other = feat + source * image;
+      const bool* smask = masked ? mask + source * pixels : nullptr;
+      for (int64_t col = 0; col < width; ++col) {
+        const int64_t i = row * width + col;
+        const float* r = ray + (b_ * pixels + i) * 3;
+        const float ar[3] = {am[0] * r[0] + am[1] * r[1] + am[2] * r[2], am[3] * r[0] + am[4] * r[1] + am[5] * r[2],
+                             am[6] * r[0] + am[7] * r[1] + am[8] * r[2]};
+        const float* t = feat + b_ * image + i * channels;
+        float count = 0.0f, path = 0.0f, last_u = 0.0f, last_v = 0.0f;
+        bool last_ok = false;
+        for (int64_t p = 0; p < planes; ++p) {
+          const float d = dep[p];
+          const float hz = d * ar[2] + bv[2];
+          const float zc = std::max(hz, 1e-6f);
+          const float u = (d * ar[0] + bv[0]) / zc, v = (d * ar[1] + bv[1]) / zc;
+          bool ok = hz > zmin && u >= 0.0f && u <= width - 1 && v >= 0.0f && v <= height - 1;
+          if (ok && smask != nullptr) {
+            const int64_t cu = static_cast<int64_t>(std::nearbyint(u)), cv = static_cast<int64_t>(std::nearbyint(v));
+            ok = smask[cv * width + cu];
+          }
+          if (ok) {
+            const Taps k = taps_of(u, v);
+            o_cost[((b_ * slots + s) * planes + p) * pixels + i] =
+                tap(other, t, k.x0, k.y0, height, width, channels, k.w[0]) +
+                tap(other, t, k.x0 + 1, k.y0, height, width, channels, k.w[1]) +
+                tap(other, t, k.x0, k.y0 + 1, height, width, channels, k.w[2]) +
+                tap(other, t, k.x0 + 1, k.y0 + 1, height, width, channels, k.w[3]);
+            count += 1.0f;
+            if (last_ok) path += std::sqrt((u - last_u) * (u - last_u) + (v - last_v) * (v - last_v));
+          }
+          last_ok = ok;
+          last_u = u;
+          last_v = v;
+        }
+        o_share[(b_ * slots + s) * pixels + i] = count / static_cast<float>(planes);
+        o_par[(b_ * slots + s) * pixels + i] = path;
+      }
+    }
+  });
+  return {cost, share, parallax};
+}
+
 TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
+  m.def("plane_sweep_volume(Tensor features, Tensor rays, Tensor a, Tensor b, Tensor sources, Tensor depths, "
+        "Tensor source_valid, float min_z) -> Tensor[]",
+        &plane_sweep_volume);
   m.def("plane_sweep_correlate(Tensor features, Tensor sources, Tensor uv, Tensor valid) -> Tensor", &plane_sweep_correlate);
   m.def("plane_sweep_correlate_backward(Tensor features, Tensor sources, Tensor uv, Tensor valid, Tensor grad) -> Tensor",
         &plane_sweep_correlate_backward);
