@@ -23,7 +23,7 @@ from torch import Tensor
 
 from drivingscene.errors import InputError
 
-BLEND_MODES = ("all", "fade", "nearest")
+BLEND_MODES = ("all", "fade", "nearest", "layers")
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * sh[:, 0] + 0.5 (3DGS convention)
 
 
@@ -163,11 +163,13 @@ class Gaussians:
 
         "all": both sets fully opaque (each keyframe fills what the other did not see);
         "fade": keyframe-0 Gaussians weighted 1 - t and keyframe-1 Gaussians t (cross-fade);
-        "nearest": only the keyframe nearer in time (keyframe 0 for t < 0.5).
+        "nearest": only the keyframe nearer in time (keyframe 0 for t < 0.5);
+        "layers": each keyframe's Gaussians rendered on their own and the two images blended
+        (``drivingscene.render.scene.render_layers``); as opacity weights, both sets opaque.
         """
         t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
         k1 = self.keyframes == 1
-        if mode == "all":
+        if mode in ("all", "layers"):
             return torch.ones_like(self.opacity_logits)
         if mode == "fade":
             return torch.where(k1, t, 1 - t).expand_as(self.opacity_logits)
