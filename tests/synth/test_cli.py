@@ -56,6 +56,30 @@ def test_preview_images(tmp_path):
     assert main(["synth", "--seed", "200004", "--out", str(tmp_path / "p.npz"), *TINY, "--preview", str(tmp_path)]) == 0
     assert (tmp_path / "synth_contact_sheet.png").stat().st_size > 1000
     assert (tmp_path / "synth_ground_truth.png").stat().st_size > 1000
+    out = tmp_path / "r.npz"
+    assert (
+        main(
+            [
+                "synth",
+                "--seed",
+                "1",
+                "--out",
+                str(out),
+                *TINY,
+                "--rig",
+                "random",
+                "--ego-body",
+                "1",
+                "--preview",
+                str(tmp_path),
+                "--preview-name",
+                "rand",
+            ]
+        )
+        == 0
+    )
+    assert (tmp_path / "rand_contact_sheet.png").stat().st_size > 1000  # another rig: cameras by yaw
+    assert (tmp_path / "rand_ground_truth.png").stat().st_size > 1000  # first, middle and last camera
 
 
 def test_dataset_resume_after_interruption(tmp_path, monkeypatch, capsys):
@@ -129,6 +153,7 @@ def test_dataset_refuses_a_folder_made_with_other_flags(tmp_path, capsys):
         (["--seed", "1", "--out", "x.npz", "--rig", "ddad", "--blackout-camera", "CAM_FRONT"], "--blackout-camera"),
         (["--seed", "1", "--out", "x.npz", "--rig", "ddad", "--blackout-camera", "6"], "--blackout-camera"),
         (["--seed", "1", "--out", "x.npz", "--preset", "blackout", "--rig", "ddad"], "--blackout-camera"),
+        (["--seed", "1", "--out", "x.npz", "--preview", "p", "--preview-name", "a/b"], "--preview-name"),
     ],
 )
 def test_bad_arguments_are_one_line_errors(argv, flag, tmp_path, monkeypatch, capsys):
