@@ -23,6 +23,7 @@ from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.oracle import fit_sky_from_pixels
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
 from drivingscene.models.pipeline import (
@@ -51,6 +52,9 @@ class InferenceOptions:
     # hardware does bf16 natively (drivingscene.precision: float32 on an AVX2-only CPU); True/False: forced.
     amp: bool | None = None
     threads: int | None = None
+    # Free-space carving: drop Gaussians another image of the pair sees through
+    # (gaussians/visibility.py); None: keep every Gaussian.
+    carve: CarveConfig | None = None
 
 
 def resolve_device(name: str) -> torch.device:
@@ -92,6 +96,26 @@ def load_model(path: str | Path | None = None, device: str = "cpu") -> DrivingSc
             f"{path}: weights do not match the model config (missing {len(missing)}, unexpected {len(unexpected)} tensors)"
         )
     return model.to(device).eval()
+
+
+def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
+    """The Gaussians no other image of the pair sees through (`carve`)."""
+    from drivingscene.geometry.se3 import invert_rigid
+
+    num_views = batch.num_views
+    cams = (batch.local_to_world[None, None] @ batch.cam_to_local.double()).flatten(0, 1)
+    world = None if batch.valid_mask is None else batch.valid_mask.repeat(2, 1, 1)
+    keep = carve(
+        gaussians,
+        gaussians.keyframes * num_views + gaussians.cameras,
+        invert_rigid(cams).float(),
+        batch.intrinsics.repeat(2, 1, 1),
+        depth.flatten(0, 1),
+        sky_pixels.flatten(0, 1),
+        world,
+        config,
+    )
+    return gaussians.index(keep)
 
 
 @torch.no_grad()
@@ -145,6 +169,10 @@ def reconstruct(
     timings["flow_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     gaussians = assemble(static, batch, sky, scene_flow, local_to_world=batch.local_to_world)
+    if options.carve is not None:
+        t1 = time.perf_counter()
+        gaussians = _carved(gaussians, batch, depth, sky_pixels, options.carve)
+        timings["carve_s"] = time.perf_counter() - t1
     sky_sh = fit_sky_from_pixels(
         batch.images, sky_pixels, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics
     )

@@ -38,8 +38,8 @@ from drivingscene.geometry.flow_search import flow_from_choice, luma, median_of_
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels, scene_flow_from_optical_flow
 from drivingscene.geometry.se3 import rotate_vectors
 from drivingscene.models.depth import DepthOutput
-from drivingscene.models.matching import ViewGeometry, neighbour_views
 from drivingscene.models.gaussian_head import PixelGaussians
+from drivingscene.models.matching import ViewGeometry, neighbour_views
 from drivingscene.models.model import DrivingSceneModel
 from drivingscene.render.cpp import select_op
 
