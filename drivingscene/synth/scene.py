@@ -99,13 +99,14 @@ def build_scene(config: SynthConfig, seed: int) -> Scene:
         lighting = sample_varied_lighting(stream(seed, "lighting"))
     t0 = float(rng.uniform(2.0, 30.0))
     road_to_world = planar_pose(*rng.uniform(-400, 400, 2), rng.uniform(-np.pi, np.pi), rng.uniform(-5, 25))
+    streets = rng  # the town stream builds a town; a suburb has its own
     if style == "suburban":
-        suburb_rng = stream(seed, "suburb")
-        layout = suburb.sample_layout(suburb_rng)
-    ego_lane = 0 if layout.lanes_per_dir == 1 or rng.uniform() < 0.6 else 1
+        streets = stream(seed, "suburb")
+        layout = suburb.sample_layout(streets)
+    ego_lane = 0 if layout.lanes_per_dir == 1 or streets.uniform() < 0.6 else 1
     ego = Mover(layout.road.lane_path(-(ego_lane + 0.5) * layout.lane_width, 0.0), motion.ego_speed, 0.0, t0)
     if style == "suburban":
-        static, obstacles = suburb.build_static(layout, suburb_rng)
+        static, obstacles = suburb.build_static(layout, streets)
     else:
         static, obstacles = build_static(layout, rng)
     times = t0 + motion.keyframe_gap * np.linspace(-0.1, 1.1, 9)
