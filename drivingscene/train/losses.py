@@ -193,7 +193,7 @@ def consistency_loss(
     return (diff * inside).sum() / inside.sum().clamp(min=1)
 
 
-def _half_moving_half_static(err: Tensor, valid: Tensor, dynamic: Tensor) -> Tensor:
+def half_moving_half_static(err: Tensor, valid: Tensor, dynamic: Tensor) -> Tensor:
     """Half the mean of ``err`` over valid moving pixels plus half over the valid rest (a part
     with no pixels adds nothing)."""
     loss = err.new_zeros(())
@@ -208,7 +208,7 @@ def supervised_flow_loss(flow: Tensor, gt_flow: Tensor, dynamic: Tensor, valid: 
     pixels), divided by the image width, where ``valid``; the mean over moving pixels
     (``dynamic``) and the mean over the rest count half each, so that the few percent of pixels on
     moving objects are not drowned by the static world. Not in the paper: for synthetic pairs."""
-    return _half_moving_half_static((flow - gt_flow).abs().sum(-1) / flow.shape[-2], valid, dynamic)
+    return half_moving_half_static((flow - gt_flow).abs().sum(-1) / flow.shape[-2], valid, dynamic)
 
 
 def search_distillation_loss(flow: Tensor, target: Tensor, mask: Tensor) -> Tensor:
@@ -224,4 +224,4 @@ def supervised_depth_loss(depth: Tensor, gt_depth: Tensor, dynamic: Tensor, max_
     (``dynamic``) and the rest counting half each. Not in the paper: for synthetic pairs."""
     valid = (gt_depth > 0) & (gt_depth <= max_depth) & torch.isfinite(gt_depth)
     err = (torch.log(depth.clamp(min=1e-3)) - torch.log(gt_depth.clamp(min=1e-3))).abs()
-    return _half_moving_half_static(err, valid, dynamic)
+    return half_moving_half_static(err, valid, dynamic)

@@ -16,6 +16,7 @@ sampled sources, and they make no Gaussian and do not colour the sky (as at infe
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from drivingscene.data.tensors import PairTensors
@@ -44,6 +45,7 @@ from drivingscene.train.config import TrainConfig
 from drivingscene.train.losses import (
     blank_masked,
     consistency_loss,
+    half_moving_half_static,
     render_loss,
     reprojection_loss,
     sampled_from,
@@ -57,6 +59,8 @@ from drivingscene.train.losses import (
 # Weight of the supervised depth of D's monocular and matching parts (each alone) beside the
 # supervised depth of their combination.
 AUX_DEPTH = 0.5
+# Weight of the gate's own target (inside the auxiliary terms): open where matching is nearer the truth.
+GATE_WEIGHT = 0.2
 # Lift every consistent pixel while training so L_render reaches R everywhere; inference gates
 # small residuals to static (LiftConfig default).
 TRAIN_LIFT = LiftConfig(dynamic_threshold_px=0.0)
@@ -184,7 +188,9 @@ class TrainStep(nn.Module):
         if out.matching is not None:
             terms["depth_sup_mono"] = sup(out.mono_depths)
             terms["depth_sup_match"] = sup([out.match_depth])
-            terms["depth_sup"] = terms["depth_sup"] + AUX_DEPTH * (terms["depth_sup_mono"] + terms["depth_sup_match"])
+            terms["gate_bce"] = gate_loss(out, gt.flatten(0, 1), dyn.flatten(0, 1))
+            aux = terms["depth_sup_mono"] + terms["depth_sup_match"] + GATE_WEIGHT * terms["gate_bce"]
+            terms["depth_sup"] = terms["depth_sup"] + AUX_DEPTH * aux
             terms["gate"] = out.matching.gate.detach().mean()
         return terms
 
@@ -287,6 +293,24 @@ class TrainStep(nn.Module):
             terms["search_sup"] = search
             terms["search_px"] = overridden.float().mean()
         return terms
+
+
+def gate_loss(out, gt: Tensor, dynamic: Tensor, max_depth: float = 80.0) -> Tensor:
+    """Binary cross-entropy of D's matching gate ``[2V, H, W]`` (upsampled) against where the
+    matching depth alone is nearer the ground truth ``gt`` ``[2V, H, W]`` than the monocular depth
+    alone (log error), over pixels with ground truth where some source is informative, moving and
+    static pixels half each. It teaches the gate when to trust matching directly, also before
+    the matching depth is any good (the fused loss alone then closes the gate for good)."""
+    mono = torch.log(out.mono_depths[0].float().clamp(min=1e-3))
+    match = torch.log(out.match_depth.float().clamp(min=1e-3))
+    truth = torch.log(gt.clamp(min=1e-3))
+    target = ((match - truth).abs() < (mono - truth).abs()).float().detach()
+    size = gt.shape[-2:]
+    informative = F.interpolate(out.matching.informative.float(), size=size, mode="nearest")[:, 0] > 0.5
+    valid = (gt > 0) & (gt <= max_depth) & informative
+    gate = out.gate.float().clamp(1e-4, 1 - 1e-4)
+    bce = -(target * torch.log(gate) + (1 - target) * torch.log(1 - gate))
+    return half_moving_half_static(bce, valid, dynamic)
 
 
 def search_targets(flow: FlowPrediction, batch: PairTensors, config: MotionSearchConfig | None = None) -> tuple[Tensor, Tensor]:
