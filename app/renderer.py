@@ -182,8 +182,10 @@ class SplatRenderer:
         self.splat_prog = load_program(ctx, "splat", {"TEX_W": TEX_W, "INDEXED": 1})
         self.sky_prog = load_program(ctx, "sky")
         self.present_prog = load_program(ctx, "present")
+        self.compose_prog = load_program(ctx, "compose")
         self.sky_vao = ctx.vertex_array(self.sky_prog, [])
         self.present_vao = ctx.vertex_array(self.present_prog, [])
+        self.compose_vao = ctx.vertex_array(self.compose_prog, [])
         self.depth_lut = _lut_texture(ctx, depth_lut())
         self.flow_lut = _lut_texture(ctx, flow_lut())
         self._targets: dict[str, Target] = {}
@@ -233,7 +235,20 @@ class SplatRenderer:
         self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, target: Target, start: int, count: int
     ) -> Target:
         """Draw splats ``[start, start + count)`` of the back-to-front order into ``target`` (the sky
-        first when ``start`` is 0): drawing a picture in several calls gives the same result."""
+        first when ``start`` is 0): drawing a picture in several calls gives the same result. The
+        "layers" blend draws each keyframe's splats into a target of its own and composes the two
+        into ``target`` after every call (shaders/compose.glsl)."""
+        if opts.blend == "layers" and opts.mode != "depth":
+            layers = [self.target(target.width, target.height, target.dtype, name=f"layer{k}@{target.texture.glo}") for k in (0, 1)]
+            for k, layer in enumerate(layers):
+                self._draw(splats, camera, t, opts, layer, start, count, layer=k)
+            self._compose(layers, target, t)
+            return target
+        return self._draw(splats, camera, t, opts, target, start, count)
+
+    def _draw(
+        self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, target: Target, start: int, count: int, layer: int = -1
+    ) -> Target:
         target.fbo.use()
         self.ctx.viewport = (0, 0, camera.width, camera.height)
         self.ctx.disable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
@@ -245,8 +260,22 @@ class SplatRenderer:
                 self._draw_sky(cam)
         count = min(count, splats.count - start)
         if count > 0:
-            self._draw_splats(splats, cam, t, opts, start, count)
+            self._draw_splats(splats, cam, t, opts, start, count, layer)
         return target
+
+    def _compose(self, layers: list[Target], target: Target, t: float) -> None:
+        from drivingscene.render.scene import LAYER_FLOOR
+
+        target.fbo.use()
+        self.ctx.viewport = (0, 0, target.width, target.height)
+        self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
+        for unit, layer in enumerate(layers):
+            layer.texture.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
+            layer.texture.use(unit)
+            self.compose_prog[f"u_layer{unit}"].value = unit
+        self.compose_prog["u_t"].value = float(t)
+        self.compose_prog["u_floor"].value = LAYER_FLOOR
+        self.compose_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
 
     def _camera_uniforms(self, prog, cam: ViewCamera) -> None:
         k = cam.intrinsics
@@ -265,7 +294,9 @@ class SplatRenderer:
         prog["u_sky_k"].value = len(self.sky)
         self.sky_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
 
-    def _draw_splats(self, splats: GpuSplats, cam: ViewCamera, t: float, opts: RenderOptions, start: int, count: int) -> None:
+    def _draw_splats(
+        self, splats: GpuSplats, cam: ViewCamera, t: float, opts: RenderOptions, start: int, count: int, layer: int = -1
+    ) -> None:
         prog = self.splat_prog
         units = ("pos", "motion", "cov_a", "cov_b", "sh", "flags", "order")
         for unit, name in enumerate(units):
@@ -279,7 +310,9 @@ class SplatRenderer:
         prog["u_count"].value = splats.count
         prog["u_sh_k"].value = splats.sh_k
         prog["u_t"].value = float(t)
-        prog["u_blend"].value = BLEND_MODES.index(opts.blend)
+        blend = opts.blend if opts.blend != "layers" or layer >= 0 else "all"  # depth mode: both sets together
+        prog["u_blend"].value = BLEND_MODES.index(blend)
+        prog["u_layer"].value = max(layer, 0)
         prog["u_mode"].value = MODES.index(opts.mode)
         prog["u_flow_max"].value = max(opts.flow_max, 1e-6)
         prog["u_show_selection"].value = opts.show_selection

@@ -15,7 +15,7 @@ import torch
 
 from drivingscene.gaussians.core import Gaussians
 
-BLEND_MODES = ("all", "fade", "nearest")  # Gaussians.time_weights
+BLEND_MODES = ("all", "fade", "nearest", "layers")  # Gaussians.time_weights, render_layers
 
 
 @dataclass(frozen=True, eq=False)

@@ -25,7 +25,8 @@ uniform vec4 u_intr;          // fx, fy, cx, cy (pixels)
 uniform float u_skew;
 uniform vec2 u_size;          // W, H (pixels)
 uniform float u_t;            // normalised time
-uniform int u_blend;          // 0 all, 1 fade, 2 nearest (Gaussians.time_weights)
+uniform int u_blend;          // 0 all, 1 fade, 2 nearest (Gaussians.time_weights), 3 one keyframe's layer
+uniform int u_layer;          // the keyframe drawn when u_blend is 3 ("layers": renderer.py composes two)
 uniform int u_mode;           // 0 rgb, 1 depth, 2 dynamic highlight, 3 flow magnitude
 uniform float u_flow_max;     // metres at the top of the colour map
 uniform bool u_show_selection;
@@ -74,6 +75,7 @@ float time_weight(float keyframe) {
     bool k1 = keyframe > 0.5;
     if (u_blend == 1) return k1 ? u_t : 1.0 - u_t;
     if (u_blend == 2) return k1 ? float(u_t >= 0.5) : float(u_t < 0.5);
+    if (u_blend == 3) return float(int(k1) == u_layer);
     return 1.0;
 }
 

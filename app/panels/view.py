@@ -30,13 +30,14 @@ def draw(viewer: Viewer) -> None:
         _, v.flow_max = imgui.drag_float("max flow (m)", v.flow_max, 0.01, 0.01, 100.0, "%.2f")
     imgui.set_next_item_width(200)
     _, blend = imgui.combo(
-        "blend", BLEND_MODES.index(v.blend), ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe"]
+        "blend", BLEND_MODES.index(v.blend), ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe", "keyframe layers (layers)"]
     )
     v.blend = BLEND_MODES[blend]
     if imgui.is_item_hovered():
         imgui.set_tooltip(
             "all: both keyframes' Gaussians fully opaque (the library's default, as training renders)\n"
-            "fade: keyframe-0 opacity x (1 - t), keyframe-1 x t\nnearest: only the keyframe nearer in time"
+            "fade: keyframe-0 opacity x (1 - t), keyframe-1 x t\nnearest: only the keyframe nearer in time\n"
+            "layers: each keyframe's Gaussians drawn alone, the two pictures blended by time and coverage"
         )
     imgui.separator_text("Camera")
     _camera(viewer)

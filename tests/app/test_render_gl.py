@@ -56,7 +56,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.mark.gl
 @pytest.mark.parametrize(
     "sh_degree, t, blend, keys",
-    [(0, 0.0, "all", "u16"), (1, 0.3, "all", "u16"), (3, 0.7, "fade", "float"), (2, 0.6, "nearest", "u16")],
+    [(0, 0.0, "all", "u16"), (1, 0.3, "all", "u16"), (3, 0.7, "fade", "float"), (2, 0.6, "nearest", "u16"), (0, 0.4, "layers", "u16")],
 )
 def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
     gaussians = random_gaussians(300, sh_degree=sh_degree, seed=sh_degree)
