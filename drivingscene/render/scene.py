@@ -126,3 +126,25 @@ def render_eval_frames(recon, pair, blend: str = "all", **raster_kwargs) -> Tens
             colors[views] = out.colors.clamp(0, 1)
         frames.append(colors)
     return torch.stack(frames)
+
+
+def render_input_views(recon, pair, blend: str = "all", **raster_kwargs) -> Tensor:
+    """Renders ``[2, V, H, W, 3]`` of a reconstruction at its own keyframes, each camera at the
+    pose and time its input image was taken: how well the Gaussians reproduce their inputs."""
+    height, width = pair.image_size
+    cams = torch.from_numpy(np.array(pair.camera_ego_poses())) @ torch.from_numpy(pair.cam_to_ego).double()
+    k = torch.from_numpy(pair.intrinsics).float()
+    times = np.zeros((2, pair.num_views)) if pair.camera_timestamps is None else pair.normalised_time(pair.camera_timestamps)
+    g = recon.visible()
+    frames = torch.empty(2, pair.num_views, height, width, 3)
+    for key in (0, 1):
+        # cameras taken at one time render together; otherwise each at its own time
+        groups = [list(range(pair.num_views))] if np.ptp(times[key]) == 0 else [[v] for v in range(pair.num_views)]
+        for views in groups:
+            out = render_gaussians(
+                g, float(times[key][views[0]]), invert_rigid(cams[key][views]), k[views], height, width,
+                sky_sh=recon.sky_sh, blend=blend, **raster_kwargs,
+            )
+            frames[key, views] = out.colors.clamp(0, 1)
+    return frames
+
