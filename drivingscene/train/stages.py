@@ -180,14 +180,17 @@ class TrainStep(nn.Module):
             gt = torch.where(batch.valid_mask, gt, torch.zeros_like(gt))
         dyn = torch.zeros_like(gt, dtype=torch.bool) if dyn is None else dyn
 
-        def sup(depths: list[Tensor]) -> Tensor:
-            return sum(supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), gt, dyn) for d in depths) / len(depths)
+        def sup(depths: list[Tensor], truth: Tensor = gt) -> Tensor:
+            return sum(supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), truth, dyn) for d in depths) / len(depths)
 
         out = static.depth_output
         terms = {"depth_sup": sup(out.depths)}
         if out.matching is not None:
             terms["depth_sup_mono"] = sup(out.mono_depths)
-            terms["depth_sup_match"] = sup([out.match_depth])
+            # the matching depth only where some source sweeps across its image (elsewhere it is unused)
+            size = gt.shape[-2:]
+            informative = F.interpolate(out.matching.informative.float(), size=size, mode="nearest")[:, 0] > 0.5
+            terms["depth_sup_match"] = sup([out.match_depth], torch.where(informative.view_as(gt), gt, torch.zeros_like(gt)))
             terms["gate_bce"] = gate_loss(out, gt.flatten(0, 1), dyn.flatten(0, 1))
             aux = terms["depth_sup_mono"] + terms["depth_sup_match"] + GATE_WEIGHT * terms["gate_bce"]
             terms["depth_sup"] = terms["depth_sup"] + AUX_DEPTH * aux
