@@ -67,8 +67,23 @@ def see_through_votes(
     depths: Tensor,  # [B, H, W] from `carving_depths`
     times: Tensor,  # [B] normalised time of each image (0 or 1)
     config: CarveConfig,
+    backend: str = "auto",
 ) -> Tensor:
-    """``[N]`` int: how many images see through each Gaussian (module docstring)."""
+    """``[N]`` int: how many images see through each Gaussian (module docstring). ``backend``:
+    the compiled kernel (render/csrc/matching.cpp, one pass per Gaussian) or the torch path."""
+    from drivingscene.render.cpp import select_op
+
+    g = gaussians
+    op = select_op("see_through_votes", backend, g.means, depths, world_to_cam)
+    if op is not None:
+        return op(
+            g.means, g.flows, g.keyframes, image_ids, world_to_cam, intrinsics, depths, times.float(),
+            config.margin, config.voters == "same_time", NO_DEPTH,
+        )
+    return _votes_torch(g, image_ids, world_to_cam, intrinsics, depths, times, config)
+
+
+def _votes_torch(gaussians, image_ids, world_to_cam, intrinsics, depths, times, config) -> Tensor:
     batch, height, width = depths.shape
     votes = torch.zeros(len(gaussians), dtype=torch.int32, device=depths.device)
     num_views = batch // 2

@@ -64,3 +64,22 @@ def test_config_is_checked():
     with pytest.raises(ValueError, match="voters"):
         CarveConfig(voters="some")
     assert np.isclose(CarveConfig().margin, 0.1)
+
+
+def test_compiled_votes_equal_the_torch_path(synth_pair, compiled_kernels):
+    from dataclasses import replace as dc_replace
+
+    from drivingscene.gaussians.visibility import see_through_votes
+
+    recon = oracle_reconstruction(synth_pair, refine=0)
+    g, ids, w2c, k, depth, sky = _inputs(synth_pair, recon)
+    torch.manual_seed(0)
+    noisy = depth * (1.5 + 0.3 * torch.rand_like(depth))  # voters that see every surface too far: many votes
+    g = dc_replace(g, flows=0.5 * torch.randn_like(g.means) * g.dynamic[:, None])
+    depths = carving_depths(noisy, sky, None, 3)
+    times = torch.tensor([0.0] * synth_pair.num_views + [1.0] * synth_pair.num_views)
+    for voters in ("all", "same_time"):
+        config = CarveConfig(voters=voters)
+        want = see_through_votes(g, ids, w2c, k, depths, times, config, backend="torch")
+        got = see_through_votes(g, ids, w2c, k, depths, times, config, backend="cpp")
+        assert (got != want).float().mean() < 1e-4 and want.sum() > 1000

@@ -260,7 +260,68 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
   return {cost, share, parallax};
 }
 
+// see_through_votes: free-space carving (drivingscene.gaussians.visibility.see_through_votes). For
+// each Gaussian n and each other image j (of its own keyframe only when same_time): its centre at
+// time t_j (means + s flows, s = t_j for keyframe-0 Gaussians and 1 - t_j for keyframe-1 ones),
+// projected into j; a vote when z > 0.1, the nearest pixel (rounded half to even, as torch.round)
+// is inside the image, j's depth there is a vote (< no_depth) and z < (1 - margin) depth.
+at::Tensor see_through_votes(const at::Tensor& means_in, const at::Tensor& flows_in, const at::Tensor& keyframes_in,
+                             const at::Tensor& image_ids_in, const at::Tensor& world_to_cam_in, const at::Tensor& intrinsics_in,
+                             const at::Tensor& depths_in, const at::Tensor& times_in, double margin, bool same_time,
+                             double no_depth) {
+  const at::Tensor means = means_in.to(at::kFloat).contiguous();
+  const at::Tensor flows = flows_in.to(at::kFloat).contiguous();
+  const at::Tensor keyframes = keyframes_in.to(at::kLong).contiguous();
+  const at::Tensor ids = image_ids_in.to(at::kLong).contiguous();
+  const at::Tensor w2c = world_to_cam_in.to(at::kFloat).contiguous();
+  const at::Tensor k = intrinsics_in.to(at::kFloat).contiguous();
+  const at::Tensor depths = depths_in.to(at::kFloat).contiguous();
+  const at::Tensor times = times_in.to(at::kFloat).contiguous();
+  const int64_t n = means.size(0), images = depths.size(0), height = depths.size(1), width = depths.size(2);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3 && flows.sizes() == means.sizes(), "see_through_votes: expected means, flows [N, 3]");
+  TORCH_CHECK(keyframes.size(0) == n && ids.size(0) == n, "see_through_votes: expected keyframes, image_ids [N]");
+  TORCH_CHECK(w2c.size(0) == images && k.size(0) == images && times.size(0) == images, "see_through_votes: one pose per image");
+  at::Tensor votes = at::zeros({n}, means.options().dtype(at::kInt));
+  const float* m = means.data_ptr<float>();
+  const float* f = flows.data_ptr<float>();
+  const int64_t* kf = keyframes.data_ptr<int64_t>();
+  const int64_t* id = ids.data_ptr<int64_t>();
+  const float* pose = w2c.data_ptr<float>();
+  const float* intr = k.data_ptr<float>();
+  const float* dep = depths.data_ptr<float>();
+  const float* tt = times.data_ptr<float>();
+  int32_t* out = votes.data_ptr<int32_t>();
+  const int64_t per_time = images / 2;
+  const float keep = static_cast<float>(1.0 - margin), none = static_cast<float>(no_depth);
+  at::parallel_for(0, n, 4096, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) {
+      int32_t count = 0;
+      for (int64_t j = 0; j < images; ++j) {
+        if (j == id[i] || (same_time && j / per_time != id[i] / per_time)) continue;
+        const float step = kf[i] == 0 ? tt[j] : 1.0f - tt[j];
+        const float x = m[3 * i] + step * f[3 * i], y = m[3 * i + 1] + step * f[3 * i + 1], z = m[3 * i + 2] + step * f[3 * i + 2];
+        const float* r = pose + 16 * j;
+        const float cz = r[8] * x + r[9] * y + r[10] * z + r[11];
+        if (!(cz > 0.1f)) continue;
+        const float cx = r[0] * x + r[1] * y + r[2] * z + r[3], cy = r[4] * x + r[5] * y + r[6] * z + r[7];
+        const float* q = intr + 9 * j;
+        const float inv = 1.0f / cz;
+        const float u = q[0] * cx * inv + q[1] * cy * inv + q[2], v = q[4] * cy * inv + q[5];
+        const float cu = std::nearbyint(u), cv = std::nearbyint(v);
+        if (!(cu >= 0.0f && cu < width && cv >= 0.0f && cv < height)) continue;
+        const float seen = dep[(j * height + static_cast<int64_t>(cv)) * width + static_cast<int64_t>(cu)];
+        if (seen < none && cz < keep * seen) ++count;
+      }
+      out[i] = count;
+    }
+  });
+  return votes;
+}
+
 TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
+  m.def("see_through_votes(Tensor means, Tensor flows, Tensor keyframes, Tensor image_ids, Tensor world_to_cam, "
+        "Tensor intrinsics, Tensor depths, Tensor times, float margin, bool same_time, float no_depth) -> Tensor",
+        &see_through_votes);
   m.def("plane_sweep_volume(Tensor features, Tensor rays, Tensor a, Tensor b, Tensor sources, Tensor depths, "
         "Tensor source_valid, float min_z) -> Tensor[]",
         &plane_sweep_volume);
