@@ -2,7 +2,7 @@
 
 Each variant is a set of choices made after the networks: how the two keyframes' Gaussians are
 combined when rendering (``blend``), free-space carving (``carve``, gaussians/visibility.py),
-and the search along the rigid flow (``search``). For each,
+the search along the rigid flow (``search``) and the smallest dynamic region (``region``). For each,
 pair by pair on the same inputs: the input views rendered back at their keyframes, the
 intermediate frame on all and on moving pixels, the share of dynamic Gaussians (with the
 ground-truth share of moving pixels), and the seconds of the reconstruction. Run it on validation
@@ -38,12 +38,14 @@ class Variant:
     blend: str = "all"
     carve: str = "off"
     search: bool = True
+    region: int = 0  # LiftConfig.min_dynamic_region
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
 
         carve = None if self.carve == "off" else CarveConfig(voters=self.carve)
-        return replace(base, carve=carve, search=base.search if self.search else None)
+        lift = replace(base.lift, min_dynamic_region=self.region)
+        return replace(base, carve=carve, search=base.search if self.search else None, lift=lift)
 
 
 def parse_variant(text: str) -> Variant:
@@ -59,9 +61,12 @@ def parse_variant(text: str) -> Variant:
             values["carve"] = value
         elif key == "search" and value in ("on", "off"):
             values["search"] = value == "on"
+        elif key == "region" and value.isdigit():
+            values["region"] = int(value)
         else:
             raise InputError(
-                f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)} or search=on|off, found {item!r}"
+                f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off "
+                f"or region=PIXELS, found {item!r}"
             )
     return Variant(**values)
 

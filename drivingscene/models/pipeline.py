@@ -62,6 +62,27 @@ class LiftConfig:
     # `rigid_flows`) are candidates whatever their residual: still seen at the other keyframe,
     # they move with the ego.
     behind_candidates: bool = True
+    # Dynamic regions (8-connected, per image) smaller than this many pixels *of the networks'
+    # input size* stay static: moving objects are blobs, isolated moving pixels are noise of the
+    # search or of R where the image is flat or the depth is off. 0: keep every dynamic pixel.
+    min_dynamic_region: int = 0
+
+
+def drop_small_regions(mask: Tensor, min_pixels: float) -> Tensor:
+    """``mask`` ``[..., H, W]`` bool without its 8-connected regions of fewer than ``min_pixels`` pixels."""
+    import cv2
+    import numpy as np
+
+    if min_pixels <= 1:
+        return mask
+    flat = mask.reshape(-1, *mask.shape[-2:]).cpu().numpy().astype(np.uint8)
+    out = np.zeros_like(flat, dtype=bool)
+    for i, image in enumerate(flat):
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(image, connectivity=8)
+        keep = stats[:, cv2.CC_STAT_AREA] >= min_pixels
+        keep[0] = False  # the background label
+        out[i] = keep[labels]
+    return torch.from_numpy(out).to(mask.device).reshape(mask.shape)
 
 
 @dataclass(frozen=True)
@@ -383,7 +404,12 @@ def lift_scene_flow(
         sf = torch.where(dynamic[:, None], sf, torch.zeros_like(sf))
         flows.append(total.new_zeros(num_views, height, width, 3).index_put((index, row, col), sf))
         masks.append(torch.zeros_like(moving).index_put((index, row, col), dynamic))
-    return torch.stack(flows), torch.stack(masks)
+    flows, masks = torch.stack(flows), torch.stack(masks)
+    if config.min_dynamic_region > 0:
+        scale = (width / net_width) ** 2 if net_width else 1.0
+        masks = drop_small_regions(masks, config.min_dynamic_region * scale)
+        flows = torch.where(masks[..., None], flows, torch.zeros_like(flows))
+    return flows, masks
 
 
 def total_flow_matches_better(

@@ -477,3 +477,16 @@ def test_compiled_dense_lift_matches_the_torch_path(compiled_kernels, monkeypatc
     both = fast_mask & slow_mask
     torch.testing.assert_close(fast[both], slow[both], atol=1e-4, rtol=1e-4)
     assert not fast[~fast_mask].any()  # static pixels do not move
+
+
+def test_small_dynamic_regions_are_dropped():
+    from drivingscene.models.pipeline import drop_small_regions
+
+    mask = torch.zeros(2, 1, 10, 12, dtype=torch.bool)
+    mask[0, 0, 1:4, 1:4] = True  # 9 pixels
+    mask[0, 0, 6, 8] = True  # 1 pixel
+    mask[1, 0, 5:7, 2:4] = True  # 4 pixels
+    kept = drop_small_regions(mask, 4)
+    assert kept[0, 0, 1:4, 1:4].all() and not kept[0, 0, 6, 8] and kept[1].sum() == 4
+    assert drop_small_regions(mask, 10).sum() == 0
+    assert torch.equal(drop_small_regions(mask, 0), mask)
