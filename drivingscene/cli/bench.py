@@ -11,6 +11,10 @@ import importlib
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
     # name: (module, help)
+    "choices": (
+        "drivingscene.bench.choices",
+        "inference/rendering choices (blend, carving, search) on validation pairs: input views, in-between frame, dynamic share",
+    ),
     "raster": ("drivingscene.bench.raster_speed", "CPU Gaussian rasterizer: forward / forward+backward time, peak memory"),
     "synth": (
         "drivingscene.bench.synth_speed",
@@ -36,6 +40,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "real": (
         "drivingscene.bench.real",
         "the model on real frames (from `drivingscene import`): depth vs LiDAR, re-rendered and in-between views vs baselines",
+    ),
+    "refine": (
+        "drivingscene.bench.refine",
+        "test-time refinement at budgets of seconds on procedural pairs: in-between frame, depth, steps, s / step",
     ),
     "results": (
         "drivingscene.bench.results",
