@@ -1,0 +1,200 @@
+"""Test-time refinement: accuracy for time (docs/refinement.md).
+
+    refine(model_or_none, pair, recon, config, progress, should_stop) -> Reconstruction
+
+From a feed-forward reconstruction, within a budget of seconds:
+
+1. (optional, ``adapt_steps`` > 0, needs the model) a copy of D and P is adapted to the pair for K
+   self-supervised steps (L_loc + L_smooth, `refine_adapt`) and the pair is reconstructed again;
+2. (``sweep``) the depth of every pixel is corrected by a plane sweep over depth, checked across
+   images, and LiDAR with ``lidar`` (`depth_sweep`): the Gaussians slide along their rays, and the
+   dynamic ones' flows are lifted again with the corrected depth;
+3. Adam on the Gaussians' depth along their rays, colours, opacities, scales and the dynamic
+   Gaussians' flow, against the input images with the paper's rendering loss (L2 + 0.05 LPIPS)
+   and, with ``lidar``, rendered depth against LiDAR (`refine_render`). Each step renders a few
+   input views (all Gaussians, both keyframes) at one image scale.
+
+Anytime: the budget, ``should_stop()`` or ``max_steps`` end it after any step, and what comes back
+is a valid reconstruction of the last step whose values were all finite. The held-out frames
+(``eval_*``) are never read (`refine_inputs`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.errors import InputError
+from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.methods.depth_sweep import SweepConfig
+from drivingscene.methods.refine_inputs import refine_inputs
+from drivingscene.methods.refine_params import GROUPS, RefineParams, gaussian_rays
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[float | None, str], None]  # (fraction of the budget or None, message), as the viewer's loader
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    seconds: float = 30.0  # wall-clock budget, everything included
+    max_steps: int | None = None  # gradient steps at most (None: until the budget ends)
+    groups: tuple[str, ...] = GROUPS  # what the gradient steps optimise
+    # Adam learning rates per group: log depth, SH colour, opacity logit, log scale, flow (metres)
+    lr: tuple[tuple[str, float], ...] = (
+        ("depth", 0.005),
+        ("color", 0.025),
+        ("opacity", 0.05),
+        ("scale", 0.005),
+        ("flow", 0.01),
+    )
+    decay: bool = False  # True: learning rates follow a cosine from 1x to 0.1x over the budget (or max_steps)
+    views_per_step: int = 3  # cameras of one keyframe rendered per step (keyframes alternate)
+    # (fraction of the budget from which it applies, image scale): coarse to fine
+    scales: tuple[tuple[float, float], ...] = ((0.0, 1.0),)
+    max_layers: int = 16  # Gaussians composited per pixel while refining (rendering uses 32)
+    lpips_weight: float = 0.05  # the paper's rendering loss: L2 + 0.05 LPIPS
+    lidar: bool = False  # also fit LiDAR depth (gt_depth), in the sweep and the loss
+    lidar_weight: float = 0.1  # weight of the relative L1 depth term
+    sweep: SweepConfig | None = field(default_factory=SweepConfig)  # None: no depth correction
+    sweep_share: float = 0.5  # the sweep stops (depth unchanged) past this share of the budget
+    # CPU threads while refining; None: 1 when other jobs keep the CPU busy (1-minute load average of
+    # 1 or more), else torch's default. Refinement's tensors are small (a few views, 0.1-1 M
+    # Gaussians): on these shared 2-core machines two threads stall on each other whenever another
+    # job holds a core (measured: 19-28 s per step with 2 threads against 2.4 s with 1, load 4).
+    threads: int | None = None
+    adapt_steps: int = 0  # self-supervised steps on D and P before rebuilding (needs the model)
+    adapt_lr: float = 5e-5
+    seed: int = 0
+
+    def __post_init__(self):
+        if not self.seconds >= 0 or math.isinf(self.seconds):
+            raise InputError(f"--refine: expected a number of seconds >= 0, found {self.seconds}")
+        if self.max_steps is not None and self.max_steps < 0:
+            raise InputError(f"max_steps: expected >= 0, found {self.max_steps}")
+        unknown = set(self.groups) - set(GROUPS)
+        if unknown:
+            raise InputError(f"groups: expected a subset of {', '.join(GROUPS)}, found {', '.join(sorted(unknown))}")
+        if self.views_per_step < 1:
+            raise InputError(f"views_per_step: expected >= 1, found {self.views_per_step}")
+        if self.threads is not None and self.threads < 1:
+            raise InputError(f"--threads: expected a positive number of threads, found {self.threads}")
+        if self.adapt_steps < 0:
+            raise InputError(f"--adapt: expected a number of steps >= 0, found {self.adapt_steps}")
+        if not 0 <= self.sweep_share <= 1:
+            raise InputError(f"sweep_share: expected a share of the budget in [0, 1], found {self.sweep_share}")
+        if not self.scales or any(not 0 < s <= 1 for _, s in self.scales):
+            raise InputError(f"scales: expected image scales in (0, 1], found {self.scales}")
+
+    def learning_rate(self, group: str) -> float:
+        return dict(self.lr)[group]
+
+    def scale_at(self, fraction: float) -> float:
+        """The image scale at ``fraction`` of the budget."""
+        current = self.scales[0][1]
+        for start, scale in self.scales:
+            if fraction >= start:
+                current = scale
+        return current
+
+
+class Clock:
+    """The budget: seconds since the start, and whether another step of ``step_s`` still fits."""
+
+    def __init__(self, seconds: float, should_stop: Callable[[], bool] | None):
+        self.start = time.perf_counter()
+        self.seconds = seconds
+        self.should_stop = should_stop or (lambda: False)
+
+    @property
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    @property
+    def fraction(self) -> float:
+        return min(1.0, self.elapsed / self.seconds) if self.seconds > 0 else 1.0
+
+    def fits(self, step_s: float = 0.0) -> bool:
+        return not self.should_stop() and self.elapsed + step_s <= self.seconds
+
+    def stopped(self) -> bool:
+        return self.should_stop() or self.elapsed >= self.seconds
+
+    def stopped_at(self, share: float) -> Callable[[], bool]:
+        """A stop test for a stage that may use the budget up to ``share`` of it."""
+        return lambda: self.should_stop() or self.elapsed >= share * self.seconds
+
+
+def _check(pair: FramePair, recon: Reconstruction) -> None:
+    if recon.num_views != pair.num_views or tuple(recon.image_size) != tuple(pair.image_size):
+        raise InputError(
+            f"refine: the reconstruction ({recon.num_views} cameras, {recon.image_size[1]}x{recon.image_size[0]}) "
+            f"is not of this scene ({pair.num_views} cameras, {pair.image_size[1]}x{pair.image_size[0]})"
+        )
+    if len(recon.gaussians) == 0:
+        raise InputError("refine: the reconstruction has no Gaussians")
+
+
+def refine(
+    model,
+    pair: FramePair,
+    recon: Reconstruction,
+    config: RefineConfig = RefineConfig(),
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> Reconstruction:
+    """The refined reconstruction (module docstring); ``model`` is needed only for ``adapt_steps``."""
+    _check(pair, recon)
+    if config.adapt_steps and model is None:
+        raise InputError("--adapt: adapting D and P needs the model's weights")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(refine_threads(config))
+    try:
+        return _refine(model, pair, recon, config, progress, should_stop)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def refine_threads(config: RefineConfig) -> int:
+    """The threads refinement runs on (``RefineConfig.threads``)."""
+    if config.threads is not None:
+        return config.threads
+    busy = hasattr(os, "getloadavg") and os.getloadavg()[0] >= 1.0
+    return 1 if busy else torch.get_num_threads()
+
+
+def _refine(model, pair: FramePair, recon: Reconstruction, config: RefineConfig, progress, should_stop) -> Reconstruction:
+    from drivingscene.methods.refine_loop import adapt_and_rebuild, corrected_gaussians, gradient_steps, refined_reconstruction
+
+    clock = Clock(config.seconds, should_stop)
+    report = progress or (lambda fraction, message: None)
+    torch.manual_seed(config.seed)
+    inputs = refine_inputs(pair, config.lidar)
+    meta: dict = {"budget_s": config.seconds, "steps": 0, "step_s": None, "threads": torch.get_num_threads()}
+    if config.adapt_steps and clock.fits():
+        recon = adapt_and_rebuild(model, pair, inputs, config, clock, report, meta)
+    local = recon.gaussians.transform(inputs.world_to_local)
+    rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
+    if config.sweep is not None and clock.fits():
+        local = corrected_gaussians(local, rays, inputs, recon, config, clock, report, meta)
+        rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
+    params = RefineParams(local, rays, tuple(config.groups))
+    if config.groups and clock.fits():
+        gradient_steps(params, inputs, recon, config, clock, report, meta)
+    meta["total_s"] = round(clock.elapsed, 3)
+    report(1.0, f"refined in {clock.elapsed:.1f} s")
+    return refined_reconstruction(recon, params, inputs, meta)
+
+
+def describe(meta: dict) -> str:
+    """One line about a refinement from its ``meta["refinement"]``."""
+    steps = meta.get("steps", 0)
+    per = f", {meta['step_s']:.2f} s per step" if meta.get("step_s") else ""
+    return f"refined {meta.get('total_s', 0):.1f} s: {steps} steps{per}"

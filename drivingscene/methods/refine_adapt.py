@@ -1,0 +1,116 @@
+"""Adapting the depth network to one pair at test time (refinement's ``adapt_steps``).
+
+A copy of the model takes K Adam steps on the pair's own self-supervised stage-1 losses: L_loc,
+each input image reprojected from the same camera at the other keyframe and from its
+neighbouring cameras at the same keyframe with the predicted depth (per-pixel minimum over the
+sources, monodepth2's auto-mask), and L_smooth (edge-aware smoothness of the mean-normalised
+disparity), weighted 1 : 0.01 as in stage 1 (0.1 : 0.001); with LiDAR also the mean |log depth -
+log LiDAR| where there is a return. Batch-norm statistics stay those of training (one pair is no
+batch). These losses reach D; P is not trained by them, but its Gaussians follow D's new depth
+when the pair is reconstructed again. The original model is not modified.
+"""
+
+from __future__ import annotations
+
+import copy
+import statistics
+import time
+
+import torch
+from torch import Tensor
+
+from drivingscene.data.tensors import PairTensors
+from drivingscene.geometry.flow import backward_warp, rigid_flow
+from drivingscene.methods.depth_sweep import neighbour_cameras
+from drivingscene.methods.refine_inputs import RefineInputs
+from drivingscene.models.pipeline import predict_static
+from drivingscene.precision import resolve_amp
+from drivingscene.train.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
+
+SMOOTH_WEIGHT = 0.01  # L_smooth relative to L_loc (stage 1: 0.001 / 0.1)
+
+
+def pair_tensors(inputs: RefineInputs) -> PairTensors:
+    """The networks' view of the input images (no ground truth, no held-out frames)."""
+    return PairTensors(
+        images=inputs.images,
+        intrinsics=inputs.intrinsics,
+        cam_to_ego=inputs.cam_to_ego,
+        cam_to_local=inputs.cam_to_local,
+        local_to_world=inputs.local_to_world,
+        valid_mask=inputs.valid,
+    )
+
+
+def location_loss(depth: Tensor, inputs: RefineInputs) -> Tensor:
+    """L_loc (module docstring) for depth ``[2, V, H, W]``; masked pixels are neither targets nor
+    sampled sources."""
+    num_views = inputs.num_views
+    targets = inputs.images.flatten(0, 1)  # [2V, 3, H, W]
+    c2l = inputs.cam_to_local.flatten(0, 1)
+    k = inputs.intrinsics.repeat(2, 1, 1)
+    world = None if inputs.valid is None else inputs.valid.repeat(2, 1, 1)
+    kf = torch.arange(2).repeat_interleave(num_views)
+    cam = torch.arange(num_views).repeat(2)
+    sources = [(1 - kf) * num_views + cam]
+    for side in (0, 1) if num_views > 1 else ():
+        sources.append(kf * num_views + torch.tensor([neighbour_cameras(inputs.cam_to_ego)[v][side] for v in cam.tolist()]))
+    warped, valid, identity = [], [], []
+    compared = targets
+    for i, src in enumerate(sources):
+        flow, z = rigid_flow(depth.flatten(0, 1), k, c2l, c2l[src], dst_intrinsics=k[src])
+        image, inside = backward_warp(targets[src], flow)
+        if world is not None:
+            seen = sampled_from(world[src], flow)
+            image, compared = blank_masked(image, targets, seen, world)
+            inside = inside & seen & world
+        warped.append(image)
+        valid.append(inside & (z > 0.1))
+        if i == 0:
+            identity.append(targets[src] if world is None else blank_masked(targets[src], targets, world[src], world)[0])
+    loss, _ = reprojection_loss(compared, warped, valid, identity)
+    return loss
+
+
+def _lidar_term(depth: Tensor, inputs: RefineInputs) -> Tensor:
+    has = inputs.lidar > 0
+    if inputs.valid is not None:
+        has = has & inputs.valid[None]
+    if not bool(has.any()):
+        return depth.new_zeros(())
+    return (torch.log(depth.clamp(min=1e-3)) - torch.log(inputs.lidar.clamp(min=1e-3)))[has].abs().mean()
+
+
+def adapt_model(model, inputs: RefineInputs, config, clock, report) -> tuple[object, dict]:
+    """A copy of ``model`` with D adapted for at most ``config.adapt_steps`` steps within the budget."""
+    adapted = copy.deepcopy(model).eval()  # eval: batch norm keeps its training statistics
+    for p in adapted.parameters():
+        p.requires_grad_(False)
+    trainable = list(adapted.depth_net.parameters())
+    for p in trainable:
+        p.requires_grad_(True)
+    optimizer = torch.optim.Adam(trainable, lr=config.adapt_lr)
+    batch = pair_tensors(inputs)
+    amp = resolve_amp(None, "cpu")
+    times, losses = [], []
+    for step in range(config.adapt_steps):
+        if not clock.fits(statistics.median(times) if times else 0.0):
+            break
+        start = time.perf_counter()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+            static = predict_static(adapted, batch)
+        depth = static.depth.float()
+        targets = inputs.images.flatten(0, 1)
+        world = None if inputs.valid is None else inputs.valid.repeat(2, 1, 1)
+        loss = location_loss(depth, inputs) + SMOOTH_WEIGHT * smoothness_loss(1.0 / depth.flatten(0, 1)[:, None], targets, world)
+        if config.lidar and inputs.lidar is not None:
+            loss = loss + _lidar_term(depth, inputs)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        times.append(time.perf_counter() - start)
+        losses.append(round(float(loss.detach()), 5))
+        report(clock.fraction, f"adapting D: step {step + 1}/{config.adapt_steps}, L_loc {losses[-1]:.4f}")
+    for p in adapted.parameters():
+        p.requires_grad_(False)
+    return adapted, {"steps": len(times), "step_s": round(statistics.median(times), 3) if times else None, "losses": losses}

@@ -1,0 +1,197 @@
+"""Test-time refinement (drivingscene/methods/refine*.py) on a small procedural pair: Gaussians move
+only along their rays, the loss goes down, any stop leaves a valid reconstruction, the held-out
+frames are never read, LiDAR counts only when asked."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from drivingscene.errors import InputError
+from drivingscene.gaussians.core import Gaussians
+from drivingscene.gaussians.recon import load_reconstruction, recon_to_arrays, save_reconstruction, validate_recon_arrays
+from drivingscene.methods.oracle import oracle_reconstruction
+from drivingscene.methods.refine import RefineConfig, refine
+from drivingscene.methods.refine_inputs import refine_inputs
+from drivingscene.methods.refine_params import RefineParams, gaussian_rays
+from drivingscene.methods.refine_render import view_set, views_loss
+
+FAST = dict(seconds=600.0, sweep=None, lpips_weight=0.0, views_per_step=2)
+
+
+@pytest.fixture(scope="module")
+def pair(synth_pair):
+    """The procedural pair with sparse LiDAR-like depth (one pixel in ten), as an imported real one."""
+    rng = np.random.default_rng(0)
+    sparse = np.where(rng.uniform(size=synth_pair.gt_depth.shape) < 0.1, synth_pair.gt_depth, 0).astype(np.float32)
+    return replace(synth_pair, gt_depth=sparse)
+
+
+@pytest.fixture(scope="module")
+def start(synth_pair):
+    """The oracle reconstruction spoiled: depth 20 % too near, colours noisy, dynamic flows halved."""
+    recon = oracle_reconstruction(synth_pair, refine=0)
+    g = recon.gaussians
+    torch.manual_seed(0)
+    local = g.transform(torch.linalg.inv(torch.from_numpy(synth_pair.ego_to_world[0])))
+    rays = gaussian_rays(
+        local, refine_inputs(synth_pair).cam_to_local, torch.from_numpy(synth_pair.intrinsics), synth_pair.image_size
+    )
+    params = RefineParams(local, rays, ())
+    params.set_depth(torch.full((len(g),), float(np.log(0.8))))
+    spoiled = params.gaussians()
+    spoiled = replace(spoiled, sh=spoiled.sh + 0.3 * torch.randn_like(spoiled.sh), flows=0.5 * spoiled.flows)
+    return replace(recon, gaussians=spoiled.transform(torch.from_numpy(synth_pair.ego_to_world[0])))
+
+
+def _loss(recon, pair) -> float:
+    inputs = refine_inputs(pair)
+    local = recon.gaussians.transform(inputs.world_to_local)
+    views = view_set(inputs, recon.sky_sh)
+    with torch.no_grad():
+        loss, _ = views_loss(
+            local, views, list(range(2 * pair.num_views)), None, lpips_weight=0.0, lidar_weight=0.0, max_layers=16
+        )
+    return float(loss)
+
+
+def test_depth_offsets_move_gaussians_along_their_rays_only(synth_pair):
+    recon = oracle_reconstruction(synth_pair, refine=0)
+    inputs = refine_inputs(synth_pair)
+    local = recon.gaussians.transform(inputs.world_to_local)
+    cams = local.cameras.clone()
+    cams[:10] = -1  # merged Gaussians: no ray, no depth parameter
+    local = replace(local, cameras=cams)
+    rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
+    assert bool(rays.has_ray[10:].all()) and not bool(rays.has_ray[:10].any())
+    params = RefineParams(local, rays, ("depth",))
+    offset = torch.empty(len(local)).uniform_(-0.5, 0.5)
+    params.set_depth(offset)
+    moved = params.gaussians()
+    before, after = local.means - rays.origins, moved.means - rays.origins
+    ratio = after.norm(dim=-1) / before.norm(dim=-1).clamp(min=1e-9)
+    cos = torch.nn.functional.cosine_similarity(before[10:], after[10:], dim=-1)
+    assert torch.allclose(cos, torch.ones_like(cos), atol=1e-5)  # along the ray from the camera centre
+    torch.testing.assert_close(ratio[10:], torch.exp(offset[10:]), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(moved.means[:10], local.means[:10])
+    torch.testing.assert_close(moved.log_scales[10:], local.log_scales[10:] + offset[10:, None])
+    torch.testing.assert_close(moved.quats, local.quats)
+
+
+def test_gaussian_pixels_are_their_source_pixels(synth_pair):
+    recon = oracle_reconstruction(synth_pair, refine=0)
+    inputs = refine_inputs(synth_pair)
+    rays = gaussian_rays(
+        recon.gaussians.transform(inputs.world_to_local), inputs.cam_to_local, inputs.intrinsics, inputs.image_size
+    )
+    valid = torch.from_numpy(synth_pair.gt_depth > 0)  # the oracle makes one Gaussian per pixel with depth, row-major
+    expected = valid.flatten().nonzero().squeeze(1)
+    assert torch.equal(rays.pixels, expected)
+    torch.testing.assert_close(rays.depths, torch.from_numpy(synth_pair.gt_depth).flatten()[expected], rtol=1e-4, atol=1e-4)
+
+
+def test_refinement_lowers_the_loss_on_the_input_views(synth_pair, start):
+    refined = refine(None, synth_pair, start, RefineConfig(max_steps=8, **FAST))
+    assert refined.meta["refinement"]["steps"] == 8
+    assert _loss(refined, synth_pair) < 0.8 * _loss(start, synth_pair)
+    assert refined.meta["method"] == "oracle+refine"
+
+
+def test_any_stop_leaves_a_valid_reconstruction(synth_pair, start, tmp_path):
+    one = refine(None, synth_pair, start, RefineConfig(max_steps=1, **FAST))
+    assert one.meta["refinement"]["steps"] == 1 and len(one.gaussians) == len(start.gaussians)
+    assert validate_recon_arrays(recon_to_arrays(one)) == []
+    back = load_reconstruction(save_reconstruction(one, tmp_path / "one.npz"))
+    torch.testing.assert_close(back.gaussians.means, one.gaussians.means)
+    assert back.depth is not None and np.isfinite(back.depth).all() and back.rigid_flow is not None
+    stopped = refine(None, synth_pair, start, RefineConfig(**FAST), should_stop=lambda: True)
+    assert stopped.meta["refinement"].get("steps", 0) == 0
+    torch.testing.assert_close(stopped.gaussians.means, start.gaussians.means, atol=1e-4, rtol=0)
+    assert validate_recon_arrays(recon_to_arrays(stopped)) == []
+    calls = []
+    cancelled = refine(
+        None, synth_pair, start, RefineConfig(**FAST), should_stop=lambda: len(calls) > 2, progress=lambda f, m: calls.append(m)
+    )
+    assert 1 <= cancelled.meta["refinement"]["steps"] <= 3
+
+
+def test_held_out_frames_are_never_read(synth_pair, start):
+    config = RefineConfig(max_steps=2, **FAST)
+    reference = refine(None, synth_pair, start, config)
+    rng = np.random.default_rng(1)
+    altered = replace(synth_pair, eval_images=rng.integers(0, 255, synth_pair.eval_images.shape, dtype=np.uint8))
+    removed = replace(
+        synth_pair,
+        eval_images=None,
+        eval_timestamps=None,
+        eval_ego_to_world=None,
+        eval_dynamic=None,
+        eval_camera_ego_to_world=None,
+        eval_camera_timestamps=None,
+    )
+    for other in (altered, removed):
+        out = refine(None, other, start, config)
+        assert torch.equal(out.gaussians.means, reference.gaussians.means)
+        assert torch.equal(out.gaussians.sh, reference.gaussians.sh)
+        assert np.array_equal(out.depth, reference.depth)
+
+
+def test_lidar_counts_only_when_asked(pair, synth_pair, start):
+    config = RefineConfig(max_steps=2, **FAST)
+    without = refine(None, pair, start, config)
+    no_depth = refine(None, replace(pair, gt_depth=None), start, config)
+    assert torch.equal(without.gaussians.means, no_depth.gaussians.means)  # gt_depth unused without lidar
+    with_lidar = refine(None, pair, start, replace(config, lidar=True, lidar_weight=1.0))
+    assert not torch.equal(with_lidar.gaussians.means, without.gaussians.means)
+    with pytest.raises(InputError, match="--lidar.*gt_depth"):
+        refine(None, replace(pair, gt_depth=None), start, replace(config, lidar=True))
+
+
+def test_bad_configurations_are_one_line_errors(synth_pair, start):
+    for kwargs, match in (
+        (dict(seconds=-1.0), "--refine"),
+        (dict(adapt_steps=-2), "--adapt"),
+        (dict(groups=("depth", "wings")), "groups"),
+    ):
+        with pytest.raises(InputError, match=match):
+            RefineConfig(**kwargs)
+    with pytest.raises(InputError, match="--adapt.*weights"):
+        refine(None, synth_pair, start, RefineConfig(adapt_steps=1, **FAST))
+    other = replace(start, gaussians=Gaussians.empty())
+    with pytest.raises(InputError, match="no Gaussians"):
+        refine(None, synth_pair, other, RefineConfig(**FAST))
+
+
+def test_flows_are_lifted_again_with_the_corrected_depth(synth_pair):
+    from drivingscene.geometry.flow import rigid_flow
+    from drivingscene.methods.refine_loop import relift_flows
+
+    recon = oracle_reconstruction(synth_pair, refine=0)
+    inputs = refine_inputs(synth_pair)
+    local = recon.gaussians.transform(inputs.world_to_local)
+    rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
+    depth = torch.from_numpy(synth_pair.gt_depth)
+    every = torch.ones(2, synth_pair.num_views, dtype=torch.bool)
+    dynamic = local.dynamic  # the oracle's: every non-zero ground-truth scene flow, however small
+    moving = dynamic & torch.from_numpy(synth_pair.gt_dynamic).flatten()[rays.pixels]  # the moving objects
+    assert int(moving.sum()) > 20
+    # the true optical flow, lifted with the true depth: the moving objects keep (about) their scene flow
+    same, made_static = relift_flows(local, rays, depth, torch.from_numpy(np.nan_to_num(synth_pair.gt_flow)), every, inputs)
+    kept = same.dynamic & moving
+    assert int(kept.sum()) > 0.9 * int(moving.sum())
+    changed = kept & (same.flows != local.flows).any(-1)  # lifted again (elsewhere: their flow kept)
+    assert int(changed.sum()) > 0.1 * int(moving.sum())
+    err = (same.flows[changed] - local.flows[changed]).norm(dim=-1).median()
+    assert float(err) < 0.1 * float(local.flows[changed].norm(dim=-1).median())
+    assert torch.equal(same.flows[~dynamic], local.flows[~dynamic])  # static ones stay static
+    # an optical flow that the rigid motion explains everywhere: every dynamic Gaussian becomes static
+    c2l = inputs.cam_to_local
+    rigid = torch.stack([rigid_flow(depth[k], inputs.intrinsics, c2l[k], c2l[1 - k])[0] for k in (0, 1)])
+    still, made_static = relift_flows(local, rays, depth, rigid, every, inputs)
+    assert made_static == int(dynamic.sum()) and not bool(still.dynamic.any())
+    # images whose depth was not corrected keep their flows
+    untouched, made_static = relift_flows(local, rays, depth, rigid, ~every, inputs)
+    assert made_static == 0 and torch.equal(untouched.flows, local.flows)
