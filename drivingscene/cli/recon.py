@@ -10,6 +10,59 @@ from drivingscene.cli.common import check_output, positive_int
 from drivingscene.errors import InputError
 
 
+def non_negative_seconds(text: str) -> float:
+    """argparse type: a finite number of seconds >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, found {text!r}") from None
+    if not 0.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, found {text}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {value}")
+    return value
+
+
+def add_refine_arguments(p: argparse.ArgumentParser) -> None:
+    """``--refine SECONDS``, ``--lidar``, ``--adapt K``, ``--refine-steps N`` (docs/refinement.md)."""
+    p.add_argument(
+        "--refine",
+        type=non_negative_seconds,
+        default=None,
+        metavar="SECONDS",
+        help="then refine the Gaussians against the input images for this many seconds (docs/refinement.md)",
+    )
+    p.add_argument("--lidar", action="store_true", help="with --refine: also fit the scene's LiDAR depth (gt_depth)")
+    p.add_argument(
+        "--adapt", type=non_negative_int, default=0, metavar="K", help="with --refine: first adapt D to the pair for K steps"
+    )
+    p.add_argument(
+        "--refine-steps", type=positive_int, default=None, metavar="N", help="with --refine: at most N gradient steps"
+    )
+
+
+def refine_config(args: argparse.Namespace):
+    """The ``RefineConfig`` of the refine flags; one-line errors for flags without ``--refine``."""
+    from drivingscene.methods.refine import RefineConfig
+
+    if args.refine is None:
+        for flag, given in (("--lidar", args.lidar), ("--adapt", args.adapt), ("--refine-steps", args.refine_steps)):
+            if given:
+                raise InputError(f"{flag}: only with --refine SECONDS")
+        return None
+    return RefineConfig(
+        seconds=args.refine, lidar=args.lidar, adapt_steps=args.adapt, max_steps=args.refine_steps, threads=args.threads
+    )
+
+
 def add_amp_arguments(p: argparse.ArgumentParser) -> None:
     """``--amp`` / ``--no-amp`` into ``args.amp``: True, False, or None (default: decided per
     machine, drivingscene/precision.py)."""
@@ -36,6 +89,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=positive_int, default=None)
     add_amp_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
+    add_refine_arguments(p)
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_reconstruct)
 
@@ -108,15 +162,40 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct, resolve_device
 
     check_output(args.out, args.force, "-o")
+    config = refine_config(args)
     device = resolve_device(args.device)
+    if config is not None and device.type != "cpu":
+        raise InputError("--refine: runs on the CPU rasterizer; use --device cpu")
     pair = load_frame_pair(args.scene)
+    if config is not None and config.lidar and pair.gt_depth is None:
+        raise InputError(f"{args.scene}: --lidar: the scene has no LiDAR depth (gt_depth); drop --lidar")
     model = load_model(args.weights, device=device)
     options = InferenceOptions(use_residual=not args.static_only, amp=args.amp, threads=args.threads)
     if args.no_search:
         options = replace(options, search=None)
     recon = reconstruct(model, pair, options)
+    if config is not None:
+        recon = run_refinement(model, pair, recon, config)
     _report(recon, save_reconstruction(recon, args.out))
     return 0
+
+
+def run_refinement(model, pair, recon, config):
+    """``refine`` with a tqdm bar over the budget's seconds; prints one summary line."""
+    from tqdm import tqdm
+
+    from drivingscene.methods.refine import describe, refine
+
+    with tqdm(total=round(config.seconds, 1), unit="s", desc="refine", bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s {postfix}") as bar:
+
+        def progress(fraction, message):
+            if fraction is not None:
+                bar.n = round(min(fraction, 1.0) * config.seconds, 1)
+            bar.set_postfix_str(message, refresh=True)
+
+        recon = refine(model, pair, recon, config, progress=progress)
+    print(describe(recon.meta["refinement"]))
+    return recon
 
 
 def run_oracle(args: argparse.Namespace) -> int:
