@@ -49,6 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, default=None, help="also write every score as JSON")
     p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/real-data-notes.md)")
     p.add_argument("--images", type=Path, default=None, help="folder for the side-by-side figures (e.g. docs/images/real)")
+    from drivingscene.bench.real_refine import add_arguments as add_refine_arguments
+
+    add_refine_arguments(p)
 
 
 @dataclass
@@ -62,6 +65,8 @@ class SceneScores:
     seconds: dict[str, list[float]] = field(default_factory=dict)
     camera_names: list[str] = field(default_factory=list)
     figure: str | None = None  # markdown link to the side-by-side figure
+    depths: dict[str, dict] = field(default_factory=dict)  # method -> depth scores (the model and refined ones)
+    refine: dict[str, dict] = field(default_factory=dict)  # refined method -> its refinement meta
 
 
 def _per_camera(values: torch.Tensor, num_views: int) -> list[float]:
@@ -135,7 +140,21 @@ def _methods(args):
     model = load_model(args.weights)
     base = InferenceOptions() if args.amp is None else replace(InferenceOptions(), amp=args.amp)
     static = replace(base, use_residual=False)
-    return [(FULL, lambda pair: reconstruct(model, pair, base)), (STATIC, lambda pair: reconstruct(model, pair, static))]
+    from drivingscene.bench.real_refine import refine_methods
+
+    methods = [(FULL, lambda pair: reconstruct(model, pair, base), {}), (STATIC, lambda pair: reconstruct(model, pair, static), {})]
+    return methods + refine_methods(args, model, base)
+
+
+def _timed(fn, pair, repeats: int):
+    """The last of ``repeats`` timed runs after a warm-up (none when run once: a refinement's time is its budget)."""
+    recon = fn(pair) if repeats > 1 else None  # warm-up (kernels built, caches filled)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        recon = fn(pair)
+        times.append(time.perf_counter() - start)
+    return recon, times
 
 
 def _summary(pair) -> dict:
@@ -164,18 +183,17 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
 
     keyframe_mask = masks(2)
     renders = {}
-    for method, fn in methods:
-        recon = fn(pair)  # warm-up (kernels built, caches filled)
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            recon = fn(pair)
-            times.append(time.perf_counter() - start)
-        s.seconds[method] = times
+    for method, fn, extra in methods:
+        recon, s.seconds[method] = _timed(fn, pair, extra.get("repeats", repeats))
         g = recon.visible()
         s.dynamic_share[method] = float(g.dynamic.float().mean()) if len(g) else 0.0
-        if recon.depth is not None and pair.gt_depth is not None and FULL == method:
-            s.depth = depth_scores(recon, pair)
+        if extra.get("refine"):
+            s.refine[method] = recon.meta.get("refinement", {})
+        if recon.depth is not None and pair.gt_depth is not None and (FULL == method or extra.get("refine")):
+            s.depths[method] = depth_scores(recon, extra.get("depth_pair", lambda p: p)(pair))
+            if FULL == method:
+                s.depth = s.depths[method]
+                s.depths[FULL + " (held-out half)"] = _held_out_depth(recon, pair)
         rendered = render_keyframes(recon, pair)
         s.keyframes[method] = image_scores(rendered, _images(pair.images), keyframe_mask, None, pair.num_views)
         renders[method] = {"recon": recon, "keyframes": rendered}
@@ -189,6 +207,12 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
             renders[method] = {"eval": frames}
             s.novel[method] = image_scores(frames, _images(pair.eval_images), mask, perceptual, pair.num_views)
     return s, renders
+
+
+def _held_out_depth(recon, pair) -> dict:
+    from drivingscene.bench.real_refine import lidar_halves
+
+    return depth_scores(recon, replace(pair, gt_depth=lidar_halves(pair.gt_depth)[1]))
 
 
 def _mean(values: list[float]) -> float:
@@ -294,7 +318,12 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
             ]
         )
     header = ["scene", "depth AbsRel", "AbsRel (median-scaled)", "keyframe re-render PSNR", "in-between PSNR", "best baseline PSNR", "dynamic Gaussians", "s / pair, median (range)"]
-    return "\n".join(head) + _table(header, rows) + "\n## Per scene and camera\n\n" + "\n".join(
+    refined = ""
+    if any(s.refine for s in scenes):
+        from drivingscene.bench.real_refine import refine_table
+
+        refined = "\n" + refine_table(scenes, lpips_name)
+    return "\n".join(head) + _table(header, rows) + refined + "\n## Per scene and camera\n\n" + "\n".join(
         _scene_section(s, lpips_name, s.figure) for s in scenes
     )
 
@@ -378,6 +407,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name}: scored", file=sys.stderr)
     precision = _precision(args)
     command = "drivingscene bench real " + " ".join(str(p) for p in args.scenes)
+    if args.refine:
+        command += " --refine " + " ".join(f"{v:g}" for v in args.refine) + (" --lidar" if args.lidar else "")
+        command += f" --adapt {args.adapt}" if args.adapt else ""
     text = report(scenes, perceptual.name, command, machine_description(), precision)
     if notes:
         text += "\n" + notes

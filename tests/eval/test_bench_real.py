@@ -56,3 +56,22 @@ def test_losers_are_methods_below_the_better_baseline():
     }
     assert losers(novel) == {"b"}
     assert losers({"a": {"psnr": [1.0]}}) == set()  # no baseline, nobody loses
+
+
+def test_bench_real_scores_refined_reconstructions(synth_pair, tiny_weights, tmp_path):  # noqa: F811
+    from drivingscene.bench.real_refine import lidar_halves, method_name
+
+    scene = tmp_path / "scene.npz"
+    save_frame_pair(_real_like(synth_pair), scene)
+    md, js = tmp_path / "real.md", tmp_path / "real.json"
+    args = ["bench", "real", str(scene), "--names", "tiny", "--weights", str(tiny_weights), "--repeats", "1", "--lpips", "stlpips"]
+    assert main([*args, "--refine", "2", "--lidar", "--out", str(md), "--json", str(js)]) == 0
+    text = md.read_text()
+    assert "## Test-time refinement" in text and "--refine 2 --lidar" in text
+    scores = json.loads(js.read_text())["tiny"]
+    plain, lidar = method_name(2.0), method_name(2.0, lidar=True)
+    assert {plain, lidar} <= set(scores["novel"]) and {plain, lidar} <= set(scores["refine"])
+    assert scores["refine"][plain]["budget_s"] == 2.0
+    assert all(math.isfinite(x) for x in scores["depths"][lidar]["metric"]["abs_rel"])
+    fit, held = lidar_halves(_real_like(synth_pair).gt_depth)
+    assert not ((fit > 0) & (held > 0)).any() and np.array_equal(np.maximum(fit, held), _real_like(synth_pair).gt_depth)
