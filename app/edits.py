@@ -140,6 +140,31 @@ class FlowEdit:
 
 
 @dataclass(frozen=True, eq=False)
+class ReplaceEdit:
+    """Replace every Gaussian's values and the reconstruction's maps by a refined version of the same
+    Gaussians (same count and order: flags and identities stay); undo puts the old ones back."""
+
+    before: SplatArrays
+    after: SplatArrays
+    recon_before: object  # Reconstruction
+    recon_after: object
+    label: str = "refine"
+
+    @property
+    def nbytes(self) -> int:
+        maps = sum(getattr(r, k).nbytes for r in (self.recon_before, self.recon_after) for k in ("depth", "rigid_flow", "residual_flow") if getattr(r, k) is not None)
+        return self.before.nbytes() + self.after.nbytes() + maps
+
+    def apply(self, doc: SceneDoc) -> None:
+        doc.recon = self.recon_after
+        doc.set_splats(self.after, doc.hidden, doc.selected)
+
+    def revert(self, doc: SceneDoc) -> None:
+        doc.recon = self.recon_before
+        doc.set_splats(self.before, doc.hidden, doc.selected)
+
+
+@dataclass(frozen=True, eq=False)
 class CompoundEdit:
     """Several edits undone and redone as one step."""
 

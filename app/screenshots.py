@@ -3,7 +3,8 @@ e.g. ``xvfb-run -s "-screen 0 1600x900x24" python -m app.screenshots docs/images
 
 Writes viewer_main.png (RGB view, flow panel), viewer_depth.png (depth mode, depth panel),
 viewer_rig.png (snapped to a rig camera, dynamic highlighted), viewer_edit_before.png (the moving
-objects selected) and viewer_edit_after.png (deleted).
+objects selected), viewer_edit_after.png (deleted), viewer_refine_running.png (Refine in progress,
+clicked with xdotool when it is installed) and viewer_refine_after.png (refined).
 """
 
 from __future__ import annotations
@@ -87,7 +88,47 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     shoot(win, out / "viewer_edit_before.png")
     v.doc.delete_selected()
     shoot(win, out / "viewer_edit_after.png")
+    v.doc.undo()
+    v.doc.clear_selection()
+    refine_shots(win, out)
     win.close()
+
+
+def _click_refine(win: ViewerWindow) -> None:
+    """Press the Refine button with real X input where xdotool exists, else call what it calls."""
+    import shutil
+    import subprocess
+
+    from app.refine_job import start_refine
+
+    rect = win.viewer.ui_rects.get("refine_button")
+    if rect is None or shutil.which("xdotool") is None:
+        start_refine(win.viewer)
+        return
+    wid = str(win.window._window)
+    x, y = (rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2
+    subprocess.run(["xdotool", "mousemove", "--window", wid, str(int(x)), str(int(y))], check=True, timeout=20)
+    for _ in range(2):
+        win.step()
+    subprocess.run(["xdotool", "click", "1"], check=True, timeout=20)
+
+
+def refine_shots(win: ViewerWindow, out: Path, seconds: float = 20.0) -> None:
+    """The Refine row while it runs (about half way) and the view when it is done."""
+    v = win.viewer
+    v.snap(1)
+    v.panels["cameras"] = StripState(kind="depth")
+    settle(win)
+    v.refine.seconds = seconds
+    _click_refine(win)
+    start, shot = time.time(), False
+    while time.time() - start < 10 * seconds + 60 and (v.refine.job is None or v.refine.running):
+        win.step()
+        if v.refine.running and time.time() - start > seconds / 2 and not shot:
+            save_png(out / "viewer_refine_running.png", win.screenshot())
+            shot = True
+        time.sleep(0.02)
+    shoot(win, out / "viewer_refine_after.png")
 
 
 if __name__ == "__main__":

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from app.edits import CompoundEdit, DeleteEdit, Edit, FlowEdit, HideEdit, History, SelectEdit
+from app.edits import CompoundEdit, DeleteEdit, Edit, FlowEdit, HideEdit, History, ReplaceEdit, SelectEdit
 from app.splats import SplatArrays
+from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 
 SELECT_MODES = ("replace", "add", "subtract")
@@ -143,6 +144,16 @@ class SceneDoc:
         index = np.flatnonzero(self.selected & self.splats.dynamic)
         if len(index):
             self.edit(FlowEdit.create(self, index, self.splats.flows[index] * np.float32(factor), f"scale flow x{factor:g}"))
+
+    def replace_reconstruction(self, refined: Reconstruction, label: str = "refine") -> None:
+        """Take a refinement of ``to_reconstruction()`` (the same Gaussians, new values and maps) as
+        one undoable edit; the Gaussians keep their identities, hidden and selected flags."""
+        if len(refined.gaussians) != len(self.splats):
+            raise ValueError(f"{label}: {len(refined.gaussians)} Gaussians came back for {len(self.splats)}")
+        after = replace(SplatArrays.from_gaussians(refined.gaussians), uid=self.splats.uid)
+        # The document keeps the rig and maps in ``recon``; its Gaussians live in ``splats``.
+        lean = lambda r: replace(r, gaussians=Gaussians.empty(r.gaussians.sh_degree), hidden=None)  # noqa: E731
+        self.edit(ReplaceEdit(self.splats, after, lean(self.recon), lean(refined), label))
 
     # --- views of the document ---------------------------------------------------------------
     @property

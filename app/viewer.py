@@ -15,6 +15,7 @@ import numpy as np
 from app.camera import Y_DOWN_UP, Z_UP, CameraController, ViewCamera, fit_rect, invert_rigid
 from app.loader import Loaded, LoadJob, MissingWeightsError, open_path, reconstruct_pair
 from app.overlays import LineRenderer, scene_overlays
+from app.refine_job import RefineState, poll_refine
 from app.renderer import RenderOptions
 from app.state import SceneDoc, Status, ViewState
 from app.textures import TextureCache
@@ -75,6 +76,7 @@ class Viewer:
         self.ui_rects: dict[str, tuple[float, float, float, float]] = {}  # widget rectangles (scripted tests)
         self.quit_requested = False
         self.task = None  # (label, generator, results): an export drawn one picture per frame
+        self.refine = RefineState()  # test-time refinement running in the background (app/refine_job.py)
 
     # --- messages ------------------------------------------------------------------------------
     def info(self, text: str) -> None:
@@ -142,6 +144,7 @@ class Viewer:
         self.job = LoadJob("oracle reconstruction", lambda progress: reconstruct_pair(pair, source, "oracle", None, progress))
 
     def poll_job(self) -> None:
+        poll_refine(self)
         job = self.job
         if job is None or not job.done:
             return
@@ -159,6 +162,8 @@ class Viewer:
             self.error(str(job.error))
 
     def set_loaded(self, loaded: Loaded) -> None:
+        if self.refine.running:  # its result would belong to the old document
+            self.refine.job.cancel()
         self.doc = SceneDoc(loaded.recon, loaded.source, loaded.info)
         self.pair = loaded.pair or self.pair
         self.textures.clear()
@@ -287,6 +292,9 @@ class Viewer:
         self.lines.draw(groups, self.display_camera, self.doc.origin)
 
     def close(self) -> None:
+        if self.refine.job is not None:
+            self.refine.job.cancel()
+            self.refine.job.wait()
         if self.job is not None:
             self.job.wait()  # a torch op still running in a thread at exit aborts the process
         self.viewport.close()

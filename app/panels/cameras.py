@@ -84,7 +84,7 @@ def _texture(viewer: Viewer, kind: str, keyframe: int, v: int):
     extra = viewer.view.depth_range if kind == "depth" else ()
     if raw_map(viewer, kind, keyframe, v) is None:
         return None
-    key = f"map:{id(viewer.doc)}:{kind}:{keyframe}:{v}:{extra}"
+    key = f"map:{id(viewer.doc.recon)}:{kind}:{keyframe}:{v}:{extra}"  # a refinement or its undo swaps recon
     return viewer.textures.get(key, lambda: map_rgb(viewer, kind, keyframe, v))
 
 

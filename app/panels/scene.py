@@ -6,6 +6,7 @@ from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
 
 from app.panels import filedialog
+from app.refine_job import start_refine
 from app.viewer import Viewer
 
 
@@ -40,3 +41,39 @@ def draw(viewer: Viewer) -> None:
             imgui.table_next_column()
             imgui.text(value)
         imgui.end_table()
+    if recon.num_views:
+        _refine(viewer)
+
+
+def _refine(viewer: Viewer) -> None:
+    """Refine: seconds, the button (or progress and Cancel while it runs), LiDAR when the scene has it."""
+    state = viewer.refine
+    imgui.separator_text("Refine")
+    if state.running:
+        fraction, message = state.job.status()
+        overlay = f"{state.job.elapsed:.0f} / {state.seconds:.0f} s"
+        imgui.progress_bar(fraction if fraction is not None else -1.0 * imgui.get_time(), imgui.ImVec2(-80, 0), overlay)
+        imgui.same_line()
+        imgui.begin_disabled(state.job.cancelled)
+        if imgui.button("Cancel", imgui.ImVec2(-1, 0)):
+            state.job.cancel()
+        imgui.end_disabled()
+        viewer.ui_rects["refine_cancel"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())
+        imgui.text_disabled(message)
+        return
+    imgui.set_next_item_width(90)
+    _, state.seconds = imgui.drag_float("s##refine_seconds", state.seconds, 1.0, 1.0, 600.0, "%.0f")
+    imgui.same_line()
+    if imgui.button(f"{fa.ICON_FA_WAND_MAGIC_SPARKLES} Refine"):
+        start_refine(viewer)
+    viewer.ui_rects["refine_button"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())
+    if imgui.is_item_hovered():
+        imgui.set_tooltip("optimise depth along the rays, colours, opacities, scales and flows against the input images")
+    if viewer.pair is not None and viewer.pair.gt_depth is not None:
+        imgui.same_line()
+        _, state.lidar = imgui.checkbox("LiDAR", state.lidar)
+    refined = viewer.doc.recon.meta.get("refinement")
+    if refined:
+        from drivingscene.methods.refine import describe
+
+        imgui.text_disabled(describe(refined))
