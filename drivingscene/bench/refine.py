@@ -35,6 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lidar", action="store_true", help="refine against gt_depth too (it is then also what depth is scored on)")
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
+    p.add_argument("--choices", action="store_true", help="compare the settings' variants at --steps steps instead")
+    p.add_argument("--steps", type=int, default=12, help="with --choices: gradient steps per variant (default 12)")
+    p.add_argument("--speed", action="store_true", help="seconds per step by views, image scale and threads instead")
     p.add_argument("--out", type=Path, default=None, help="write the markdown report here")
     p.add_argument("--json", type=Path, default=None, help="also write every score as JSON")
 
@@ -161,6 +164,21 @@ def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
     )
 
 
+def _choices_or_speed(model, pairs: dict, args, perceptual) -> tuple[str, object]:
+    from drivingscene.bench.refine_choices import choices_report, choices_scores, speed_report, speed_rows
+
+    command = f"`drivingscene bench refine --data {args.data} --count {args.count}"
+    if args.speed:
+        rows = speed_rows(model, next(iter(pairs.values())))
+        return f"{command} --speed` on {machine_description()}, {cpu_flags_line()}:\n\n" + speed_report(rows), rows
+    if args.steps < 1:
+        raise InputError(f"--steps: expected at least 1, found {args.steps}")
+    scores = choices_scores(model, pairs, args.steps, args.depth_scale, perceptual)
+    flags = f" --depth-scale {args.depth_scale:g}" if args.depth_scale != 1 else ""
+    head = f"{command} --choices --steps {args.steps}{flags}` on {machine_description()}, {cpu_flags_line()}:\n\n"
+    return head + choices_report(scores, perceptual.name), scores
+
+
 def run(args: argparse.Namespace) -> int:
     import sys
 
@@ -182,11 +200,14 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{args.data / name}: expected an in-between frame (eval_images) to score, found none")
     model = load_model(args.weights)
     perceptual = load_perceptual(args.lpips)
-    scores = {}
-    for name, pair in pairs.items():
-        scores[name] = score_pair(model, pair, args, perceptual)
-        print(f"{name}: scored", file=sys.stderr)
-    text = report(scores, args, perceptual.name, machine_description())
+    if args.choices or args.speed:
+        text, scores = _choices_or_speed(model, pairs, args, perceptual)
+    else:
+        scores = {}
+        for name, pair in pairs.items():
+            scores[name] = score_pair(model, pair, args, perceptual)
+            print(f"{name}: scored", file=sys.stderr)
+        text = report(scores, args, perceptual.name, machine_description())
     if args.out is not None:
         atomic_write(args.out, lambda f: f.write(text.encode()))
         print(f"{args.out}: written")

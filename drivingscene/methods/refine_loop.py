@@ -222,6 +222,7 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
     meta.update(
         steps=len(times),
         step_s=round(statistics.median(times), 3) if times else None,
+        step_times=[round(t, 3) for t in times],
         losses=[round(v, 5) for v in losses],
         views_per_step=config.views_per_step,
     )

@@ -1,0 +1,43 @@
+"""`drivingscene bench refine` end to end on one small procedural pair with a tiny random model:
+budgets, the variants of --choices, and the report's rows."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from drivingscene.bench.refine_choices import CHOICES
+from drivingscene.cli import main
+from drivingscene.data import save_frame_pair
+from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One thread, as refinement itself on a busy machine (two stall each other on a shared CPU)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_bench_refine_budgets_and_choices(synth_pair, tiny_weights, tmp_path, monkeypatch):  # noqa: F811
+    data = tmp_path / "val"
+    data.mkdir()
+    save_frame_pair(synth_pair, data / "pair_100000.npz")
+    md, js = tmp_path / "refine.md", tmp_path / "refine.json"
+    base = ["bench", "refine", "--data", str(data), "--count", "1", "--weights", str(tiny_weights), "--lpips", "stlpips"]
+    assert main([*base, "--budgets", "0", "5", "--depth-scale", "0.5", "--out", str(md), "--json", str(js)]) == 0
+    text = md.read_text()
+    for needle in ("feed-forward + refine 5 s", "| feed-forward |", "blend the two keyframes", "--depth-scale 0.5", "bf16"):
+        assert needle in text
+    scores = json.loads(js.read_text())["pair_100000.npz"]
+    assert scores["5"]["steps"] >= 1 and scores["0"]["steps"] == 0
+    assert {"default", "without the depth sweep", "learning rates x2"} <= set(CHOICES)
+    few = {name: CHOICES[name] for name in ("default", "without the depth sweep")}
+    monkeypatch.setattr("drivingscene.bench.refine_choices.CHOICES", few)
+    assert main([*base, "--choices", "--steps", "1", "--out", str(md)]) == 0
+    text = md.read_text()
+    assert all(f"| {name} |" in text for name in ("model", *few))
