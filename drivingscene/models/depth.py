@@ -192,7 +192,7 @@ class DepthNet(nn.Module):
             depths.append(self.disparity_to_depth(up, intrinsics.float(), width)[:, 0])
         if self.matching is None or geometry is None:
             return DepthOutput(depth=depths[0], depths=depths, disparities=disps, features=feats, decoder_features=dec_feats)
-        matching = self.matching(feats, intrinsics, geometry, (height, width))
+        matching = self.matching(feats, images, intrinsics, geometry)
         half = matching.inverse_depth.shape[-2:]
         mono_half = self.disparity_to_depth(
             nn.functional.interpolate(disps[1].float(), size=half, mode="bilinear", align_corners=False), intrinsics.float(), width

@@ -204,24 +204,51 @@ def sweep_volume(
     depths: Tensor,  # [P]
     source_valid: Tensor | None,  # [B, H, W] bool
     backend: str = "auto",
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The sweep: costs ``[B, S, P, H, W]`` (`correlate`), the share of valid planes ``[B, S, H, W]``
-    and the parallax ``[B, S, H, W]`` (`sweep_parallax`). Without gradients on float32 CPU tensors
-    one compiled pass (render/csrc/matching.cpp) does all of it; otherwise the steps above."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The sweep: costs ``[B, S, P, H, W]`` (`correlate`), the share of valid planes ``[B, S, H, W]``,
+    the parallax ``[B, S, H, W]`` (`sweep_parallax`) and the validity ``[B, S, P, H, W]``. Without
+    gradients on float32 CPU tensors one compiled pass (render/csrc/matching.cpp) does all of it;
+    otherwise the steps above."""
     from drivingscene.render.cpp import select_op
 
     op = select_op("plane_sweep_volume", backend, features, rays)
     if op is not None:
         mask = source_valid if source_valid is not None else torch.zeros(0, dtype=torch.bool)
         sources = torch.where(present, sources, torch.full_like(sources, -1))
-        cost, share, parallax = op(features, rays, a, b, sources, depths, mask, MIN_SOURCE_Z)
-        return cost, share, parallax
+        cost, share, parallax, valid = op(features, rays, a, b, sources, depths, mask, MIN_SOURCE_Z)
+        return cost, share, parallax, valid
     with torch.no_grad():
         uv, z = sweep_coordinates(rays, a, b, depths)
         valid = sample_validity(uv, z, present, sources, source_valid)
         parallax = sweep_parallax(uv, valid)
     cost = correlate(features, sources, uv, valid, backend)
-    return cost, valid.float().mean(2), parallax
+    return cost, valid.float().mean(2), parallax, valid
+
+
+# Patch features: 5 x 5 luma patches, mean removed, divided by their norm (+ PATCH_EPS): their
+# cosine is a zero-normalised cross-correlation, the classic matching cost, which needs no
+# training and so transfers from procedural to real images. Flat patches get short vectors and
+# costs near 0, i.e. no opinion.
+PATCH = 5
+PATCH_EPS = 0.02
+
+
+def patch_features(images: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """``[B, PATCH^2, h, w]`` patch features of images ``[B, 3, H, W]`` (in [0, 1]) at ``size``,
+    and the log of each patch's standard deviation ``[B, 1, h, w]`` (how textured it is)."""
+    small = F.interpolate(images.float(), size=size, mode="area") if tuple(images.shape[-2:]) != tuple(size) else images.float()
+    luma = (small * small.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)).sum(1, keepdim=True)
+    pad = PATCH // 2
+    patches = F.unfold(F.pad(luma, (pad, pad, pad, pad), mode="replicate"), PATCH).view(-1, PATCH * PATCH, *size)
+    patches = patches - patches.mean(1, keepdim=True)
+    norm = torch.sqrt(patches.square().sum(1, keepdim=True))
+    return patches / (norm + PATCH_EPS), torch.log(norm / PATCH + 1e-3)
+
+
+def slot_mean(cost: Tensor, valid: Tensor) -> Tensor:
+    """``[B, P, H, W]``: per plane the mean cost ``[B, S, P, H, W]`` over the slots where it is valid (0: none)."""
+    count = valid.float().sum(1)
+    return cost.sum(1) / count.clamp(min=1.0)
 
 
 @dataclass
@@ -235,49 +262,61 @@ class MatchingOutput:
 
 
 class MatchingHead(nn.Module):
-    """Cost volume -> matching inverse depth and gate (module docstring).
+    """Cost volumes -> matching inverse depth and gate (module docstring).
 
-    Input features are D's encoder features at 1/2 and 1/4 of the network input; matching runs at
-    1/2. The decoder sees only the costs, their validity and parallax, and low-level image
-    features (for edges), not the monocular depth: it cannot learn to copy it."""
+    Two cost volumes: learnt features (from D's encoder at 1/2 and 1/4 of the network input) and
+    patch features (`patch_features`, not learnt). The logits over the planes start as the
+    slot-mean costs times learnt sharpness factors (so the matching depth is a soft
+    winner-takes-all from the first step) plus a correction that a small decoder adds; the
+    decoder sees the costs, their validity and parallax, the patch texture and the learnt
+    features, not the monocular depth: it cannot learn to copy it."""
 
     def __init__(self, enc_channels: tuple[int, ...], planes: int, near: float, far: float, channels: int, min_parallax: float):
         super().__init__()
         self.planes, self.near, self.far, self.min_parallax = planes, near, far, min_parallax
         self.features = nn.Sequential(ConvELU(enc_channels[0] + enc_channels[1], 32), nn.Conv2d(32, channels, 1))
-        cost_in = NUM_SLOTS * planes + 2 * NUM_SLOTS + channels
+        cost_in = NUM_SLOTS * planes + planes + 2 * NUM_SLOTS + 1 + channels
         self.squeeze = nn.Sequential(nn.Conv2d(cost_in, 32, 1), nn.ELU(inplace=True), ConvELU(32, 32))
         self.down = nn.Sequential(ConvELU(32, 48), ConvELU(48, 48))
         self.up = ConvELU(32 + 48, 32)
         self.out = ReplicateConv3x3(32, planes + 1)
-        nn.init.zeros_(self.out.weight)  # start with a flat softmax and a gate of sigmoid(-2)
+        nn.init.zeros_(self.out.weight)  # start with no correction and a gate of sigmoid(-2)
         nn.init.zeros_(self.out.bias)
         with torch.no_grad():
             self.out.bias[-1] = -2.0
+        # sharpness of the softmax over the planes, per cost volume: (learnt, patch)
+        self.sharpness = nn.Parameter(torch.tensor([0.0, 10.0]))
 
-    def forward(self, enc_features: list[Tensor], intrinsics: Tensor, geometry: ViewGeometry, image_size: tuple[int, int]) -> MatchingOutput:
-        """``enc_features``: D's encoder features; ``intrinsics`` ``[B, 3, 3]`` at ``image_size``
-        (the network input)."""
+    def forward(
+        self, enc_features: list[Tensor], images: Tensor, intrinsics: Tensor, geometry: ViewGeometry
+    ) -> MatchingOutput:
+        """``enc_features``: D's encoder features of ``images`` ``[B, 3, H, W]`` (in [0, 1]);
+        ``intrinsics`` ``[B, 3, 3]`` at the images' size."""
         half = enc_features[0]
         height, width = half.shape[-2:]
         feats = self.features(torch.cat([half, upsample_to(enc_features[1], half)], dim=1)).float()
         feats = F.normalize(feats, dim=1)
-        k = _scaled(intrinsics.float(), image_size, (height, width))
+        patches, texture = patch_features(images, (height, width))
+        k = _scaled(intrinsics.float(), tuple(images.shape[-2:]), (height, width))
         depths = plane_depths(self.planes, self.near, self.far, device=feats.device)
         with torch.no_grad():
             a, b, present = sweep_homographies(k, geometry)
             rays = target_rays(k, height, width)
             source_valid = None if geometry.valid is None else _resize_mask(geometry.valid, (height, width))
-        cost, share, parallax = sweep_volume(feats, rays, a, b, present, geometry.sources, depths, source_valid)
-        x = torch.cat([cost.flatten(1, 2), share, torch.log1p(parallax), feats], dim=1)
+        cost, share, parallax, valid = sweep_volume(feats, rays, a, b, present, geometry.sources, depths, source_valid)
+        with torch.no_grad():
+            patch_cost = slot_mean(sweep_volume(patches, rays, a, b, present, geometry.sources, depths, source_valid)[0], valid)
+        learnt = slot_mean(cost, valid)
+        x = torch.cat([cost.flatten(1, 2), patch_cost, share, torch.log1p(parallax), texture, feats], dim=1)
         x = self.squeeze(x)
         coarse = self.down(F.avg_pool2d(x, 2, ceil_mode=True))
         x = self.up(torch.cat([x, upsample_to(coarse, x, mode="bilinear")], dim=1))
-        logits = self.out(x).float()
-        weights = torch.softmax(logits[:, : self.planes], dim=1)
+        out = self.out(x).float()
+        logits = out[:, : self.planes] + self.sharpness[0] * learnt + self.sharpness[1] * patch_cost
+        weights = torch.softmax(logits, dim=1)
         inverse = (weights * (1.0 / depths).view(1, -1, 1, 1)).sum(1, keepdim=True)
         informative = ((parallax >= self.min_parallax) & (share > 0)).any(1, keepdim=True)
-        gate = torch.sigmoid(logits[:, self.planes :]) * informative
+        gate = torch.sigmoid(out[:, self.planes :]) * informative
         return MatchingOutput(inverse_depth=inverse, gate=gate, informative=informative, parallax=parallax)
 
 

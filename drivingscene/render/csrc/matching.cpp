@@ -176,8 +176,9 @@ at::Tensor plane_sweep_correlate_backward(const at::Tensor& features_in, const a
 // then per plane d: hom = d (a r) + b, z = hom_z, uv = hom_xy / max(z, 1e-6); valid where
 // z > min_z, uv inside [0, W - 1] x [0, H - 1], and (with masks) the source pixel nearest to uv
 // (rounded half to even, as torch.round) sees the world; the cost as plane_sweep_correlate; the
-// share of valid planes; the parallax, the summed |uv_{p+1} - uv_p| over consecutive valid planes
-// (models/matching.py: sweep_coordinates, sample_validity, sweep_parallax, correlate).
+// validity; the share of valid planes; the parallax, the summed |uv_{p+1} - uv_p| over
+// consecutive valid planes (models/matching.py: sweep_coordinates, sample_validity,
+// sweep_parallax, correlate).
 std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const at::Tensor& rays_in, const at::Tensor& a_in,
                                            const at::Tensor& b_in, const at::Tensor& sources_in, const at::Tensor& depths_in,
                                            const at::Tensor& source_valid_in, double min_z) {
@@ -199,6 +200,8 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
   at::Tensor cost = at::zeros({batch, slots, planes, height, width}, features.options());
   at::Tensor share = at::zeros({batch, slots, height, width}, features.options());
   at::Tensor parallax = at::zeros({batch, slots, height, width}, features.options());
+  at::Tensor valid = at::zeros({batch, slots, planes, height, width}, features.options().dtype(at::kBool));
+  bool* o_valid = valid.data_ptr<bool>();
   const float* feat = features.data_ptr<float>();
   const float* ray = rays.data_ptr<float>();
   const float* pa = a.data_ptr<float>();
@@ -240,6 +243,7 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
           }
           if (ok) {
             const Taps k = taps_of(u, v);
+            o_valid[((b_ * slots + s) * planes + p) * pixels + i] = true;
             o_cost[((b_ * slots + s) * planes + p) * pixels + i] =
                 tap(other, t, k.x0, k.y0, height, width, channels, k.w[0]) +
                 tap(other, t, k.x0 + 1, k.y0, height, width, channels, k.w[1]) +
@@ -257,7 +261,7 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
       }
     }
   });
-  return {cost, share, parallax};
+  return {cost, share, parallax, valid};
 }
 
 // see_through_votes: free-space carving (drivingscene.gaussians.visibility.see_through_votes). For
