@@ -19,7 +19,7 @@ from drivingscene.methods.refine_inputs import refine_inputs
 from drivingscene.methods.refine_params import RefineParams, gaussian_rays
 from drivingscene.methods.refine_render import view_set, views_loss
 
-FAST = dict(seconds=600.0, sweep=None, lpips_weight=0.0, views_per_step=2)
+FAST = dict(seconds=600.0, sweep=None, lpips_weight=0.0, views_per_step=2, threads=1)  # one thread: bit-exact reruns
 
 
 @pytest.fixture(scope="module")
@@ -107,13 +107,18 @@ def test_any_stop_leaves_a_valid_reconstruction(synth_pair, start, tmp_path):
     back = load_reconstruction(save_reconstruction(one, tmp_path / "one.npz"))
     torch.testing.assert_close(back.gaussians.means, one.gaussians.means)
     assert back.depth is not None and np.isfinite(back.depth).all() and back.rigid_flow is not None
-    stopped = refine(None, synth_pair, start, RefineConfig(**FAST), should_stop=lambda: True)
+    stopped = refine(None, synth_pair, start, RefineConfig(max_steps=5, **FAST), should_stop=lambda: True)
     assert stopped.meta["refinement"].get("steps", 0) == 0
     torch.testing.assert_close(stopped.gaussians.means, start.gaussians.means, atol=1e-4, rtol=0)
     assert validate_recon_arrays(recon_to_arrays(stopped)) == []
     calls = []
     cancelled = refine(
-        None, synth_pair, start, RefineConfig(**FAST), should_stop=lambda: len(calls) > 2, progress=lambda f, m: calls.append(m)
+        None,
+        synth_pair,
+        start,
+        RefineConfig(max_steps=20, **FAST),
+        should_stop=lambda: len(calls) > 2,
+        progress=lambda f, m: calls.append(m),
     )
     assert 1 <= cancelled.meta["refinement"]["steps"] <= 3
 
