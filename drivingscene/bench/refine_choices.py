@@ -24,7 +24,9 @@ CHOICES: dict[str, dict] = {
     "colour only": {"groups": ("color",)},
     "6 views per step, half the steps": {"views_per_step": 6, "steps": 0.5},
     "cosine decay of the rates": {"decay": True},
+    "L2 only (no LPIPS term)": {"lpips_weight": 0.0},
     "without the depth sweep": {"sweep": None},
+    "adapt D for 5 steps first": {"adapt_steps": 5},
 }
 
 

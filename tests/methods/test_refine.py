@@ -200,3 +200,25 @@ def test_flows_are_lifted_again_with_the_corrected_depth(synth_pair):
     # images whose depth was not corrected keep their flows
     untouched, made_static = relift_flows(local, rays, depth, rigid, ~every, inputs)
     assert made_static == 0 and torch.equal(untouched.flows, local.flows)
+
+
+def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair):
+    from drivingscene.models import DrivingSceneModel, ModelConfig
+    from drivingscene.models.depth import DepthConfig
+    from drivingscene.models.residual_flow import FlowConfig
+
+    torch.manual_seed(0)
+    config = ModelConfig(
+        depth=DepthConfig(width=8, decoder_channels=(8, 8, 16, 16, 32)), flow=FlowConfig(channels=(8, 8, 16, 16), hidden=8)
+    )
+    model = DrivingSceneModel(config).eval()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    from drivingscene.methods.feedforward import reconstruct
+
+    start = reconstruct(model, synth_pair)
+    out = refine(model, synth_pair, start, RefineConfig(adapt_steps=2, max_steps=1, **FAST))
+    adapt = out.meta["refinement"]["adapt"]
+    assert adapt["steps"] == 2 and all(np.isfinite(adapt["losses"]))
+    assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())  # the model itself is not touched
+    assert not np.array_equal(out.depth, start.depth)  # rebuilt from the adapted D
+    assert validate_recon_arrays(recon_to_arrays(out)) == []
