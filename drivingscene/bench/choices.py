@@ -2,7 +2,9 @@
 
 Each variant is a set of choices made after the networks: how the two keyframes' Gaussians are
 combined when rendering (``blend``), free-space carving (``carve``, gaussians/visibility.py),
-the search along the rigid flow (``search``) and the smallest dynamic region (``region``). For each,
+the search along the rigid flow (``search``) and how much better than the static world a moved
+match must be (``bonus``, MotionSearchConfig.static_bonus), the photometric check of the lift
+(``photo``) and the smallest dynamic region (``region``). For each,
 pair by pair on the same inputs: the input views rendered back at their keyframes, the
 intermediate frame on all and on moving pixels, the share of dynamic Gaussians (with the
 ground-truth share of moving pixels), and the seconds of the reconstruction. Run it on validation
@@ -38,18 +40,35 @@ class Variant:
     blend: str = "all"
     carve: str = "off"
     search: bool = True
-    region: int = 0  # LiftConfig.min_dynamic_region
+    region: int | None = None  # LiftConfig.min_dynamic_region; None: the default
+    bonus: float | None = None  # MotionSearchConfig.static_bonus; None: the default
+    photo: bool | None = None  # LiftConfig.photometric_check; None: the default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
 
         carve = None if self.carve == "off" else CarveConfig(voters=self.carve)
-        lift = replace(base.lift, min_dynamic_region=self.region)
-        return replace(base, carve=carve, search=base.search if self.search else None, lift=lift)
+        lift = base.lift
+        if self.region is not None:
+            lift = replace(lift, min_dynamic_region=self.region)
+        if self.photo is not None:
+            lift = replace(lift, photometric_check=self.photo)
+        search = base.search if self.search else None
+        if search is not None and self.bonus is not None:
+            search = replace(search, static_bonus=self.bonus)
+        return replace(base, carve=carve, search=search, lift=lift)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def parse_variant(text: str) -> Variant:
-    """A `Variant` from ``key=value,...`` with keys blend, carve, search."""
+    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
 
     values: dict = {"name": text}
@@ -63,10 +82,14 @@ def parse_variant(text: str) -> Variant:
             values["search"] = value == "on"
         elif key == "region" and value.isdigit():
             values["region"] = int(value)
+        elif key == "photo" and value in ("on", "off"):
+            values["photo"] = value == "on"
+        elif key == "bonus" and _is_number(value) and float(value) >= 0:
+            values["bonus"] = float(value)
         else:
             raise InputError(
-                f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off "
-                f"or region=PIXELS, found {item!r}"
+                f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
+                f"photo=on|off, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
             )
     return Variant(**values)
 

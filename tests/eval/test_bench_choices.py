@@ -17,6 +17,21 @@ def test_variants_parse_and_bad_ones_are_named():
     assert parse_variant("").blend == "all"
     with pytest.raises(InputError, match="'carve=maybe'"):
         parse_variant("carve=maybe")
+    with pytest.raises(InputError, match="'bonus=-1'"):
+        parse_variant("bonus=-1")
+
+
+def test_variant_options_change_only_what_they_name():
+    from drivingscene.methods.feedforward import InferenceOptions
+
+    base = InferenceOptions()
+    same = parse_variant("blend=layers").options(base)
+    assert same.search == base.search and same.lift == base.lift and same.carve is None
+    v = parse_variant("bonus=0.05,photo=on,region=12").options(base)
+    assert v.search.static_bonus == 0.05 and v.search.window == base.search.window
+    assert v.lift.photometric_check and v.lift.min_dynamic_region == 12
+    assert v.lift.dynamic_threshold_px == base.lift.dynamic_threshold_px
+    assert parse_variant("search=off,bonus=0.05").options(base).search is None
 
 
 def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
