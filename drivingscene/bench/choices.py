@@ -4,7 +4,8 @@ Each variant is a set of choices made after the networks: how the two keyframes'
 combined when rendering (``blend``), free-space carving (``carve``, gaussians/visibility.py),
 the search along the rigid flow (``search``) and how much better than the static world a moved
 match must be (``bonus``, MotionSearchConfig.static_bonus), the photometric check of the lift
-(``photo``) and the smallest dynamic region (``region``). For each,
+(``photo``), parallax before motion (``parallax``, LiftConfig.epipolar_static) and the
+smallest dynamic region (``region``). For each,
 pair by pair on the same inputs: the input views rendered back at their keyframes, the
 intermediate frame on all and on moving pixels, the share of dynamic Gaussians (with the
 ground-truth share of moving pixels), and the seconds of the reconstruction. Run it on validation
@@ -43,6 +44,7 @@ class Variant:
     region: int | None = None  # LiftConfig.min_dynamic_region; None: the default
     bonus: float | None = None  # MotionSearchConfig.static_bonus; None: the default
     photo: bool | None = None  # LiftConfig.photometric_check; None: the default
+    parallax: bool | None = None  # LiftConfig.epipolar_static; None: the default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -53,6 +55,8 @@ class Variant:
             lift = replace(lift, min_dynamic_region=self.region)
         if self.photo is not None:
             lift = replace(lift, photometric_check=self.photo)
+        if self.parallax is not None:
+            lift = replace(lift, epipolar_static=self.parallax)
         search = base.search if self.search else None
         if search is not None and self.bonus is not None:
             search = replace(search, static_bonus=self.bonus)
@@ -68,7 +72,7 @@ def _is_number(text: str) -> bool:
 
 
 def parse_variant(text: str) -> Variant:
-    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, bonus, region."""
+    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
 
     values: dict = {"name": text}
@@ -82,14 +86,14 @@ def parse_variant(text: str) -> Variant:
             values["search"] = value == "on"
         elif key == "region" and value.isdigit():
             values["region"] = int(value)
-        elif key == "photo" and value in ("on", "off"):
-            values["photo"] = value == "on"
+        elif key in ("photo", "parallax") and value in ("on", "off"):
+            values[key] = value == "on"
         elif key == "bonus" and _is_number(value) and float(value) >= 0:
             values["bonus"] = float(value)
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
+                f"photo=on|off, parallax=on|off, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
             )
     return Variant(**values)
 

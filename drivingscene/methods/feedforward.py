@@ -30,11 +30,13 @@ from drivingscene.models.pipeline import (
     LiftConfig,
     MotionSearchConfig,
     assemble,
+    explain_by_parallax,
     lift_scene_flow,
     predict_flow,
     predict_static,
     search_motion,
     sky_mask,
+    with_depth,
 )
 from drivingscene.precision import resolve_amp
 from drivingscene.resources import asset_path
@@ -158,10 +160,15 @@ def reconstruct(
         flow = search_motion(flow, batch, search, model.config.input_size)
         _sync(device)
         timings["search_s"] = time.perf_counter() - t1
+    net_width = model.config.input_size[1] if model.config.input_size else None
+    if flow is not None and options.lift.epipolar_static:
+        t1 = time.perf_counter()
+        depth, flow, _ = explain_by_parallax(depth, flow, sky, batch, options.lift, net_width)
+        static = with_depth(static, depth)
+        timings["parallax_s"] = time.perf_counter() - t1
     rigid = flow.rigid if flow is not None else None
     scene_flow = None
     if flow is not None:
-        net_width = model.config.input_size[1] if model.config.input_size else None
         scene_flow, _ = lift_scene_flow(
             depth, flow.total, flow.residual, sky, batch, options.lift, net_width, rigid=flow.rigid, behind=flow.behind
         )

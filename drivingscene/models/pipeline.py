@@ -66,6 +66,84 @@ class LiftConfig:
     # input size* stay static: moving objects are blobs, isolated moving pixels are noise of the
     # search or of R where the image is flat or the depth is off. 0: keep every dynamic pixel.
     min_dynamic_region: int = 0
+    # Parallax before motion: a candidate pixel whose total flow stays within ``epipolar_px`` (at the
+    # networks' input size) of its epipolar line in the other keyframe, and whose triangulated depth
+    # lies within [``epipolar_near``, ``epipolar_far``] m, is explained by a static surface at that
+    # depth (`explain_by_parallax`): it stays static and takes the triangulated depth. Motion along
+    # the epipolar line and a depth error cannot be told apart from two frames; for the keyframes
+    # and every time between them (pure translation) both project to the same pixels, so the static
+    # answer renders the same and moves nothing that does not need to move. Off: R's and the search's
+    # flow decide alone.
+    epipolar_static: bool = False
+    epipolar_px: float = 1.0
+    epipolar_near: float = 1.0
+    epipolar_far: float = 80.0
+
+
+def explain_by_parallax(
+    depth: Tensor,  # [2, V, H, W] z-depth
+    flow: FlowPrediction,
+    sky: Tensor,  # [2, V, H, W] bool
+    batch: PairTensors,
+    config: LiftConfig,
+    net_width: int | None = None,
+) -> tuple[Tensor, FlowPrediction, Tensor]:
+    """Candidate moving pixels that a static surface at another depth explains (`LiftConfig.epipolar_static`).
+
+    For each candidate (residual above the dynamic threshold, not sky, not `behind`) whose total
+    flow ends inside the other image (elsewhere nothing was matched), the flow's end point is compared with the epipolar line of the pixel in the same camera at the
+    other keyframe (capture poses from the batch) and triangulated along the pixel's ray (least
+    squares over both image axes). Returns the depth with the explained pixels at their
+    triangulated depth, the flow with their rigid flow set to the total flow (residual 0; the total
+    flow unchanged), and the ``[2, V, H, W]`` mask of explained pixels.
+    """
+    total, rigid = flow.total, flow.rigid
+    num_views, height, width = depth.shape[1:]
+    scale = width / net_width if net_width else 1.0
+    threshold = config.dynamic_threshold_px * scale
+    c2l = batch.cam_to_local.float()
+    k_inv = torch.linalg.inv(batch.intrinsics.float())
+    grid = pixel_grid(height, width, device=depth.device, dtype=torch.float32)  # [H, W, 2] (u, v)
+    ones = torch.ones_like(grid[..., :1])
+    pixels_h = torch.cat([grid, ones], -1)  # [H, W, 3]
+    depths, explained_all = [], []
+    for k in (0, 1):
+        o = 1 - k
+        candidate = ((total[k] - rigid[k]).square().sum(-1) > threshold**2) & ~sky[k]
+        if flow.behind is not None:
+            candidate &= ~flow.behind[k]
+        rel = torch.linalg.inv(c2l[o]) @ c2l[k]  # [V, 4, 4] camera at k -> the same camera at o
+        rot, trans = rel[:, :3, :3], rel[:, :3, 3]
+        rays = torch.einsum("vij,hwj->vhwi", k_inv, pixels_h)  # z = 1: the ray scaled by z-depth
+        a = torch.einsum("vij,vhwj->vhwi", rot, rays)  # the ray in the other camera's axes
+        target = torch.cat([grid + total[k].float(), ones.expand(num_views, -1, -1, -1)], -1)
+        x = torch.einsum("vij,vhwj->vhwi", k_inv, target)  # normalised coordinates of the end point
+        t = trans[:, None, None, :]
+        # lambda * (a_xy - x_xy a_z) = x_xy t_z - t_xy  (projection of lambda * a + t onto x)
+        coef = a[..., :2] - x[..., :2] * a[..., 2:3]
+        rhs = x[..., :2] * t[..., 2:3] - t[..., :2]
+        z = (coef * rhs).sum(-1) / coef.square().sum(-1).clamp_min(1e-12)
+        point = z[..., None] * a + t
+        proj = torch.einsum("vij,vhwj->vhwi", batch.intrinsics.float(), point)
+        proj = proj[..., :2] / proj[..., 2:3].clamp_min(1e-6)
+        off_line = (proj - target[..., :2]).norm(dim=-1)
+        ok = (point[..., 2] > NEAR_Z) & (z >= config.epipolar_near) & (z <= config.epipolar_far)
+        inside = (target[..., 0] >= 0) & (target[..., 0] <= width - 1) & (target[..., 1] >= 0) & (target[..., 1] <= height - 1)
+        explained = candidate & ok & inside & (off_line <= config.epipolar_px * scale) & torch.isfinite(z)
+        depths.append(torch.where(explained, z.to(depth.dtype), depth[k]))
+        explained_all.append(explained)
+    explained = torch.stack(explained_all)
+    new_rigid = torch.where(explained[..., None], total, rigid)
+    return torch.stack(depths), replace(flow, rigid=new_rigid, searched=total), explained
+
+
+def with_depth(static: StaticPrediction, depth: Tensor) -> StaticPrediction:
+    """``static`` at another ``depth`` ``[2, V, H, W]``: the pixels' Gaussians slide along their rays,
+    their scales follow the depth (log scales + log ratio); everything else as predicted."""
+    ratio = (depth.float() / static.depth.float().clamp_min(1e-6)).clamp_min(1e-6)
+    params = static.params
+    log_scales = params.log_scales + ratio.log().flatten(0, 1)[..., None].to(params.log_scales.dtype)
+    return replace(static, depth=depth.to(static.depth.dtype), params=replace(params, log_scales=log_scales))
 
 
 def drop_small_regions(mask: Tensor, min_pixels: float) -> Tensor:

@@ -40,7 +40,7 @@ def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
     save_frame_pair(synth_pair, data / "pair_100000.npz")
     out = tmp_path / "choices.md"
     args = ["bench", "choices", "--data", str(data), "--count", "1", "--weights", str(tiny_weights), "--out", str(out)]
-    assert main([*args, "--variant", "blend=all", "--variant", "blend=layers,carve=all"]) == 0
+    assert main([*args, "--variant", "blend=all", "--variant", "blend=layers,carve=all,parallax=on"]) == 0
     text = out.read_text()
-    assert "| blend=all |" in text and "| blend=layers,carve=all |" in text and "input views PSNR" in text
+    assert "| blend=all |" in text and "| blend=layers,carve=all,parallax=on |" in text and "input views PSNR" in text
     assert main(["bench", "choices", "--data", str(data), "--variant", "blend=nope"]) == 2

@@ -21,6 +21,7 @@ from drivingscene.models.pipeline import (
     predict_flow,
     predict_static,
     rigid_flows,
+    rigid_flows_and_behind,
     sky_mask,
 )
 from drivingscene.models.residual_flow import CameraDecoder, FlowConfig, ResidualFlowNet, decoder_slots, local_cost_volume
@@ -490,3 +491,57 @@ def test_small_dynamic_regions_are_dropped():
     assert kept[0, 0, 1:4, 1:4].all() and not kept[0, 0, 6, 8] and kept[1].sum() == 4
     assert drop_small_regions(mask, 10).sum() == 0
     assert torch.equal(drop_small_regions(mask, 0), mask)
+
+
+def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
+    """`explain_by_parallax`: a static world seen with half its depth (the total flow the true
+    rigid flow) is explained at its true depth, also with the ego turning; flow 4 px off the
+    epipolar line, or a point that would have to lie behind the camera, stays a candidate."""
+    from drivingscene.models.pipeline import FlowPrediction, explain_by_parallax, with_depth
+
+    g = torch.Generator().manual_seed(5)
+    pair = make_pair(num_views=3, height=24, width=32)
+    yaw = math.radians(6.0)
+    pair.ego_to_world[1, :2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    batch = pair_to_tensors(pair)
+    true_depth = 4.0 + 30.0 * torch.rand(2, 3, 24, 32, generator=g)
+    wrong = 0.5 * true_depth
+    true_rigid, behind = rigid_flows_and_behind(true_depth, batch)
+    rigid, behind_wrong = rigid_flows_and_behind(wrong, batch)
+    behind = behind | behind_wrong
+    sky = torch.zeros_like(wrong, dtype=torch.bool)
+    config = LiftConfig(dynamic_threshold_px=1.0, epipolar_static=True, epipolar_px=1.0, epipolar_near=1.0, epipolar_far=80.0)
+    flow = FlowPrediction(rigid=rigid, residuals=[true_rigid - rigid], warped_sources=torch.zeros(1), behind=behind)
+    depth, out, explained = explain_by_parallax(wrong, flow, sky, batch, config)
+    end = pixel_grid(24, 32) + true_rigid
+    inside = (end[..., 0] >= 0) & (end[..., 0] <= 31) & (end[..., 1] >= 0) & (end[..., 1] <= 23)
+    candidate = ((true_rigid - rigid).norm(dim=-1) > 1.0) & ~behind & inside
+    assert candidate.float().mean() > 0.2
+    assert explained[candidate].float().mean() > 0.95 and not explained[~candidate].any()
+    torch.testing.assert_close(depth[explained], true_depth[explained], rtol=2e-3, atol=1e-3)
+    assert torch.equal(depth[~explained], wrong[~explained])
+    assert torch.equal(out.total, flow.total) and (out.residual[explained] == 0).all()
+    # Moved 4 px across the epipolar line (the line's direction: from the far to the near point).
+    far_rigid, _ = rigid_flows_and_behind(2.0 * true_depth, batch)
+    along = F.normalize(true_rigid - far_rigid, dim=-1)
+    across = torch.stack([-along[..., 1], along[..., 0]], -1)
+    moved = replace(flow, residuals=[true_rigid + 4.0 * across - rigid])
+    assert not explain_by_parallax(wrong, moved, sky, batch, config)[2][candidate & (along.norm(dim=-1) > 0.5)].any()
+    # Pulling away faster than the ego: past the point at infinity on the line (the flow of a
+    # point infinitely far, the rotation's alone), which no static depth explains.
+    infinity, _ = rigid_flows_and_behind(torch.full_like(true_depth, 1e5), batch)
+    beyond = infinity - 0.5 * (true_rigid - infinity)
+    away = replace(flow, residuals=[beyond - rigid])
+    end = pixel_grid(24, 32) + beyond
+    inside = (end[..., 0] >= 0) & (end[..., 0] <= 31) & (end[..., 1] >= 0) & (end[..., 1] <= 23)
+    backwards = ((beyond - rigid).norm(dim=-1) > 1.0) & ~behind & ((true_rigid - infinity).norm(dim=-1) > 2.0) & inside
+    assert backwards.any() and not explain_by_parallax(wrong, away, sky, batch, config)[2][backwards].any()
+    # The Gaussians follow the new depth: scales by the same ratio.
+    from drivingscene.models.gaussian_head import PixelGaussians
+    from drivingscene.models.pipeline import StaticPrediction
+
+    params = PixelGaussians(
+        log_scales=torch.zeros(6, 24, 32, 3), quats=torch.zeros(6, 24, 32, 4), opacity_logits=torch.zeros(6, 24, 32), sh=torch.zeros(6, 24, 32, 1, 3)
+    )
+    static = with_depth(StaticPrediction(depth=wrong, depth_output=None, params=params), depth)
+    torch.testing.assert_close(static.params.log_scales[..., 0], (depth / wrong).log().flatten(0, 1))
