@@ -21,6 +21,7 @@ from app.loader import DEMO_SCENE, METHODS
 from app.renderer import MODES
 from app.splats import BLEND_MODES
 from drivingscene.cli.common import OneLineParser, run_reporting_errors, unit_interval
+from drivingscene.gaussians.core import DEFAULT_BLEND
 
 PROG = "drivingscene-view"
 
@@ -54,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--camera", action="append", metavar="NAME", help="rig camera to render (repeatable; default all)")
     p.add_argument("--mode", choices=MODES, default="rgb", help="what to render (headless)")
-    p.add_argument("--blend", choices=BLEND_MODES, default="all", help="how both keyframes' Gaussians combine at time t")
+    p.add_argument("--blend", choices=BLEND_MODES, default=DEFAULT_BLEND, help="how both keyframes' Gaussians combine at time t")
     p.add_argument("--size", type=image_size, default=(1280, 720), metavar="WxH", help="overview / window size")
     p.add_argument("--no-ply", action="store_true", help="headless: skip the PLY")
     p.add_argument("--force", action="store_true", help="headless/bench: overwrite existing output files")

@@ -17,6 +17,7 @@ import numpy as np
 
 from app.camera import ViewCamera
 from app.splats import BLEND_MODES, SplatArrays, covariances
+from drivingscene.gaussians.core import DEFAULT_BLEND
 from drivingscene.gl import load_program
 
 TEX_W = 4096
@@ -26,7 +27,7 @@ MODES = ("rgb", "depth", "dynamic", "flow")
 @dataclass(frozen=True)
 class RenderOptions:
     mode: str = "rgb"
-    blend: str = "all"
+    blend: str = DEFAULT_BLEND
     show_selection: bool = True
     flow_max: float = 1.0  # metres at the top of the flow-magnitude colour map
     near: float = 0.01  # metres (camera z), as the torch rasterizer

@@ -16,7 +16,7 @@ import torch
 
 from app.edits import CompoundEdit, DeleteEdit, Edit, FlowEdit, HideEdit, History, ReplaceEdit, SelectEdit
 from app.splats import SplatArrays
-from drivingscene.gaussians.core import Gaussians
+from drivingscene.gaussians.core import DEFAULT_BLEND, Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 
 SELECT_MODES = ("replace", "add", "subtract")
@@ -30,7 +30,7 @@ class ViewState:
     playing: bool = False
     loop: bool = True
     speed: float = 0.25  # playback speed relative to real time
-    blend: str = "all"
+    blend: str = DEFAULT_BLEND
     mode: str = "rgb"
     show_frusta: bool = True
     show_path: bool = True

@@ -119,19 +119,11 @@ def depth_scores(recon, pair) -> dict[str, dict[str, list[float]]]:
 
 
 def render_keyframes(recon, pair) -> torch.Tensor:
-    """``[2, V, H, W, 3]``: the reconstruction at t = 0 and 1 from the input cameras' capture poses."""
-    from drivingscene.geometry.se3 import invert_rigid
-    from drivingscene.render.scene import render_gaussians
+    """``[2, V, H, W, 3]``: the reconstruction at its keyframes from the input cameras' capture
+    poses and times, in the default blend (`render_input_views`)."""
+    from drivingscene.render.scene import render_input_views
 
-    height, width = pair.image_size
-    cams = torch.from_numpy(np.array(pair.camera_ego_poses())) @ torch.from_numpy(pair.cam_to_ego).double()
-    k = torch.from_numpy(pair.intrinsics).float()
-    g = recon.visible()
-    frames = [
-        render_gaussians(g, float(t), invert_rigid(cams[t]), k, height, width, sky_sh=recon.sky_sh).colors.clamp(0, 1)
-        for t in (0, 1)
-    ]
-    return torch.stack(frames)
+    return render_input_views(recon, pair)
 
 
 def _methods(args):

@@ -86,6 +86,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--no-search", action="store_true", help="R's flow as it is, without the search along the rigid flow (ablation)"
     )
+    p.add_argument(
+        "--no-parallax",
+        action="store_true",
+        help="every pixel R and the search move stays dynamic, also where a static surface at another depth "
+        "explains its flow (docs/depth.md, parallax before motion)",
+    )
     p.add_argument("--threads", type=positive_int, default=None)
     add_amp_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
@@ -173,6 +179,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     options = InferenceOptions(use_residual=not args.static_only, amp=args.amp, threads=args.threads)
     if args.no_search:
         options = replace(options, search=None)
+    if args.no_parallax:
+        options = replace(options, lift=replace(options.lift, epipolar_static=False))
     recon = reconstruct(model, pair, options)
     if config is not None:
         recon = run_refinement(model, pair, recon, config)

@@ -24,6 +24,7 @@ import torch
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.eval.lpips import PerceptualMetric
 from drivingscene.eval.metrics import depth_metrics, lpips_distance, psnr, ssim
+from drivingscene.gaussians.core import DEFAULT_BLEND
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.geometry.flow import forward_backward_consistency
 
@@ -69,7 +70,7 @@ def score_frames(
 
 
 def score_novel_views(
-    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None, blend: str = "all"
+    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None, blend: str = DEFAULT_BLEND
 ) -> dict[str, float]:
     """`score_frames` of the reconstruction rendered at the pair's intermediate frames."""
     from drivingscene.render.scene import render_eval_frames
@@ -123,7 +124,7 @@ def score_flow(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
 
 @torch.no_grad()
 def score_reconstruction(
-    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None = None, blend: str = "all"
+    recon: Reconstruction, pair: FramePair, perceptual: PerceptualMetric | None = None, blend: str = DEFAULT_BLEND
 ) -> dict[str, float]:
     """Every available score of ``recon`` on ``pair`` as a flat dict of floats (NaN = not defined)."""
     out: dict[str, float] = {"gaussians": float(len(recon.visible())), "dynamic_gaussians": float(recon.visible().dynamic.sum())}

@@ -161,17 +161,24 @@ def reconstruct(
         _sync(device)
         timings["search_s"] = time.perf_counter() - t1
     net_width = model.config.input_size[1] if model.config.input_size else None
-    if flow is not None and options.lift.epipolar_static:
-        t1 = time.perf_counter()
-        depth, flow, _ = explain_by_parallax(depth, flow, sky, batch, options.lift, net_width)
-        static = with_depth(static, depth)
-        timings["parallax_s"] = time.perf_counter() - t1
-    rigid = flow.rigid if flow is not None else None
     scene_flow = None
     if flow is not None:
-        scene_flow, _ = lift_scene_flow(
+        scene_flow, dynamic = lift_scene_flow(
             depth, flow.total, flow.residual, sky, batch, options.lift, net_width, rigid=flow.rigid, behind=flow.behind
         )
+        if options.lift.epipolar_static:  # moving pixels that parallax explains: static, at their triangulated depth
+            t1 = time.perf_counter()
+            candidates = dynamic
+            if options.lift.epipolar_candidates == "residual":
+                threshold = options.lift.dynamic_threshold_px * (depth.shape[-1] / net_width if net_width else 1.0)
+                candidates = dynamic | ((flow.residual.square().sum(-1) > threshold**2) & ~sky)
+                if flow.behind is not None:
+                    candidates &= ~flow.behind
+            depth, flow, explained = explain_by_parallax(depth, flow, candidates, batch, options.lift, net_width)
+            scene_flow = torch.where(explained[..., None], torch.zeros_like(scene_flow), scene_flow)
+            static = with_depth(static, depth)
+            timings["parallax_s"] = time.perf_counter() - t1
+    rigid = flow.rigid if flow is not None else None
     _sync(device)
     timings["flow_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -7,7 +7,7 @@ import torch
 from torch import Tensor
 
 from drivingscene.errors import InputError
-from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
+from drivingscene.gaussians.core import DEFAULT_BLEND, Gaussians, sh0_to_rgb
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.render.rasterize import RenderOutput, rasterize
 from drivingscene.render.sky import ray_directions, sky_colors
@@ -78,7 +78,7 @@ def render_layers(
     nearer of two slightly misplaced copies of a surface win outright, which doubles edges; the
     blend degrades to a cross-fade instead (docs/results.md measures both)."""
     layers = [
-        render_gaussians(gaussians.index(gaussians.keyframes == k), t, world_to_cam, intrinsics, height, width, **kwargs)
+        render_gaussians(gaussians.index(gaussians.keyframes == k), t, world_to_cam, intrinsics, height, width, blend="all", **kwargs)
         for k in (0, 1)
     ]
     t = float(t)
@@ -94,7 +94,7 @@ def render_layers(
     return RenderOutput(colors=colors, depths=depths, alphas=torch.maximum(layers[0].alphas, layers[1].alphas))
 
 
-def render_eval_frames(recon, pair, blend: str = "all", **raster_kwargs) -> Tensor:
+def render_eval_frames(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs) -> Tensor:
     """Renders ``[M, V, H, W, 3]`` of a reconstruction at the scene's intermediate frames, each
     camera at the exact ego pose and time recorded for its image (not interpolated)."""
     if pair.num_eval == 0:
@@ -128,13 +128,13 @@ def render_eval_frames(recon, pair, blend: str = "all", **raster_kwargs) -> Tens
     return torch.stack(frames)
 
 
-def render_input_views(recon, pair, blend: str = "all", **raster_kwargs) -> Tensor:
+def render_input_views(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs) -> Tensor:
     """Renders ``[2, V, H, W, 3]`` of a reconstruction at its own keyframes, each camera at the
     pose and time its input image was taken: how well the Gaussians reproduce their inputs."""
     height, width = pair.image_size
     cams = torch.from_numpy(np.array(pair.camera_ego_poses())) @ torch.from_numpy(pair.cam_to_ego).double()
     k = torch.from_numpy(pair.intrinsics).float()
-    times = np.zeros((2, pair.num_views)) if pair.camera_timestamps is None else pair.normalised_time(pair.camera_timestamps)
+    times = np.repeat([[0.0], [1.0]], pair.num_views, 1) if pair.camera_timestamps is None else pair.normalised_time(pair.camera_timestamps)
     g = recon.visible()
     frames = torch.empty(2, pair.num_views, height, width, 3)
     for key in (0, 1):

@@ -42,7 +42,12 @@ class Session:
             if n >= frames and (until is None or until()) and (self.win.idle or not settle):
                 return
             time.sleep(0.01)
-        raise TimeoutError(f"the viewer did not settle within {timeout} s")
+        v = self.win.viewer
+        raise TimeoutError(
+            f"the viewer did not settle within {timeout} s (until: {until is None or until()}, moving {v.moving}, "
+            f"job {v.job}, task {v.task}, doc {v.doc is not None}, settled {v.doc is not None and v.viewport.settled}, "
+            f"dragging {self.win._dragging}, status {v.status.text!r})"
+        )
 
     def move(self, x: float, y: float, settle: bool = True) -> None:
         _xdo("mousemove", "--window", self.wid, str(int(x)), str(int(y)))

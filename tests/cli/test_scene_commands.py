@@ -102,26 +102,30 @@ def test_reconstruct_device_errors_are_one_line(tmp_path, small_pair, capsys, de
 
 def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_pair):
     """The shipped model: the searched flow is, per pixel, R's flow (refined down to the search's
-    proposal level) or a multiple of the rigid flow on the search's grid; --no-search keeps R's
-    (every level); --static-only moves nothing."""
+    proposal level) or a multiple of the rigid flow on the search's grid (--no-parallax: the rigid
+    flow as D's depth makes it); --no-search keeps R's (every level); --static-only moves nothing;
+    by default parallax explains some of the moving pixels (fewer dynamic Gaussians)."""
     import numpy as np
 
     from drivingscene.gaussians.recon import load_reconstruction
-    from drivingscene.methods.feedforward import load_model, reconstruct
-    from drivingscene.models.pipeline import MotionSearchConfig, predict_flow
+    from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+    from drivingscene.models.pipeline import LiftConfig, MotionSearchConfig, predict_flow
 
     scene = save_frame_pair(synth_pair, tmp_path / "scene.npz")
     recons = {}
-    for name, extra in (("full", []), ("r_alone", ["--no-search"]), ("static", ["--static-only"])):
+    runs = (("full", ["--no-parallax"]), ("r_alone", ["--no-search", "--no-parallax"]), ("static", ["--static-only"]), ("default", []))
+    for name, extra in runs:
         assert main(["reconstruct", str(scene), "-o", str(tmp_path / f"{name}.npz"), *extra]) == 0
         recons[name] = load_reconstruction(tmp_path / f"{name}.npz")
     assert not recons["static"].gaussians.dynamic.any() and recons["full"].gaussians.dynamic.any()
+    assert recons["default"].gaussians.dynamic.sum() < recons["full"].gaussians.dynamic.sum()
     full, alone = recons["full"], recons["r_alone"]
     rigid = full.rigid_flow
     total, r_total = rigid + full.residual_flow, rigid + alone.residual_flow
     assert not np.allclose(total, r_total, atol=1e-2)
     level = MotionSearchConfig().proposal_level
-    proposal = reconstruct(load_model(), synth_pair, flow_predictor=lambda m, b, d: predict_flow(m, b, d, level))
+    no_parallax = InferenceOptions(lift=LiftConfig(epipolar_static=False))
+    proposal = reconstruct(load_model(), synth_pair, no_parallax, flow_predictor=lambda m, b, d: predict_flow(m, b, d, level))
     assert not np.allclose(proposal.residual_flow, alone.residual_flow, atol=1e-2)  # R's finest level does change it
     is_r = np.abs(total - (rigid + proposal.residual_flow)).max(-1) < 1e-2
     grid = MotionSearchConfig().scales().numpy()

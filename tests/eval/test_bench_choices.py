@@ -8,13 +8,14 @@ from drivingscene.bench.choices import parse_variant
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
 from drivingscene.errors import InputError
+from drivingscene.gaussians.core import DEFAULT_BLEND
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
 
 
 def test_variants_parse_and_bad_ones_are_named():
     v = parse_variant("blend=layers,carve=same_time,search=off")
     assert (v.blend, v.carve, v.search) == ("layers", "same_time", False)
-    assert parse_variant("").blend == "all"
+    assert parse_variant("").blend == DEFAULT_BLEND
     with pytest.raises(InputError, match="'carve=maybe'"):
         parse_variant("carve=maybe")
     with pytest.raises(InputError, match="'bonus=-1'"):

@@ -496,7 +496,8 @@ def test_small_dynamic_regions_are_dropped():
 def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
     """`explain_by_parallax`: a static world seen with half its depth (the total flow the true
     rigid flow) is explained at its true depth, also with the ego turning; flow 4 px off the
-    epipolar line, or a point that would have to lie behind the camera, stays a candidate."""
+    epipolar line, or a point that would have to lie behind the camera, is not explained; without
+    enough parallax or texture along the line a pixel is explained but keeps its depth."""
     from drivingscene.models.pipeline import FlowPrediction, explain_by_parallax, with_depth
 
     g = torch.Generator().manual_seed(5)
@@ -509,13 +510,13 @@ def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
     true_rigid, behind = rigid_flows_and_behind(true_depth, batch)
     rigid, behind_wrong = rigid_flows_and_behind(wrong, batch)
     behind = behind | behind_wrong
-    sky = torch.zeros_like(wrong, dtype=torch.bool)
-    config = LiftConfig(dynamic_threshold_px=1.0, epipolar_static=True, epipolar_px=1.0, epipolar_near=1.0, epipolar_far=80.0)
+    config = LiftConfig(epipolar_static=True, epipolar_px=1.0, epipolar_near=1.0, epipolar_far=80.0, epipolar_min_parallax=0.0)
     flow = FlowPrediction(rigid=rigid, residuals=[true_rigid - rigid], warped_sources=torch.zeros(1), behind=behind)
-    depth, out, explained = explain_by_parallax(wrong, flow, sky, batch, config)
+    tested = ((true_rigid - rigid).norm(dim=-1) > 1.0) & ~behind  # what the lift would call moving
+    depth, out, explained = explain_by_parallax(wrong, flow, tested, batch, config)
     end = pixel_grid(24, 32) + true_rigid
     inside = (end[..., 0] >= 0) & (end[..., 0] <= 31) & (end[..., 1] >= 0) & (end[..., 1] <= 23)
-    candidate = ((true_rigid - rigid).norm(dim=-1) > 1.0) & ~behind & inside
+    candidate = tested & inside
     assert candidate.float().mean() > 0.2
     assert explained[candidate].float().mean() > 0.95 and not explained[~candidate].any()
     torch.testing.assert_close(depth[explained], true_depth[explained], rtol=2e-3, atol=1e-3)
@@ -526,7 +527,7 @@ def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
     along = F.normalize(true_rigid - far_rigid, dim=-1)
     across = torch.stack([-along[..., 1], along[..., 0]], -1)
     moved = replace(flow, residuals=[true_rigid + 4.0 * across - rigid])
-    assert not explain_by_parallax(wrong, moved, sky, batch, config)[2][candidate & (along.norm(dim=-1) > 0.5)].any()
+    assert not explain_by_parallax(wrong, moved, tested, batch, config)[2][candidate & (along.norm(dim=-1) > 0.5)].any()
     # Pulling away faster than the ego: past the point at infinity on the line (the flow of a
     # point infinitely far, the rotation's alone), which no static depth explains.
     infinity, _ = rigid_flows_and_behind(torch.full_like(true_depth, 1e5), batch)
@@ -535,7 +536,11 @@ def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
     end = pixel_grid(24, 32) + beyond
     inside = (end[..., 0] >= 0) & (end[..., 0] <= 31) & (end[..., 1] >= 0) & (end[..., 1] <= 23)
     backwards = ((beyond - rigid).norm(dim=-1) > 1.0) & ~behind & ((true_rigid - infinity).norm(dim=-1) > 2.0) & inside
-    assert backwards.any() and not explain_by_parallax(wrong, away, sky, batch, config)[2][backwards].any()
+    assert backwards.any() and not explain_by_parallax(wrong, away, backwards, batch, config)[2].any()
+    # Too little parallax (or texture along the line) to tell the depth: static at the network's depth.
+    for strict in (dict(epipolar_min_parallax=1e3), dict(epipolar_min_texture=1e3)):
+        kept, kept_flow, same = explain_by_parallax(wrong, flow, tested, batch, replace(config, **strict))
+        assert torch.equal(same, explained) and torch.equal(kept, wrong) and torch.equal(kept_flow.rigid, rigid)
     # The Gaussians follow the new depth: scales by the same ratio.
     from drivingscene.models.gaussian_head import PixelGaussians
     from drivingscene.models.pipeline import StaticPrediction

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -58,3 +60,20 @@ def test_with_one_keyframe_layers_is_the_plain_render(t):
     plain = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=torch.tensor([0.1, 0.1, 0.1]))
     layers = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=torch.tensor([0.1, 0.1, 0.1]), blend="layers")
     torch.testing.assert_close(layers.colors, plain.colors, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("blend", ["all", "layers"])
+def test_input_views_render_each_keyframe_at_its_own_time(synth_pair, blend):
+    """`render_input_views` of the oracle (exact depth, both keyframes) reproduces the inputs of
+    both keyframes equally well: keyframe 1's cameras are rendered at t = 1 (a pair without
+    per-image capture times), not at t = 0."""
+    from drivingscene.eval.metrics import psnr
+    from drivingscene.methods.oracle import oracle_reconstruction
+    from drivingscene.render.scene import render_input_views
+
+    pair = dataclasses.replace(synth_pair, camera_timestamps=None, camera_ego_to_world=None)
+    recon = oracle_reconstruction(pair)
+    views = render_input_views(recon, pair, blend=blend).flatten(0, 1).permute(0, 3, 1, 2)
+    inputs = torch.from_numpy(pair.images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
+    scores = psnr(views, inputs).view(2, -1).mean(1)
+    assert scores.min() > 22 and abs(float(scores[0] - scores[1])) < 3
