@@ -44,10 +44,12 @@ clean-venv:
 # frames: they go to $(OUT)/real-data (not committed; the data is not ours to redistribute).
 REAL ?= ../shared/real/ddad_scene_02
 REAL_OUT ?= data/real
+# Refinement rows (docs/refinement.md): budgets in seconds, and again fitting half of the LiDAR.
+REAL_REFINE ?= --refine 10 30 --lidar
 real-data: setup
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 1 -o $(REAL_OUT)/ddad02_0-1.npz --force
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 1 2 -o $(REAL_OUT)/ddad02_1-2.npz --force
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 2 --eval 1 -o $(REAL_OUT)/ddad02_0-2.npz --force
 	$(VENV)/bin/drivingscene bench real $(REAL_OUT)/ddad02_0-1.npz $(REAL_OUT)/ddad02_1-2.npz $(REAL_OUT)/ddad02_0-2.npz \
 		--names "DDAD scene_02, 0->1" "DDAD scene_02, 1->2" "DDAD scene_02, 0->2 (1 held out)" \
-		--notes docs/real-data-notes.md --out docs/real-data.md --json docs/real-data.json --images $(OUT)/real-data
+		--notes docs/real-data-notes.md --out docs/real-data.md --json docs/real-data.json --images $(OUT)/real-data $(REAL_REFINE)
