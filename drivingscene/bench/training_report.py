@@ -64,7 +64,8 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
     terms = [t for t in TERMS if any(t in r for _, _, recs in runs for r in recs)]
     fig, axes = plt.subplots(1, len(terms) + 1, figsize=(3.2 * (len(terms) + 1), 3.0))
     for i, (name, _, recs) in enumerate(runs):
-        color = f"C{i}"  # one colour per run in every panel
+        # one colour per run in every panel: the ten dark tab20 hues first, then their light ones
+        color = plt.get_cmap("tab20")((2 * i) % 20 + (2 * i // 20) % 2) if len(runs) > 10 else f"C{i}"
         steps = [r["step"] for r in recs]
         for ax, term in zip(axes, terms):
             values = [r.get(term, math.nan) for r in recs]
