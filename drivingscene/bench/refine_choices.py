@@ -100,7 +100,7 @@ def speed_rows(model, pair, steps: int = 4) -> list[dict]:
     sweep = []
     for threads in (1, 2):
         config = RefineConfig(seconds=1e9, groups=(), threads=threads)
-        sweep.append({"threads": threads, "seconds": refine(model, pair, base, config).meta["sweep"]["seconds"]})
+        sweep.append({"threads": threads, "seconds": refine(model, pair, base, config).meta["refinement"]["sweep"]["seconds"]})
     return rows + [{"sweep": sweep, "gaussians": len(base.gaussians), "size": list(pair.image_size)}]
 
 
