@@ -82,23 +82,25 @@ def choices_report(scores: dict, lpips_name: str) -> str:
     return "\n".join(lines) + "\n\nIn-between PSNR per pair:\n\n" + "\n".join(per) + "\n"
 
 
-def speed_rows(model, pair, steps: int = 4) -> list[dict]:
+def speed_rows(
+    model, pair, steps: int = 4, threads_list=(1, 2), views_list=(1, 3, 6), scale_list=(1.0, 0.5)
+) -> list[dict]:
     """Seconds per step for views per step x image scale x threads on one pair."""
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import refine
 
     base = reconstruct(model, pair)
     rows = []
-    for threads in (1, 2):
-        for views in (1, 3, 6):
-            for scale in (1.0, 0.5):
+    for threads in threads_list:
+        for views in views_list:
+            for scale in scale_list:
                 config = RefineConfig(
                     seconds=1e9, max_steps=steps, sweep=None, views_per_step=views, scales=((0.0, scale),), threads=threads
                 )
                 times = refine(model, pair, base, config).meta["refinement"]["step_times"][1:]
                 rows.append({"threads": threads, "views": views, "scale": scale, "step_s": statistics.median(times)})
     sweep = []
-    for threads in (1, 2):
+    for threads in threads_list:
         config = RefineConfig(seconds=1e9, groups=(), threads=threads)
         sweep.append({"threads": threads, "seconds": refine(model, pair, base, config).meta["refinement"]["sweep"]["seconds"]})
     return rows + [{"sweep": sweep, "gaussians": len(base.gaussians), "size": list(pair.image_size)}]

@@ -41,3 +41,15 @@ def test_bench_refine_budgets_and_choices(synth_pair, tiny_weights, tmp_path, mo
     assert main([*base, "--choices", "--steps", "1", "--out", str(md)]) == 0
     text = md.read_text()
     assert all(f"| {name} |" in text for name in ("model", *few))
+
+
+def test_bench_refine_speed_table(synth_pair, tiny_weights):  # noqa: F811
+    """--speed's rows (a small grid here): seconds per step per setting and the depth sweep's seconds."""
+    from drivingscene.bench.refine_choices import speed_report, speed_rows
+    from drivingscene.methods.feedforward import load_model
+
+    rows = speed_rows(load_model(tiny_weights), synth_pair, steps=2, threads_list=(1,), views_list=(1, 3), scale_list=(0.5,))
+    text = speed_report(rows)
+    assert "the depth sweep:" in text and "on 1 thread(s)" in text
+    lines = [line for line in text.splitlines() if line.startswith("| 1 |")]
+    assert len(lines) == 2 and all(float(line.split("|")[4]) > 0 for line in lines)

@@ -56,12 +56,18 @@ def test_resolved_config_round_trip(machine):
 
 
 def test_old_configs_load():
-    """Saved before the choice was automatic: ``amp: true`` was the default (auto now), false was --no-amp."""
+    """Saved before the choice was automatic: ``amp: true`` was the default (auto now), false was --no-amp.
+    Saved after: ``amp_auto`` says whether ``amp`` was the machine's choice (made again on loading)."""
+    old_runs = 0
     for path in sorted(RUNS.glob("*/config.json")):
         data = json.loads(path.read_text())
-        assert "amp_auto" not in data
         config = TrainConfig.from_dict(data)
+        if "amp_auto" in data:
+            assert config.amp is (None if data["amp_auto"] else data["amp"]), path
+            continue
+        old_runs += 1
         assert config.amp is (None if data["amp"] else False), path
+    assert old_runs > 0
     old = {k: v for k, v in TrainConfig().to_dict().items() if k != "amp_auto"}
     assert TrainConfig.from_dict({**old, "amp": False}).amp is False
     assert TrainConfig.from_dict({**old, "amp": True}).amp is None
