@@ -74,8 +74,8 @@ class LiftConfig:
     # and every time between them (pure translation) both project to the same pixels, so the static
     # answer renders the same and moves nothing that does not need to move. Off: R's and the search's
     # flow decide alone. On, with 4 px of parallax, chosen on validation pairs (data/val176 and
-    # data/val176rand, `drivingscene bench choices`; docs/depth.md): 17 % dynamic Gaussians became
-    # 4.5 %, depth AbsRel 0.391 -> 0.373, the in-between frame within 0.03 dB.
+    # data/val176rand, `drivingscene bench choices`, docs/choices.md): 12-15 % dynamic Gaussians
+    # became 3 %, depth and the in-between frame as they were (within 0.006 AbsRel and 0.15 dB).
     epipolar_static: bool = True
     epipolar_px: float = 1.0
     epipolar_near: float = 1.0
