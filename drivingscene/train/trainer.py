@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import replace
@@ -225,6 +226,27 @@ def _record_session(out: Path, start: int, world: int, config: TrainConfig) -> N
         f.write(json.dumps(record) + "\n")
 
 
+# The validation score that `keep_best` ranks checkpoints by (higher is better).
+BEST_KEY = "psnr"
+
+
+def keep_best(out: Path, model, config, step: int, val: dict, info: dict) -> bool:
+    """Export the weights as ``best.safetensors`` (+ ``best.json`` with the step and its validation)
+    when their validation ``BEST_KEY`` beats the one kept so far (also across ``--resume``): the
+    rolling step checkpoints keep only the last few, and validation is noisy from one evaluation to
+    the next. Returns whether it was kept."""
+    score = val.get(BEST_KEY)
+    if score is None or not math.isfinite(score):
+        return False
+    kept = out / "best.json"
+    if kept.exists():
+        previous = json.loads(kept.read_text()).get("val", {}).get(BEST_KEY)
+        if previous is not None and previous >= score:
+            return False
+    export_weights(model, config.model.to_dict(), out / "best.safetensors", {**info, "steps": step, "val": val})
+    return True
+
+
 def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info, val_files, bar) -> None:
     record = {
         "step": step,
@@ -235,6 +257,7 @@ def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info,
     }
     if step % config.val_every == 0 and val_files:
         record["val"] = validate(model, val_files, config)
+        keep_best(out, model, config, step, record["val"], info)
         model.train()
     if step % config.log_every == 0 or "val" in record:
         with open(out / "log.jsonl", "a") as f:

@@ -267,3 +267,22 @@ def test_depth_supervision_term_in_stage_one(data_dir, tmp_path):
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert all(r["depth_sup"] > 0 for r in records)
     assert json.loads((out / "config.json").read_text())["weights"]["depth_sup"] == 0.5
+
+
+def test_the_validation_best_weights_are_kept(data_dir, tmp_path, monkeypatch):
+    """best.safetensors holds the weights of the best validation so far (rolling checkpoints keep the
+    last two only); a worse later validation does not replace them, a better one does."""
+    from drivingscene.train import trainer
+
+    scores = iter([18.0, 19.5, 19.0, 20.0])
+    monkeypatch.setattr(trainer, "validate", lambda model, files, config: {"psnr": next(scores), "depth_abs_rel": 0.1})
+    out = tmp_path / "run"
+    config = _config(data_dir, out, stage="static", steps=3, val_every=1, val_data=str(data_dir))
+    train(config, show_progress=False)
+    kept = json.loads((out / "best.json").read_text())
+    assert kept["steps"] == 2 and kept["val"]["psnr"] == 19.5
+    best = load_file(str(out / "best.safetensors"))
+    final = load_file(str(out / "model.safetensors"))
+    assert best.keys() == final.keys() and any(not torch.equal(best[k], final[k]) for k in best)
+    train(replace(config, steps=4), resume=True, show_progress=False)  # resumed: a better score replaces it
+    assert json.loads((out / "best.json").read_text())["steps"] == 4
