@@ -27,6 +27,18 @@ def synth_pair():
     return generate_pair(SynthConfig(height=64, width=112), 200000, renderer)
 
 
+@pytest.fixture
+def one_thread():
+    """Torch on one thread for the test, as refinement and its depth sweep run on a busy machine
+    (``RefineConfig.threads``; two threads stall each other on a shared CPU)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="session")
 def compiled_kernels():
     """The optional compiled CPU kernels (built once per session, ~15 s the first time); skips,

@@ -1,1 +1,21 @@
 """Benchmark commands (``drivingscene bench <name>``). Each module: ``add_arguments`` and ``run``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def write_report(text: str, out: Path | None, json_path: Path | None = None, data=None, announce: bool = True) -> None:
+    """The markdown report to ``out`` (atomically, saying so when ``announce``) or, without ``out``,
+    to stdout; ``data`` as indented JSON to ``json_path`` when given."""
+    from drivingscene.data.npz import atomic_write
+
+    if out is not None:
+        atomic_write(out, lambda f: f.write(text.encode()))
+        if announce:
+            print(f"{out}: written")
+    else:
+        print(text)
+    if json_path is not None:
+        atomic_write(json_path, lambda f: f.write(json.dumps(data, indent=1, sort_keys=True).encode()))

@@ -17,7 +17,6 @@ Nothing of the real data goes into the report but numbers and the figures writte
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import time
@@ -27,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from drivingscene.bench import write_report
 from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
 
@@ -405,17 +405,7 @@ def run(args: argparse.Namespace) -> int:
     text = report(scenes, perceptual.name, command, machine_description(), precision)
     if notes:
         text += "\n" + notes
-    if args.out is not None:
-        from drivingscene.data.npz import atomic_write
-
-        atomic_write(args.out, lambda f: f.write(text.encode()))
-        print(f"{args.out}: written")
-    else:
-        print(text)
-    if args.json is not None:
-        from drivingscene.data.npz import atomic_write
-
-        atomic_write(args.json, lambda f: f.write(json.dumps(flat, indent=1, sort_keys=True).encode()))
+    write_report(text, args.out, args.json, flat)
     return 0
 
 

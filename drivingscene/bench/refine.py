@@ -13,7 +13,6 @@ Budgets are wall-clock seconds: on a loaded machine they buy fewer steps (the ta
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from drivingscene.bench import write_report
 from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
 
@@ -183,7 +183,6 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from drivingscene.data.frame_pair import load_frame_pair
-    from drivingscene.data.npz import atomic_write
     from drivingscene.eval.lpips import load_perceptual
     from drivingscene.methods.feedforward import load_model
 
@@ -208,11 +207,5 @@ def run(args: argparse.Namespace) -> int:
             scores[name] = score_pair(model, pair, args, perceptual)
             print(f"{name}: scored", file=sys.stderr)
         text = report(scores, args, perceptual.name, machine_description())
-    if args.out is not None:
-        atomic_write(args.out, lambda f: f.write(text.encode()))
-        print(f"{args.out}: written")
-    else:
-        print(text)
-    if args.json is not None:
-        atomic_write(args.json, lambda f: f.write(json.dumps(scores, indent=1, sort_keys=True).encode()))
+    write_report(text, args.out, args.json, scores)
     return 0

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivingscene.bench import write_report
 from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
 
@@ -123,11 +124,5 @@ def run(args: argparse.Namespace) -> int:
             "",
         ]
     )
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.out)
-    else:
-        print(text)
+    write_report(text, args.out, announce=False)
     return 0

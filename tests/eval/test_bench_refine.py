@@ -6,21 +6,13 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 
 from drivingscene.bench.refine_choices import CHOICES
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One thread, as refinement itself on a busy machine (two stall each other on a shared CPU)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def test_bench_refine_budgets_and_choices(synth_pair, tiny_weights, tmp_path, monkeypatch):  # noqa: F811

@@ -21,14 +21,7 @@ from drivingscene.methods.refine_inputs import refine_inputs
 from drivingscene.train.losses import photometric_error
 from tests.factories import make_rig
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """The sweep runs on one thread inside refinement (``RefineConfig.threads``); so here."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def _abs_rel(depth: torch.Tensor, gt: torch.Tensor) -> float:
