@@ -111,18 +111,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def score_variant(model, pair, variant: Variant) -> dict[str, float]:
     import torch
 
-    from drivingscene.eval.metrics import psnr
-    from drivingscene.eval.reconstruction import score_novel_views
+    from drivingscene.eval.reconstruction import score_input_views, score_novel_views
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
-    from drivingscene.render.scene import render_input_views
 
     tic = time.perf_counter()
     recon = reconstruct(model, pair, variant.options(InferenceOptions()))
     seconds = time.perf_counter() - tic
-    views = render_input_views(recon, pair, blend=variant.blend).flatten(0, 1).permute(0, 3, 1, 2)
-    inputs = torch.from_numpy(pair.images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
-    world = torch.from_numpy(pair.world_mask()).repeat(2, 1, 1)
-    out = {"inputs": float(psnr(views, inputs, world).mean()), "seconds": seconds}
+    out = {"inputs": score_input_views(recon, pair, variant.blend)["psnr_input"], "seconds": seconds}
     out["dynamic"] = float(recon.visible().dynamic.float().mean())
     if pair.gt_depth is not None:  # depth of the sky is 0 in recon.depth: scored where both are known
         from drivingscene.eval.metrics import aggregate_depth, depth_metrics

@@ -10,11 +10,14 @@ from pathlib import Path
 from drivingscene.cli.common import positive_int
 from drivingscene.cli.recon import add_amp_arguments
 from drivingscene.errors import InputError
+from drivingscene.train.config import RENDER_VIEWS, STAGES
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train the model: --stage static, then dynamic (or joint for the ablation)")
-    p.add_argument("--stage", choices=("static", "dynamic", "joint"), required=True)
+    p = sub.add_parser(
+        "train", help="train the model: --stage static, then dynamic (or joint for the ablation); gaussians: P alone after them"
+    )
+    p.add_argument("--stage", choices=STAGES, required=True)
     p.add_argument(
         "--data", type=Path, required=True, nargs="+", metavar="DIR", help="training pairs (drivingscene synth --split train); several folders: a mix"
     )
@@ -52,6 +55,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads per process")
     p.add_argument("--batch-pairs", type=positive_int, default=None, help="frame pairs per step and process (default 1)")
     p.add_argument("--render-every", type=positive_int, default=None, help="L_render on every n-th step")
+    p.add_argument(
+        "--render-views",
+        nargs="+",
+        choices=RENDER_VIEWS,
+        default=None,
+        help="L_render's targets, in turn: the intermediate frame, the other keyframe from one keyframe's Gaussians, "
+        "the input views from both (default: all three)",
+    )
+    p.add_argument(
+        "--render-blend", choices=("layers", "all"), default=None, help="how L_render combines both keyframes' Gaussians (default: layers, as inference)"
+    )
     p.add_argument("--val-every", type=positive_int, default=None)
     p.add_argument("--ckpt-every", type=positive_int, default=None)
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default=None)
@@ -132,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
         threads=args.threads,
         batch_pairs=args.batch_pairs,
         render_every=args.render_every,
+        render_views=tuple(args.render_views) if args.render_views else None,
+        render_blend=args.render_blend,
         val_every=args.val_every,
         ckpt_every=args.ckpt_every,
         lpips=args.lpips,

@@ -78,6 +78,17 @@ def score_novel_views(
     return score_frames(render_eval_frames(recon, pair, blend=blend), pair, perceptual)
 
 
+def score_input_views(recon: Reconstruction, pair: FramePair, blend: str = DEFAULT_BLEND) -> dict[str, float]:
+    """PSNR of the reconstruction rendered at its own keyframes (`render_input_views`) against the
+    input images, over the pixels that see the world: how well the Gaussians reproduce their inputs."""
+    from drivingscene.render.scene import render_input_views
+
+    views = render_input_views(recon, pair, blend=blend).flatten(0, 1).permute(0, 3, 1, 2)
+    inputs = torch.from_numpy(pair.images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
+    world = torch.from_numpy(pair.world_mask()).repeat(2, 1, 1)
+    return {"psnr_input": _nanmean(psnr(views, inputs, world))}
+
+
 def score_depth(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
     """Depth errors of ``recon.depth`` ``[2, V, H, W]`` against ``gt_depth`` on the pixels that see the
     world, metric and median-scaled, and metric AbsRel on moving and on static pixels."""

@@ -7,7 +7,13 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 from drivingscene.models.model import ModelConfig
 
-STAGES = ("static", "dynamic", "joint")
+STAGES = ("static", "dynamic", "joint", "gaussians")
+# What L_render renders (TrainStep.render_term), in turn: the intermediate frame (when the pair has
+# one), the other keyframe from one keyframe's Gaussians ("cross"), and a keyframe's own input
+# views from both keyframes' Gaussians ("input").
+RENDER_VIEWS = ("eval", "cross", "input")
+# Runs saved before these settings existed rendered the first two, blending "all".
+LEGACY_RENDER = {"render_views": ("eval", "cross"), "render_blend": "all"}
 
 
 @dataclass(frozen=True)
@@ -57,6 +63,10 @@ class TrainConfig:
     amp_auto: bool = False  # set by `resolve_precision`: ``amp`` was decided for the machine, not forced
     lpips: str = "auto"  # perceptual metric: auto | lpips | stlpips
     render_every: int = 1  # L_render on every n-th step (it is the most expensive term)
+    # L_render's targets (RENDER_VIEWS), rendered in turn, and how both keyframes' Gaussians combine
+    # in them: "layers", as every rendered view at inference, or "all" (Gaussians.time_weights).
+    render_views: tuple[str, ...] = RENDER_VIEWS
+    render_blend: str = "layers"
     log_every: int = 10
     val_every: int = 500
     val_pairs: int = 8
@@ -68,6 +78,12 @@ class TrainConfig:
     def __post_init__(self):
         if self.stage not in STAGES:
             raise ValueError(f"stage: expected one of {STAGES}, found {self.stage!r}")
+        object.__setattr__(self, "render_views", tuple(self.render_views))
+        unknown = [v for v in self.render_views if v not in RENDER_VIEWS]
+        if unknown or not self.render_views:
+            raise ValueError(f"render_views: expected some of {RENDER_VIEWS}, found {list(self.render_views)}")
+        if self.render_blend not in ("all", "layers"):
+            raise ValueError(f"render_blend: expected 'all' or 'layers', found {self.render_blend!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -84,6 +100,8 @@ class TrainConfig:
             data["amp"] = None if data.pop("amp_auto") else data.get("amp")
         elif data.get("amp") is True:  # saved before the choice was automatic: True was the default
             data["amp"] = None
+        for key, value in LEGACY_RENDER.items():
+            data.setdefault(key, value)
         known = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in known}, weights=weights, model=model)
 

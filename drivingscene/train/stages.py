@@ -8,6 +8,14 @@ wrapped in DistributedDataParallel).
 - dynamic: D and P frozen; R on the rigid flow. L_warp and L_consist on the total flow, L_render
   of Gaussians moved by the lifted flow to the intermediate time (or to the other keyframe).
 - joint:   everything trained together from the start (the single-stage ablation).
+- gaussians: D and R frozen; P alone on L_render, with the Gaussians moved by the lifted flow as
+  at inference (not in the paper: a fine-tuning of P after stage 2, docs/training.md).
+
+L_render's targets come in turn (``TrainConfig.render_views``): the training pair's intermediate
+frame ("eval"), the other keyframe from one keyframe's Gaussians ("cross": what a keyframe's
+Gaussians did not see), and a keyframe's own input views from both keyframes' Gaussians
+("input": what inference renders there, so that P does not blur the views it came from). Views
+with both keyframes' Gaussians are blended as ``render_blend`` ("layers", as at inference).
 
 Pixels off the pair's ``valid_mask`` (ego body, hood) are in no loss: not as targets, not as
 sampled sources, and they make no Gaussian and do not colour the sky (as at inference).
@@ -126,6 +134,8 @@ class TrainStep(nn.Module):
         stage = self.config.stage
         amp = torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.amp)
         terms: dict[str, Tensor] = {}
+        if stage == "gaussians":
+            return self.gaussian_terms(batch, step, amp)
         if stage == "dynamic":
             self.model.depth_net.eval()
             self.model.gaussian_head.eval()
@@ -228,17 +238,40 @@ class TrainStep(nn.Module):
         height, width = batch.image_size
         with torch.no_grad():
             sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, batch.cam_to_local.double(), batch.intrinsics)
-        if batch.eval_images is not None and step % 2 == 0:
-            m = step // 2 % batch.eval_images.shape[0]
+        views = [v for v in self.config.render_views if v != "eval" or batch.eval_images is not None] or ["cross"]
+        view, turn = views[step % len(views)], step // len(views)
+        blend = self.config.render_blend
+        if view == "eval":
+            m = turn % batch.eval_images.shape[0]
             gaussians = assemble(static, batch, sky, scene_flow)
             t, cams, target = batch.eval_times[m], batch.eval_cam_to_local[m], batch.eval_images[m]
         else:
-            k = step // 2 % 2  # render keyframe k from the other keyframe's Gaussians
-            gaussians = assemble(static, batch, sky, scene_flow, keyframes=(1 - k,))
+            k = turn % 2
+            if view == "cross":  # keyframe k from the other keyframe's Gaussians
+                gaussians, blend = assemble(static, batch, sky, scene_flow, keyframes=(1 - k,)), "all"
+            else:  # keyframe k's input views from both keyframes' Gaussians
+                gaussians = assemble(static, batch, sky, scene_flow)
             t, cams, target = float(k), batch.cam_to_local[k], batch.images[k]
-        out = render_gaussians(gaussians, t, invert_rigid(cams), batch.intrinsics, height, width, sky_sh=sky_sh)
+        out = render_gaussians(gaussians, t, invert_rigid(cams), batch.intrinsics, height, width, sky_sh=sky_sh, blend=blend)
         pred = out.colors.permute(0, 3, 1, 2).clamp(0, 1)
         return render_loss(pred, target, self.perceptual, self.config.weights.render_lpips, batch.valid_mask)
+
+    # -- P alone, after stage 2 ----------------------------------------------------------------
+    def gaussian_terms(self, batch: PairTensors, step: int, amp) -> tuple[Tensor, dict[str, Tensor]]:
+        """L_render of P's Gaussians moved by the frozen D and R's lifted flow (as at inference)."""
+        self.model.depth_net.eval()
+        self.model.flow_net.eval()
+        with amp:
+            static = predict_static(self.model, batch)  # D's parameters are frozen: grads reach P only
+        with torch.no_grad():
+            depth = static.depth.float()
+            flow = predict_flow(self.model, batch, depth)
+            sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
+            if batch.valid_mask is not None:
+                sky = sky | ~batch.valid_mask
+            scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, TRAIN_LIFT)
+        render = self.render_term(static, batch, step, scene_flow)
+        return self.config.weights.render * render, {"render": render}
 
     # -- stage 2 ---------------------------------------------------------------------------
     def dynamic_terms(self, static: StaticPrediction, batch: PairTensors, step: int) -> dict[str, Tensor]:

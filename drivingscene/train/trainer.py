@@ -45,7 +45,12 @@ def _distributed() -> tuple[int, int]:
 
 
 def _trainable(model: DrivingSceneModel, stage: str) -> list[torch.nn.Parameter]:
-    frozen = {"static": (model.flow_net,), "dynamic": (model.depth_net, model.gaussian_head), "joint": ()}[stage]
+    frozen = {
+        "static": (model.flow_net,),
+        "dynamic": (model.depth_net, model.gaussian_head),
+        "joint": (),
+        "gaussians": (model.depth_net, model.flow_net),
+    }[stage]
     for module in (model.depth_net, model.gaussian_head, model.flow_net):
         module.requires_grad_(module not in frozen)
     return [p for p in model.parameters() if p.requires_grad]

@@ -8,11 +8,11 @@ from pathlib import Path
 import torch
 
 from drivingscene.data.frame_pair import load_frame_pair
-from drivingscene.eval.reconstruction import score_reconstruction
+from drivingscene.eval.reconstruction import score_input_views, score_reconstruction
 from drivingscene.methods.feedforward import InferenceOptions, reconstruct
 from drivingscene.models.model import DrivingSceneModel
 
-KEYS = ("psnr", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
+KEYS = ("psnr", "psnr_input", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
 
 
 def validate(model: DrivingSceneModel, files: list[Path], config) -> dict[str, float]:
@@ -23,7 +23,8 @@ def validate(model: DrivingSceneModel, files: list[Path], config) -> dict[str, f
     sums: dict[str, list[float]] = {k: [] for k in KEYS}
     for path in files:
         pair = load_frame_pair(path)
-        scores = score_reconstruction(reconstruct(model, pair, options), pair, perceptual=None)
+        recon = reconstruct(model, pair, options)
+        scores = score_reconstruction(recon, pair, perceptual=None) | score_input_views(recon, pair)
         for k in KEYS:
             if k in scores and not math.isnan(scores[k]):
                 sums[k].append(scores[k])

@@ -286,3 +286,57 @@ def test_the_validation_best_weights_are_kept(data_dir, tmp_path, monkeypatch):
     assert best.keys() == final.keys() and any(not torch.equal(best[k], final[k]) for k in best)
     train(replace(config, steps=4), resume=True, show_progress=False)  # resumed: a better score replaces it
     assert json.loads((out / "best.json").read_text())["steps"] == 4
+
+
+def test_gaussian_stage_trains_the_gaussian_head_alone(data_dir, tmp_path):
+    static = train(_config(data_dir, tmp_path / "s", stage="static", steps=2), show_progress=False)
+    tuned = train(_config(data_dir, tmp_path / "g", stage="gaussians", steps=3, init=str(static)), show_progress=False)
+    before, after = load_file(str(static)), load_file(str(tuned))
+    for key, value in before.items():
+        if key.startswith(("depth_net.", "flow_net.")) and "running" not in key and "num_batches" not in key:
+            torch.testing.assert_close(after[key], value, rtol=0, atol=0, msg=key)
+    assert any(not torch.equal(after[k], before[k]) for k in after if k.startswith("gaussian_head.")), "P did not train"
+    records = [json.loads(line) for line in (tmp_path / "g" / "log.jsonl").read_text().splitlines()]
+    assert all(set(r) >= {"render"} and "loc" not in r for r in records)
+
+
+def test_render_targets_come_in_turn(data_dir, monkeypatch):
+    """eval, cross, input, eval, ...: the cross view renders one keyframe's Gaussians ("all"), the
+    input view both keyframes' in the configured blend at the keyframe's own time."""
+    import drivingscene.train.stages as stages
+    from drivingscene.data import load_frame_pair
+    from drivingscene.data.tensors import pair_to_tensors
+    from drivingscene.models.model import DrivingSceneModel
+    from drivingscene.models.pipeline import predict_static
+
+    calls = []
+
+    def spy(gaussians, t, *args, blend="all", **kwargs):
+        calls.append((sorted(set(gaussians.keyframes.tolist())), float(t), blend))
+        return real(gaussians, t, *args, blend=blend, **kwargs)
+
+    real = stages.render_gaussians
+    monkeypatch.setattr(stages, "render_gaussians", spy)
+    pair = load_frame_pair(sorted(data_dir.glob("*.npz"))[0])
+    assert pair.num_eval, "the factory pair should have an intermediate frame"
+    batch = pair_to_tensors(pair)
+    model = DrivingSceneModel(TINY_MODEL).eval()
+    step = stages.TrainStep(model, TrainConfig(model=TINY_MODEL, amp=False), None)
+    with torch.no_grad():
+        static = predict_static(model, batch)
+        for i in range(6):
+            assert torch.isfinite(step.render_term(static, batch, i, scene_flow=None))
+    t_eval = float(batch.eval_times[0])
+    assert calls[0] == ([0, 1], t_eval, "layers")
+    assert calls[1] == ([1], 0.0, "all") and calls[4] == ([0], 1.0, "all")  # keyframe k from the other's
+    assert calls[2] == ([0, 1], 0.0, "layers") and calls[5] == ([0, 1], 1.0, "layers")
+
+
+def test_runs_saved_before_render_views_keep_their_targets():
+    legacy = TrainConfig.from_dict({"stage": "static"})
+    assert legacy.render_views == ("eval", "cross") and legacy.render_blend == "all"
+    assert TrainConfig().render_views == ("eval", "cross", "input") and TrainConfig().render_blend == "layers"
+    again = TrainConfig.from_dict(json.loads(TrainConfig().to_json()))
+    assert again.render_views == ("eval", "cross", "input")
+    with pytest.raises(ValueError, match="render_views"):
+        TrainConfig(render_views=("side",))
