@@ -33,6 +33,7 @@ DEFAULT_VARIANTS = [
     "blend=layers,parallax=on,carve=same_time",
     "blend=layers,parallax=on,carve=all",
     "blend=layers,parallax=on,search=off",
+    "blend=layers,parallax=on,head=off",  # P ablated: every pixel's default surfel
 ]
 CARVES = ("off", "same_time", "all")
 
@@ -47,6 +48,7 @@ class Variant:
     bonus: float | None = None  # MotionSearchConfig.static_bonus; None: the default
     photo: bool | None = None  # LiftConfig.photometric_check; None: the default
     parallax: bool | None = None  # LiftConfig.epipolar_static; None: the default
+    head: bool = True  # InferenceOptions.gaussian_head: P's predictions (False: default surfels)
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -62,7 +64,7 @@ class Variant:
         search = base.search if self.search else None
         if search is not None and self.bonus is not None:
             search = replace(search, static_bonus=self.bonus)
-        return replace(base, carve=carve, search=search, lift=lift)
+        return replace(base, carve=carve, search=search, lift=lift, gaussian_head=self.head)
 
 
 def _is_number(text: str) -> bool:
@@ -74,7 +76,7 @@ def _is_number(text: str) -> bool:
 
 
 def parse_variant(text: str) -> Variant:
-    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, bonus, region."""
+    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, head, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
 
     values: dict = {"name": text}
@@ -88,14 +90,14 @@ def parse_variant(text: str) -> Variant:
             values["search"] = value == "on"
         elif key == "region" and value.isdigit():
             values["region"] = int(value)
-        elif key in ("photo", "parallax") and value in ("on", "off"):
+        elif key in ("photo", "parallax", "head") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "bonus" and _is_number(value) and float(value) >= 0:
             values["bonus"] = float(value)
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
+                f"photo=on|off, parallax=on|off, head=on|off, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
             )
     return Variant(**values)
 

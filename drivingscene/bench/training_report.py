@@ -14,7 +14,7 @@ from pathlib import Path
 from drivingscene.errors import InputError
 
 TERMS = ("loc", "smooth", "render", "warp", "consist", "flow_sup", "depth_sup", "search_sup")
-VAL_KEYS = ("psnr", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
+VAL_KEYS = ("psnr", "psnr_input", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel", "epe_dyn_rigid", "epe_dyn_total")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -106,12 +106,13 @@ def wall_hours(recs: list[dict]) -> float:
 
 def _row(name: str, config: dict, recs: list[dict]) -> str:
     steps = recs[-1]["step"] if recs else 0
-    flow_lr = "frozen" if config["stage"] == "static" else config.get("flow_lr") or config["lr"]
-    dp_lr = "frozen" if config["stage"] == "dynamic" else config["lr"]
+    stage = config["stage"]
+    flow_lr = "frozen" if stage in ("static", "gaussians") else config.get("flow_lr") or config["lr"]
+    dp_lr = {"dynamic": "frozen", "gaussians": f"frozen, {config['lr']}"}.get(stage, config["lr"])
     weights = config.get("weights", {})
-    flow_sup = weights.get("flow_sup", 0.0) if config["stage"] != "static" else "–"
-    search_sup = weights.get("search_sup", 0.0) if config["stage"] != "static" else "–"
-    depth_sup = weights.get("depth_sup", 0.0) if config["stage"] != "dynamic" else "–"
+    flow_sup = weights.get("flow_sup", 0.0) if stage in ("dynamic", "joint") else "–"
+    search_sup = weights.get("search_sup", 0.0) if stage in ("dynamic", "joint") else "–"
+    depth_sup = weights.get("depth_sup", 0.0) if stage in ("static", "joint") else "–"
     init = f"`{config['init']}`" if config.get("init") else "scratch"
     cells = [name, config["stage"], steps, dp_lr, flow_lr, depth_sup, flow_sup, search_sup, init, f"{wall_hours(recs):.1f} h"]
     return "| " + " | ".join(map(str, cells)) + f" | {config['data']} |"

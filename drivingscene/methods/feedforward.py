@@ -37,6 +37,7 @@ from drivingscene.models.pipeline import (
     search_motion,
     sky_mask,
     with_depth,
+    without_gaussian_head,
 )
 from drivingscene.precision import resolve_amp
 from drivingscene.resources import asset_path
@@ -57,6 +58,8 @@ class InferenceOptions:
     # Free-space carving: drop Gaussians another image of the pair sees through
     # (gaussians/visibility.py); None: keep every Gaussian.
     carve: CarveConfig | None = None
+    # False: P's predictions unused, every pixel's Gaussian its default surfel (ablation, bench choices)
+    gaussian_head: bool = True
 
 
 def resolve_device(name: str) -> torch.device:
@@ -137,6 +140,8 @@ def reconstruct(
     batch = pair_to_tensors(pair, with_gt=False, with_eval=False).to(device)
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_amp):
         static = predict_static(model, batch)
+    if not options.gaussian_head:
+        static = without_gaussian_head(model, static, batch)
     _sync(device)
     timings["static_s"] = time.perf_counter() - start
     depth = static.depth.float()

@@ -183,6 +183,17 @@ def with_depth(static: StaticPrediction, depth: Tensor) -> StaticPrediction:
     return replace(static, depth=depth.to(static.depth.dtype), params=replace(params, log_scales=log_scales))
 
 
+def without_gaussian_head(model: DrivingSceneModel, static: StaticPrediction, batch: PairTensors) -> StaticPrediction:
+    """``static`` with P's predictions replaced by its defaults (raw outputs 0: surfels one pixel
+    footprint wide in the surface of the depth, the pixel's colour, opacity sigmoid(3)): the
+    ablation of P (bench choices, ``head=off``)."""
+    images = batch.images.flatten(0, 1).float()
+    depth = static.depth.flatten(0, 1).float()
+    raw = depth.new_zeros(*depth.shape, model.gaussian_head.num_out)
+    params = model.gaussian_head.activate(raw, images, depth, batch.intrinsics.repeat(2, 1, 1))
+    return replace(static, params=params)
+
+
 def drop_small_regions(mask: Tensor, min_pixels: float) -> Tensor:
     """``mask`` ``[..., H, W]`` bool without its 8-connected regions of fewer than ``min_pixels`` pixels."""
     import cv2

@@ -33,6 +33,7 @@ def test_variant_options_change_only_what_they_name():
     assert v.lift.photometric_check and v.lift.min_dynamic_region == 12
     assert v.lift.dynamic_threshold_px == base.lift.dynamic_threshold_px
     assert parse_variant("search=off,bonus=0.05").options(base).search is None
+    assert same.gaussian_head and not parse_variant("head=off").options(base).gaussian_head
 
 
 def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811

@@ -33,3 +33,22 @@ def test_rig_sizes(model, num_views, height, width):
     assert recon.depth.shape == (2, num_views, height, width)
     frames = render_eval_frames(recon, pair)
     assert frames.shape == (1, num_views, height, width, 3) and bool(frames.isfinite().all())
+
+
+def test_without_the_gaussian_head_every_pixel_gets_its_default_surfel():
+    """head=off (the ablation of P) gives what an untrained P gives (its output layer starts at 0),
+    whatever the trained P predicts."""
+    import torch
+
+    from drivingscene.models.model import DrivingSceneModel
+
+    pair = make_pair(2, 32, 48)
+    untrained = DrivingSceneModel(load_model().config).eval()
+    reference = reconstruct(untrained, pair, InferenceOptions(amp=False)).gaussians
+    with torch.no_grad():  # a P that makes every Gaussian larger, fainter and redder
+        untrained.gaussian_head.out.bias.copy_(torch.linspace(0.5, 1.0, untrained.gaussian_head.num_out))
+    trained = reconstruct(untrained, pair, InferenceOptions(amp=False)).gaussians
+    ablated = reconstruct(untrained, pair, InferenceOptions(amp=False, gaussian_head=False)).gaussians
+    assert not torch.allclose(trained.log_scales, reference.log_scales)
+    for name in ("means", "log_scales", "opacity_logits", "sh"):
+        torch.testing.assert_close(getattr(ablated, name), getattr(reference, name), msg=name)
