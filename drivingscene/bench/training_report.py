@@ -66,9 +66,10 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
     for i, (name, _, recs) in enumerate(runs):
         # one colour per run in every panel: the ten dark tab20 hues first, then their light ones
         color = plt.get_cmap("tab20")((2 * i) % 20 + (2 * i // 20) % 2) if len(runs) > 10 else f"C{i}"
-        steps = [r["step"] for r in recs]
+        stepped = [r for r in recs if "loss" in r]  # not the validation of the starting weights (step 0)
+        steps = [r["step"] for r in stepped]
         for ax, term in zip(axes, terms):
-            values = [r.get(term, math.nan) for r in recs]
+            values = [r.get(term, math.nan) for r in stepped]
             if not all(math.isnan(v) for v in values):
                 ax.plot(steps, _smooth(values), label=name, linewidth=1.2, color=color)
         val = [(r["step"], r["val"].get("psnr", math.nan)) for r in recs if "val" in r]

@@ -167,6 +167,11 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
     bar = tqdm(
         range(start, config.steps), initial=start, total=config.steps, disable=not show_progress or rank != 0, desc=config.stage
     )
+    if start == 0 and val_files and config.init:  # the starting weights' scores, for comparison
+        record = {"step": 0, "time": round(time.time(), 1), "val": validate(model, val_files, config)}
+        keep_best(out, model, config, 0, record["val"], info)
+        with open(out / "log.jsonl", "a") as f:
+            f.write(json.dumps(record) + "\n")
     bad = 0
     for step in bar:
         model.train()

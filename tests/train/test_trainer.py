@@ -340,3 +340,21 @@ def test_runs_saved_before_render_views_keep_their_targets():
     assert again.render_views == ("eval", "cross", "input")
     with pytest.raises(ValueError, match="render_views"):
         TrainConfig(render_views=("side",))
+
+
+def test_a_run_from_init_validates_its_starting_weights_first(data_dir, tmp_path, monkeypatch):
+    """Step 0 of a run with --init and validation data: the starting weights' scores, which are
+    also the best so far until a step beats them."""
+    from drivingscene.train import trainer
+
+    static = train(_config(data_dir, tmp_path / "s", stage="static", steps=1), show_progress=False)
+    scores = iter([21.0, 20.0, 20.5])
+    monkeypatch.setattr(trainer, "validate", lambda model, files, config: {"psnr": next(scores)})
+    out = tmp_path / "g"
+    train(_config(data_dir, out, stage="gaussians", steps=2, val_every=1, val_data=str(data_dir), init=str(static)), show_progress=False)
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert records[0]["step"] == 0 and records[0]["val"]["psnr"] == 21.0 and "loss" not in records[0]
+    assert [r["step"] for r in records[1:]] == [1, 2]
+    assert json.loads((out / "best.json").read_text())["steps"] == 0
+    best, start = load_file(str(out / "best.safetensors")), load_file(str(static))
+    assert all(torch.equal(best[k], start[k]) for k in start)
