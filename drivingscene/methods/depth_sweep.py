@@ -13,13 +13,20 @@ Such winner-take-all depths are noisy (flat cost on sky and road, repeated textu
 objects), so only those that another image confirms are kept: the point, moved into a source,
 lands within ``consistency`` of that source's own choice. Their ratios to the model's depth
 become a smooth correction of the model's depth (normalised convolution of the log ratio at
-growing widths): the model keeps its shapes, the sweep sets their scale region by region. An image
-whose confirmed pixels agree with the model within ``trigger`` (median ratio) keeps the model's
-depth untouched: on procedural pairs, where the model's depth is right (AbsRel 0.08-0.11), the
-correction would only add the sweep's noise (docs/refinement.md).
+growing widths): the model keeps its shapes, the sweep sets their scale region by region.
+
+The correction is noisy too, and where the model's depth is right (most procedural pairs) it would
+only add the sweep's noise. An image whose confirmed pixels disagree with the model by more than
+``trigger`` (median ratio) is corrected wholly: its scale is wrong. In the others the cost volume
+arbitrates (``arbitration``): at every search pixel the photometric cost at the corrected depth is
+compared with the cost at the model's depth, and the correction is kept by the local share
+(Gaussian window of ``arbitration`` search pixels) of pixels where it lowers the cost less the
+share where it raises it. (Before, those images kept the model's depth; on the real DDAD pairs
+no image passed the trigger although whole cameras were 30-50 % off, docs/refinement.md.)
 
 With LiDAR (refinement's ``--lidar``) every return is a confirmed sample (weight ``lidar_weight``)
-of the correction, whatever the trigger, and its pixel takes the LiDAR depth.
+of the correction, whatever the trigger, and its pixel takes the LiDAR depth; the correction
+is then not arbitrated (LiDAR is stronger evidence than the photometric cost).
 
 Everything runs in the pair's local frame, without gradients.
 """
@@ -57,7 +64,10 @@ class SweepConfig:
     max_cost: float = 0.3
     min_seen: float = 0.5
     consistency: float = 0.05  # relative depth agreement with a source's own choice
-    trigger: float = 1.5  # median ratio to the model's depth beyond which an image is corrected
+    trigger: float = 1.5  # median ratio to the model's depth beyond which an image is corrected wholly
+    # Gaussian sigma (search pixels) of the photometric arbitration of the correction in the other
+    # images (module docstring); None: they keep the model's depth
+    arbitration: float | None = 6.0
     widths: tuple[float, ...] = (3.0, 10.0, 30.0)  # Gaussian sigmas (search pixels) of the correction
     lidar_weight: float = 4.0  # weight of a LiDAR return against a confirmed photometric sample
     # sources: the same camera at the other keyframe and the neighbours at the same keyframe
@@ -253,6 +263,30 @@ def correction_field(log_ratio: Tensor, weight: Tensor, widths: tuple[float, ...
     return out
 
 
+def cost_at(costs: Tensor, depth: Tensor, config: SweepConfig) -> Tensor:
+    """``[B, h, w]``: the cost volume ``[J, B, h, w]`` read at ``depth`` (linear between the two
+    nearest hypotheses in inverse depth, clamped to the swept range)."""
+    count = costs.shape[0]
+    span = 1.0 / config.near - 1.0 / config.far
+    index = ((1.0 / config.near - 1.0 / depth.clamp(min=1e-3)) / span * (count - 1)).clamp(0, count - 1)
+    lo = index.floor().long()
+    hi = (lo + 1).clamp(max=count - 1)
+    frac = index - lo
+    return costs.gather(0, lo[None])[0] * (1 - frac) + costs.gather(0, hi[None])[0] * frac
+
+
+def photometric_preference(costs: Tensor, prior: Tensor, corrected: Tensor, config: SweepConfig) -> Tensor:
+    """``[B, h, w]`` in [0, 1]: in a Gaussian window of ``config.arbitration`` search pixels, the
+    share of pixels where the corrected depth has the lower photometric cost minus the share where
+    it has the higher one, among those where some source sees both depths (0 where the evidence is
+    even or against it: flat texture, whose costs tie, keeps the model's depth)."""
+    before, after = cost_at(costs, prior, config), cost_at(costs, corrected, config)
+    seen = (before < INVALID / 2) & (after < INVALID / 2)
+    net = (seen & (after < before)).float() - (seen & (after > before)).float()
+    share = _blur(net, config.arbitration) / _blur(seen.float(), config.arbitration).clamp(min=1e-3)
+    return share.clamp(0, 1)
+
+
 def _luma(images: Tensor) -> Tensor:
     """``[B, 3, h, w]`` RGB -> ``[B, 1, h, w]`` luma (Rec. 601)."""
     return (images * images.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)).sum(1, keepdim=True)
@@ -300,7 +334,8 @@ def corrected_depth(
     for b in range(2 * num_views):
         if int(confirmed[b].sum()) >= 32:
             triggered[b] = bool(log_ratio[b][confirmed[b]].median().abs() > math.log(config.trigger))
-    weight = (confirmed & triggered[:, None, None]).float()
+    corrected_images = triggered | ((confirmed.flatten(1).sum(1) >= 32) & (config.arbitration is not None))
+    weight = (confirmed & corrected_images[:, None, None]).float()
     if lidar is not None:
         returns = _nearest_return(lidar.flatten(0, 1), size)
         has = (returns > 0) & usable
@@ -308,6 +343,9 @@ def corrected_depth(
         log_ratio = torch.where(has, torch.log(returns.clamp(min=1e-3) / small_prior.clamp(min=1e-3)), log_ratio)
     field = correction_field(log_ratio, weight, config.widths)
     field = torch.where((weight.flatten(1).sum(1) > 0)[:, None, None], field, torch.zeros_like(field))
+    if config.arbitration is not None and lidar is None:
+        preference = photometric_preference(costs, small_prior, small_prior * torch.exp(field), config)
+        field = torch.where(triggered[:, None, None], field, field * preference)
     field = F.interpolate(field[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
     out = prior.flatten(0, 1) * torch.exp(field)
     if lidar is not None:

@@ -12,6 +12,7 @@ from drivingscene.methods.depth_sweep import (
     PhotometricError,
     SweepConfig,
     corrected_depth,
+    cost_at,
     correction_field,
     inverse_depths,
     neighbour_cameras,
@@ -84,10 +85,23 @@ def test_sweep_finds_the_scale_of_a_depth_3x_too_near(synth_pair):
 
 
 def test_a_right_depth_is_left_alone(synth_pair):
+    """The photometric arbitration keeps a right depth nearly as it is (the sweep's own noise would
+    move it: every image corrected wholly), and without arbitration no image is triggered."""
     gt = torch.from_numpy(synth_pair.gt_depth)
+    unarbitrated = _correct(synth_pair, gt, scale=1.0, trigger=1.0, arbitration=None)
     result = _correct(synth_pair, gt, scale=1.0)
-    assert not bool(result.corrected.any())
-    assert torch.equal(result.depth, gt)
+    assert _abs_rel(result.depth, gt) < 0.2 * _abs_rel(unarbitrated.depth, gt)
+    assert _abs_rel(result.depth, gt) < 0.1  # this small pair's sweep alone: AbsRel ~0.45
+    triggered = _correct(synth_pair, gt, scale=1.0, arbitration=None)
+    assert not bool(triggered.corrected.any()) and torch.equal(triggered.depth, gt)
+
+
+def test_cost_volume_read_at_a_depth():
+    config = SweepConfig(near=2.0, far=100.0, hypotheses=5)
+    costs = torch.arange(5.0)[:, None, None, None].expand(5, 1, 2, 2).clone()  # cost = hypothesis index
+    q = inverse_depths(config)
+    depth = torch.tensor([[[1 / q[1], 1 / q[3]], [2 / (q[1] + q[2]), 1000.0]]])
+    torch.testing.assert_close(cost_at(costs, depth, config), torch.tensor([[[1.0, 3.0], [1.5, 4.0]]]))
 
 
 def test_lidar_returns_are_kept_and_spread(synth_pair):
