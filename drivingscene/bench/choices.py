@@ -147,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
         rows = []
         for variant in variants:
             scores = [score_variant(model, p, variant) for p in pairs]
-            mean = {k: float(np.nanmean([s.get(k, np.nan) for s in scores])) for k in scores[0]}
+            keys = dict.fromkeys(k for s in scores for k in s)  # a pair without eval frames has no psnr
+            mean = {k: float(np.nanmean([s.get(k, np.nan) for s in scores])) for k in keys}
             rows.append(
                 f"| {variant.name} | {mean['inputs']:.2f} | {mean.get('psnr', np.nan):.2f} | {mean.get('psnr_dyn', np.nan):.2f} "
                 f"| {100 * mean['dynamic']:.1f} % | {mean.get('abs_rel', np.nan):.3f} | {np.median([s['seconds'] for s in scores]):.2f} |"

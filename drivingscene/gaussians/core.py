@@ -25,8 +25,8 @@ from drivingscene.errors import InputError
 
 BLEND_MODES = ("all", "fade", "nearest", "layers")
 # Each keyframe's Gaussians rendered alone and the two images blended by time and coverage
-# (render/scene.py `render_layers`): over "all" on the validation pairs, +1.1 to +1.4 dB on the
-# in-between frame and +2.6 to +3.2 dB on the input views (`drivingscene bench choices`, docs/choices.md).
+# (render/scene.py `render_layers`): over "all" on the validation pairs, +1.1 to +1.6 dB on the
+# in-between frame and +4.0 to +5.5 dB on the input views (`drivingscene bench choices`, docs/choices.md).
 DEFAULT_BLEND = "layers"
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * sh[:, 0] + 0.5 (3DGS convention)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from drivingscene.bench.choices import parse_variant
@@ -46,3 +48,10 @@ def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
     text = out.read_text()
     assert "| blend=all |" in text and "| blend=layers,carve=all,parallax=on |" in text and "input views PSNR" in text
     assert main(["bench", "choices", "--data", str(data), "--variant", "blend=nope"]) == 2
+    # a first pair without intermediate frames (real keyframe pairs) does not hide the others' scores
+    save_frame_pair(replace(synth_pair, eval_images=None, eval_timestamps=None, eval_ego_to_world=None, eval_dynamic=None,
+                            eval_camera_ego_to_world=None, eval_camera_timestamps=None),
+                    data / "pair_000000.npz")
+    assert main([*args[:5], "2", *args[6:], "--variant", "blend=layers"]) == 0
+    row = next(line for line in out.read_text().splitlines() if line.startswith("| blend=layers |"))
+    assert "nan" not in row.split("|")[3]
