@@ -75,6 +75,11 @@ def _is_number(text: str) -> bool:
     return True
 
 
+def _nanmean(values: list[float]) -> float:
+    finite = [v for v in values if not np.isnan(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, head, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
@@ -103,7 +108,7 @@ def parse_variant(text: str) -> Variant:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, nargs="+", required=True, help="validation pair folders (each reported apart)")
+    p.add_argument("--data", type=Path, nargs="+", required=True, help="validation pair folders or single scene files (each reported apart)")
     p.add_argument("--count", type=int, default=6, help="pairs per folder (default 6)")
     p.add_argument("--weights", type=Path, default=None, help="model (default: the shipped weights)")
     p.add_argument("--variant", action="append", default=None, metavar="KEY=VALUE,...", help="repeatable; default: a built-in list")
@@ -142,13 +147,14 @@ def run(args: argparse.Namespace) -> int:
     model = load_model(args.weights)
     sections = []
     for folder in args.data:
-        pairs = [load_frame_pair(f) for f in list_pairs(folder)[: args.count]]
+        files = [folder] if folder.is_file() else list_pairs(folder)[: args.count]
+        pairs = [load_frame_pair(f) for f in files]
         moving = np.mean([p.gt_dynamic.mean() for p in pairs if p.gt_dynamic is not None] or [np.nan])
         rows = []
         for variant in variants:
             scores = [score_variant(model, p, variant) for p in pairs]
             keys = dict.fromkeys(k for s in scores for k in s)  # a pair without eval frames has no psnr
-            mean = {k: float(np.nanmean([s.get(k, np.nan) for s in scores])) for k in keys}
+            mean = {k: _nanmean([s.get(k, np.nan) for s in scores]) for k in keys}
             rows.append(
                 f"| {variant.name} | {mean['inputs']:.2f} | {mean.get('psnr', np.nan):.2f} | {mean.get('psnr_dyn', np.nan):.2f} "
                 f"| {100 * mean['dynamic']:.1f} % | {mean.get('abs_rel', np.nan):.3f} | {np.median([s['seconds'] for s in scores]):.2f} |"

@@ -55,3 +55,6 @@ def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
     assert main([*args[:5], "2", *args[6:], "--variant", "blend=layers"]) == 0
     row = next(line for line in out.read_text().splitlines() if line.startswith("| blend=layers |"))
     assert "nan" not in row.split("|")[3]
+    one = data / "pair_100000.npz"  # a scene file instead of a folder
+    assert main(["bench", "choices", "--data", str(one), "--weights", str(tiny_weights), "--out", str(out), "--variant", "blend=layers"]) == 0
+    assert f"### {one} (1 pairs" in out.read_text()
