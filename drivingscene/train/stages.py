@@ -265,15 +265,20 @@ class TrainStep(nn.Module):
             static = predict_static(self.model, batch)  # D's parameters are frozen: grads reach P only
         with torch.no_grad():
             depth = static.depth.float()
-            flow = predict_flow(self.model, batch, depth)
-            sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
-            if batch.valid_mask is not None:
-                sky = sky | ~batch.valid_mask
-            scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, TRAIN_LIFT)
+            scene_flow = self.scene_flow(depth, predict_flow(self.model, batch, depth), batch)
         render = self.render_term(static, batch, step, scene_flow)
         return self.config.weights.render * render, {"render": render}
 
     # -- stage 2 ---------------------------------------------------------------------------
+    def scene_flow(self, depth: Tensor, flow: FlowPrediction, batch: PairTensors) -> Tensor:
+        """R's total flow lifted to the Gaussians' world displacement, as at inference: sky and
+        off-world pixels (``valid_mask``) do not move."""
+        sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
+        if batch.valid_mask is not None:
+            sky = sky | ~batch.valid_mask
+        scene_flow, _ = lift_scene_flow(depth, flow.total, flow.residual, sky, batch, TRAIN_LIFT)
+        return scene_flow
+
     def dynamic_terms(self, static: StaticPrediction, batch: PairTensors, step: int) -> dict[str, Tensor]:
         depth = static.depth.float()
         # R in float32: its cost volumes and small convolutions gain nothing from bf16 on CPU, and
@@ -285,11 +290,7 @@ class TrainStep(nn.Module):
         consist = consistency_loss(total[0], total[1], world, world) + consistency_loss(total[1], total[0], world, world)
         terms = {"warp": per_level.pop("warp"), "consist": consist, **per_level}
         if step % self.config.render_every == 0:
-            sky = sky_mask(depth, batch.intrinsics, self.model.config.depth.ref_focal, TRAIN_LIFT)
-            if world is not None:  # off-world pixels do not move (as at inference)
-                sky = sky | ~world
-            scene_flow, _ = lift_scene_flow(depth, total, flow.residual, sky, batch, TRAIN_LIFT)
-            terms["render"] = self.render_term(static, batch, step, scene_flow)
+            terms["render"] = self.render_term(static, batch, step, self.scene_flow(depth, flow, batch))
         terms["residual_px"] = flow.residual.detach().norm(dim=-1).mean()
         return terms
 

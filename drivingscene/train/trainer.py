@@ -170,8 +170,7 @@ def train(config: TrainConfig, resume: bool = False, show_progress: bool = True)
     if start == 0 and val_files and config.init:  # the starting weights' scores, for comparison
         record = {"step": 0, "time": round(time.time(), 1), "val": validate(model, val_files, config)}
         keep_best(out, model, config, 0, record["val"], info)
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(record) + "\n")
+        _append_log(out, record)
     bad = 0
     for step in bar:
         model.train()
@@ -257,6 +256,11 @@ def keep_best(out: Path, model, config, step: int, val: dict, info: dict) -> boo
     return True
 
 
+def _append_log(out: Path, record: dict) -> None:
+    with open(out / "log.jsonl", "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
 def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info, val_files, bar) -> None:
     record = {
         "step": step,
@@ -270,8 +274,7 @@ def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info,
         keep_best(out, model, config, step, record["val"], info)
         model.train()
     if step % config.log_every == 0 or "val" in record:
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(record) + "\n")
+        _append_log(out, record)
         bar.set_postfix(loss=f"{loss:.4f}", s_per_step=f"{seconds:.2f}")
     if step % config.ckpt_every == 0:
         save_checkpoint(out, step, model, optimizer, info, config.keep_checkpoints)
