@@ -96,7 +96,7 @@ def depth_order(data: SortInput, req: SortRequest) -> np.ndarray:
     p_cam = _camera_points(data, req)
     z = p_cam[2]
     keep = (z >= req.near) & (z <= req.far) & ~data.hidden
-    if req.blend not in ("all", "layers"):  # layers: each keyframe's splats drawn opaque in its own pass
+    if req.blend not in ("all", "layers", "cameras"):  # layers: each layer's splats drawn opaque in its own pass
         k1 = data.keyframes == 1
         weight = (
             np.where(k1, req.t, 1.0 - req.t) if req.blend == "fade" else np.where(k1, float(req.t >= 0.5), float(req.t < 0.5))

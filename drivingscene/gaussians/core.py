@@ -23,11 +23,12 @@ from torch import Tensor
 
 from drivingscene.errors import InputError
 
-BLEND_MODES = ("all", "fade", "nearest", "layers")
-# Each keyframe's Gaussians rendered alone and the two images blended by time and coverage
-# (render/scene.py `render_layers`): over "all" on the validation pairs, +1.1 to +1.6 dB on the
-# in-between frame and +4.0 to +5.5 dB on the input views (`drivingscene bench choices`, docs/choices.md).
-DEFAULT_BLEND = "layers"
+BLEND_MODES = ("all", "fade", "nearest", "layers", "cameras")
+# Each input image's Gaussians (keyframe x camera) rendered alone and the images blended by time,
+# camera direction and coverage (render/scene.py `render_camera_layers`). Chosen on the validation
+# pairs by the in-between frame (`drivingscene bench choices`, docs/choices.md): over "layers"
+# (one layer per keyframe) +1.4 dB on randomised rigs and -0.3 dB on the nuScenes rig.
+DEFAULT_BLEND = "cameras"
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * sh[:, 0] + 0.5 (3DGS convention)
 
 
@@ -170,10 +171,11 @@ class Gaussians:
         "nearest": only the keyframe nearer in time (keyframe 0 for t < 0.5);
         "layers": each keyframe's Gaussians rendered on their own and the two images blended
         (``drivingscene.render.scene.render_layers``); as opacity weights, both sets opaque.
+        "cameras": the same with one layer per keyframe and camera (``render_camera_layers``).
         """
         t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
         k1 = self.keyframes == 1
-        if mode in ("all", "layers"):
+        if mode in ("all", "layers", "cameras"):
             return torch.ones_like(self.opacity_logits)
         if mode == "fade":
             return torch.where(k1, t, 1 - t).expand_as(self.opacity_logits)

@@ -23,10 +23,18 @@ def render_gaussians(
     *,
     sky_sh: Tensor | None = None,  # [K, 3]
     background: Tensor | None = None,  # [3], used when there is no sky model
-    blend: str = "all",  # how both keyframes' Gaussians combine at t (Gaussians.time_weights, "layers")
+    blend: str = "all",  # how both keyframes' Gaussians combine at t (Gaussians.time_weights, "layers", "cameras")
+    source_axes: Tensor | None = None,  # [2, V, 3] world optical axes of the input cameras ("cameras")
     **raster_kwargs,
 ) -> RenderOutput:
     """Colour, depth and alpha ``[B, H, W, ...]`` of the Gaussians moved to normalised time t."""
+    if blend == "cameras":
+        if source_axes is None:
+            raise InputError("blend 'cameras': needs source_axes, the input cameras' world optical axes [2, V, 3]")
+        return render_camera_layers(
+            gaussians, t, world_to_cam, intrinsics, height, width, source_axes,
+            sky_sh=sky_sh, background=background, **raster_kwargs,
+        )
     if blend == "layers":
         return render_layers(
             gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **raster_kwargs
@@ -69,6 +77,9 @@ def render_layers(
     intrinsics: Tensor,  # [B, 3, 3]
     height: int,
     width: int,
+    *,
+    sky_sh: Tensor | None = None,
+    background: Tensor | None = None,
     **kwargs,
 ) -> RenderOutput:
     """Each keyframe's Gaussians rendered on their own at time t (occlusion within a keyframe's set
@@ -76,22 +87,92 @@ def render_layers(
     ``(t + f) alpha_1`` (f = ``LAYER_FLOOR``): where both layers see a surface they cross-fade in
     time, where one has a hole the other fills it. Rendering both sets together ("all") lets the
     nearer of two slightly misplaced copies of a surface win outright, which doubles edges; the
-    blend degrades to a cross-fade instead (docs/results.md measures both)."""
+    blend degrades to a cross-fade instead (docs/results.md measures both). Each layer is rendered
+    over black (premultiplied colour) and the blend goes over the background once, so a layer's
+    partly transparent splats do not bring their own background into the mix (`_compose`)."""
+    t = float(t)
+    black = torch.zeros(3, device=world_to_cam.device)
     layers = [
-        render_gaussians(gaussians.index(gaussians.keyframes == k), t, world_to_cam, intrinsics, height, width, blend="all", **kwargs)
+        render_gaussians(gaussians.index(gaussians.keyframes == k), t, world_to_cam, intrinsics, height, width, background=black, **kwargs)
         for k in (0, 1)
     ]
+    weights = torch.tensor([1.0 - t + LAYER_FLOOR, t + LAYER_FLOOR])[:, None].expand(2, world_to_cam.shape[0])
+    return _compose(layers, weights, _background(world_to_cam, intrinsics, height, width, sky_sh, background))
+
+
+# "cameras": how fast a layer's weight falls with the angle between its camera's optical axis and
+# the target's: exp((cos - 1) / CAMERA_ANGLE_SCALE).
+CAMERA_ANGLE_SCALE = 0.5
+
+
+def render_camera_layers(
+    gaussians: Gaussians,
+    t: float | Tensor,
+    world_to_cam: Tensor,  # [B, 4, 4]
+    intrinsics: Tensor,  # [B, 3, 3]
+    height: int,
+    width: int,
+    source_axes: Tensor,  # [2, V, 3]
+    *,
+    sky_sh: Tensor | None = None,
+    background: Tensor | None = None,
+    **kwargs,
+) -> RenderOutput:
+    """Like ``render_layers`` with one layer per keyframe and input camera: the Gaussians of each
+    input image rendered on their own, blended per pixel with weight time x view x alpha, the view
+    weight ``exp((cos - 1) / CAMERA_ANGLE_SCALE)`` falling with the angle between the optical axes of
+    the layer's camera and of the target. Where a camera's own Gaussians cover a pixel they decide
+    its colour; a neighbour's Gaussians, which on real frames often float in front at a wrong depth,
+    only fill what the nearer cameras did not see. Gaussians of an unknown camera (-1) form one
+    layer per keyframe with view weight 1."""
     t = float(t)
-    w0 = (1.0 - t + LAYER_FLOOR) * layers[0].alphas
-    w1 = (t + LAYER_FLOOR) * layers[1].alphas
-    total = w0 + w1
-    empty = total < 1e-6  # neither layer covers the pixel: both show the background
-    w0 = torch.where(empty, torch.full_like(w0, 0.5), w0)
-    w1 = torch.where(empty, torch.full_like(w1, 0.5), w1)
-    total = w0 + w1
-    colors = (w0[..., None] * layers[0].colors + w1[..., None] * layers[1].colors) / total[..., None]
-    depths = (w0 * layers[0].depths + w1 * layers[1].depths) / total
-    return RenderOutput(colors=colors, depths=depths, alphas=torch.maximum(layers[0].alphas, layers[1].alphas))
+    target_axes = world_to_cam[:, 2, :3].float()  # camera z axis in world: the third row of R_w2c
+    num_cameras = source_axes.shape[1]
+    weights, layers = [], []
+    for k in (0, 1):
+        time_weight = (1.0 - t if k == 0 else t) + LAYER_FLOOR
+        for c in gaussians.cameras[gaussians.keyframes == k].unique().tolist():
+            if c >= num_cameras:
+                raise InputError(f"Gaussians.cameras: index {c} but source_axes has {num_cameras} cameras")
+            subset = gaussians.index((gaussians.keyframes == k) & (gaussians.cameras == c))
+            if c < 0:
+                view_weight = torch.ones(len(target_axes))
+            else:
+                view_weight = torch.exp((target_axes @ source_axes[k, c].to(target_axes) - 1.0) / CAMERA_ANGLE_SCALE)
+            weights.append(time_weight * view_weight)
+            black = torch.zeros(3, device=world_to_cam.device)
+            layers.append(render_gaussians(subset, t, world_to_cam, intrinsics, height, width, background=black, **kwargs))
+    if not layers:  # no Gaussians: the background alone
+        return render_gaussians(gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **kwargs)
+    return _compose(layers, torch.stack(weights), _background(world_to_cam, intrinsics, height, width, sky_sh, background))
+
+
+def _compose(layers: list[RenderOutput], weights: Tensor, background: Tensor) -> RenderOutput:
+    """Layers rendered over black (premultiplied colours) blended per pixel: colour and depth
+    weighted by ``weights[l, b] * alpha_l``, coverage the largest layer alpha, over ``background``."""
+    w = weights.to(background)[..., None, None]  # [L, B, 1, 1]
+    alphas = torch.stack([layer.alphas for layer in layers])  # [L, B, H, W]
+    total = (w * alphas).sum(0)
+    norm = torch.where(total > 1e-12, total, torch.ones_like(total))
+    colors = sum(wi[..., None] * layer.colors for wi, layer in zip(w, layers)) / norm[..., None]
+    depths = sum(wi * layer.alphas * layer.depths for wi, layer in zip(w, layers)) / norm
+    alpha = alphas.amax(0)
+    return RenderOutput(colors=alpha[..., None] * colors + (1 - alpha[..., None]) * background, depths=depths, alphas=alpha)
+
+
+def _background(world_to_cam, intrinsics, height, width, sky_sh, background) -> Tensor:
+    """``[B, H, W, 3]`` what shows where no Gaussian covers a pixel: the sky model, else a colour."""
+    if sky_sh is None:
+        bg = torch.zeros(3) if background is None else background
+        return bg.to(world_to_cam.device).float().expand(world_to_cam.shape[0], height, width, 3)
+    cam_to_world = torch.linalg.inv(world_to_cam.double()).float()
+    return sky_colors(sky_sh, ray_directions(cam_to_world, intrinsics.float(), height, width))
+
+
+def source_axes(recon) -> Tensor:
+    """``[2, V, 3]`` world optical axes of a reconstruction's input cameras."""
+    rot = torch.from_numpy(recon.ego_to_world[:, None, :3, :3]) @ torch.from_numpy(recon.cam_to_ego[None, :, :3, :3]).double()
+    return rot[..., 2].float()
 
 
 def render_eval_frames(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs) -> Tensor:
@@ -121,6 +202,7 @@ def render_eval_frames(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
                 width,
                 sky_sh=recon.sky_sh,
                 blend=blend,
+                source_axes=source_axes(recon),
                 **raster_kwargs,
             )
             colors[views] = out.colors.clamp(0, 1)
@@ -143,7 +225,7 @@ def render_input_views(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
         for views in groups:
             out = render_gaussians(
                 g, float(times[key][views[0]]), invert_rigid(cams[key][views]), k[views], height, width,
-                sky_sh=recon.sky_sh, blend=blend, **raster_kwargs,
+                sky_sh=recon.sky_sh, blend=blend, source_axes=source_axes(recon), **raster_kwargs,
             )
             frames[key, views] = out.colors.clamp(0, 1)
     return frames

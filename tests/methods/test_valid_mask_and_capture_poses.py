@@ -15,7 +15,7 @@ from drivingscene.gaussians.recon import load_reconstruction, save_reconstructio
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
 from drivingscene.methods.oracle import oracle_reconstruction
-from drivingscene.render.scene import render_eval_frames, render_gaussians
+from drivingscene.render.scene import render_eval_frames, render_gaussians, source_axes
 
 
 def _bottom_mask(pair, rows: int) -> np.ndarray:
@@ -79,7 +79,9 @@ def test_eval_frames_render_each_camera_at_its_own_time(synth_pair):
     c2w = torch.from_numpy(synth_pair.eval_ego_to_world[0]) @ torch.from_numpy(recon.cam_to_ego).double()
     k = torch.from_numpy(recon.intrinsics).float()
     h, w = synth_pair.image_size
-    single = render_gaussians(recon.visible(), 0.2, invert_rigid(c2w[1:2]), k[1:2], h, w, sky_sh=recon.sky_sh, blend=DEFAULT_BLEND)
+    single = render_gaussians(
+        recon.visible(), 0.2, invert_rigid(c2w[1:2]), k[1:2], h, w, sky_sh=recon.sky_sh, blend=DEFAULT_BLEND, source_axes=source_axes(recon)
+    )
     assert torch.allclose(frames[0, 1], single.colors[0].clamp(0, 1), atol=1e-6)
     same = render_eval_frames(recon, synth_pair)
     assert torch.equal(frames[:, 0], same[:, 0]) and not torch.equal(frames[:, 1], same[:, 1])

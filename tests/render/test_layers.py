@@ -1,4 +1,5 @@
-"""The "layers" blend: each keyframe's Gaussians rendered alone, blended by time and coverage."""
+"""The "layers" and "cameras" blends: each keyframe's (or each input image's) Gaussians rendered
+alone, blended by time, camera direction and coverage."""
 
 from __future__ import annotations
 
@@ -7,15 +8,18 @@ import dataclasses
 import pytest
 import torch
 
+from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
-from drivingscene.render.scene import LAYER_FLOOR, render_gaussians
+from drivingscene.render.scene import CAMERA_ANGLE_SCALE, LAYER_FLOOR, render_gaussians
 
 HEIGHT, WIDTH = 16, 24
 K = torch.tensor([[[20.0, 0.0, (WIDTH - 1) / 2], [0.0, 20.0, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]]])
 EYE = torch.eye(4)[None]
 
 
-def _wall(z: float, rgb: tuple[float, float, float], keyframe: int, x_range=(-3.0, 3.0)) -> Gaussians:
+def _wall(
+    z: float, rgb: tuple[float, float, float], keyframe: int, x_range=(-3.0, 3.0), camera: int = -1, opacity: float = 0.998
+) -> Gaussians:
     """A grid of small opaque Gaussians at depth z, covering the view for x in ``x_range``."""
     xs = torch.arange(x_range[0], x_range[1], 0.2)
     ys = torch.arange(-3.0, 3.0, 0.2)
@@ -25,10 +29,18 @@ def _wall(z: float, rgb: tuple[float, float, float], keyframe: int, x_range=(-3.
         means=torch.cat([grid * z / 5.0, torch.full((n, 1), z)], 1),
         quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4),
         scales=torch.full((n, 3), 0.3),
-        opacities=torch.full((n,), 0.998),
+        opacities=torch.full((n,), opacity),
         sh=rgb_to_sh0(torch.tensor(rgb).expand(n, 3)),
         keyframes=torch.full((n,), keyframe),
+        cameras=camera,
     )
+
+
+def _axes(*degrees: float) -> torch.Tensor:
+    """``[2, V, 3]`` optical axes turned by ``degrees`` about y from the target's +z, both keyframes."""
+    rad = torch.tensor(degrees) * torch.pi / 180
+    axes = torch.stack([torch.sin(rad), torch.zeros_like(rad), torch.cos(rad)], -1)
+    return axes[None].expand(2, -1, -1)
 
 
 def test_where_both_layers_see_a_surface_they_cross_fade_in_time():
@@ -54,15 +66,63 @@ def test_a_hole_in_one_layer_is_filled_by_the_other():
     assert left[0] > 0.9 and left[1] < 0.1  # at t = 0 keyframe 0 dominates where it sees
 
 
+@pytest.mark.parametrize("blend", ["layers", "cameras"])
 @pytest.mark.parametrize("t", [0.0, 0.5])
-def test_with_one_keyframe_layers_is_the_plain_render(t):
-    g = _wall(5.0, (0.2, 0.4, 0.6), 0, x_range=(-1.0, 1.0))
-    plain = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=torch.tensor([0.1, 0.1, 0.1]))
-    layers = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=torch.tensor([0.1, 0.1, 0.1]), blend="layers")
+def test_with_one_layer_the_blend_is_the_plain_render(t, blend):
+    # half-transparent splats: a layer's own background must not leak into the blend
+    g = _wall(5.0, (0.2, 0.4, 0.6), 0, x_range=(-1.0, 1.0), camera=0, opacity=0.5)
+    bg = torch.tensor([0.1, 0.8, 0.1])
+    plain = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=bg)
+    layers = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=bg, blend=blend, source_axes=_axes(30.0))
     torch.testing.assert_close(layers.colors, plain.colors, atol=1e-5, rtol=0)
+    torch.testing.assert_close(layers.depths, plain.depths, atol=1e-4, rtol=0)
 
 
-@pytest.mark.parametrize("blend", ["all", "layers"])
+def test_cameras_blend_weighs_each_camera_by_its_direction():
+    # camera 1 (60 degrees off the target's axis) put a green wall in front of camera 0's red one
+    g = Gaussians.cat([_wall(5.0, (1.0, 0.0, 0.0), 0, camera=0), _wall(3.0, (0.0, 1.0, 0.0), 0, camera=1)])
+    axes = _axes(0.0, 60.0)
+    out = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=axes)
+    w1 = torch.exp(torch.tensor((0.5 - 1.0) / CAMERA_ANGLE_SCALE))
+    red, green = (render_gaussians(g.index(g.cameras == c), 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)) for c in (0, 1))
+    coverage = torch.maximum(red.alphas, green.alphas)[..., None]  # over a black background
+    expected = coverage * (red.colors + w1 * green.colors) / (red.alphas + w1 * green.alphas)[..., None]
+    torch.testing.assert_close(out.colors, expected, atol=1e-5, rtol=0)
+    centre = out.colors[0, HEIGHT // 2, WIDTH // 2]
+    assert 0.6 < centre[0] < 0.9 and 0.1 < centre[1] < 0.4  # red weighs more, green still shows
+    # rendered together the nearer wall wins; seen from camera 1's direction, camera 1 dominates
+    together = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)).colors[0, HEIGHT // 2, WIDTH // 2]
+    assert together[1] > 3 * together[0]
+    turned = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(60.0, 0.0))
+    assert turned.colors[0, HEIGHT // 2, WIDTH // 2, 1] > 2 * turned.colors[0, HEIGHT // 2, WIDTH // 2, 0]
+
+
+def test_cameras_blend_fills_a_cameras_hole_from_its_neighbour():
+    left_only = _wall(5.0, (1.0, 0.0, 0.0), 0, x_range=(-3.0, 0.0), camera=0)
+    everything = _wall(5.0, (0.0, 1.0, 0.0), 0, camera=1)
+    g = Gaussians.cat([left_only, everything])
+    out = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(0.0, 90.0))
+    torch.testing.assert_close(out.colors[0, HEIGHT // 2, WIDTH - 3], torch.tensor([0.0, 1.0, 0.0]), atol=2e-3, rtol=0)
+    left = out.colors[0, HEIGHT // 2, 2]
+    assert left[0] > 0.85 and left[1] < 0.15
+
+
+def test_cameras_blend_with_unknown_cameras_is_the_layers_blend():
+    g = Gaussians.cat([_wall(5.0, (1.0, 0.0, 0.0), 0, x_range=(-3.0, 0.5)), _wall(5.2, (0.0, 0.0, 1.0), 1)])
+    layers = render_gaussians(g, 0.3, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="layers")
+    cameras = render_gaussians(g, 0.3, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(45.0))
+    torch.testing.assert_close(cameras.colors, layers.colors, atol=1e-6, rtol=0)
+
+
+def test_cameras_blend_needs_the_input_cameras():
+    g = _wall(5.0, (1.0, 0.0, 0.0), 0, camera=2)
+    with pytest.raises(InputError, match="source_axes"):
+        render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, blend="cameras")
+    with pytest.raises(InputError, match="cameras: index 2"):
+        render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, blend="cameras", source_axes=_axes(0.0, 10.0))
+
+
+@pytest.mark.parametrize("blend", ["all", "layers", "cameras"])
 def test_input_views_render_each_keyframe_at_its_own_time(synth_pair, blend):
     """`render_input_views` of the oracle (exact depth, both keyframes) reproduces the inputs of
     both keyframes equally well: keyframe 1's cameras are rendered at t = 1 (a pair without
