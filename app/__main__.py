@@ -19,9 +19,8 @@ from pathlib import Path
 
 from app.loader import DEMO_SCENE, METHODS
 from app.renderer import MODES
-from app.splats import BLEND_MODES
 from drivingscene.cli.common import OneLineParser, run_reporting_errors, unit_interval
-from drivingscene.gaussians.core import DEFAULT_BLEND
+from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND
 
 PROG = "drivingscene-view"
 

@@ -6,6 +6,12 @@ for colour and ``(ONE, ONE_MINUS_SRC_ALPHA)`` for alpha, so the target ends as
 ``sum_i w_i c_i + T sky`` with alpha ``sum_i w_i`` — exactly ``render_gaussians``. Positions at time t
 are computed in the vertex shader from (mean, flow, keyframe): scrubbing time uploads nothing but the
 new order. ``present`` draws a target into the window (colour-mapping depth).
+
+The layered blends ("layers": one layer per keyframe, "cameras": one per keyframe and source camera;
+``drivingscene.render.scene``) draw each layer's splats over transparent black into a target of its
+own (premultiplied colour), then ``shaders/compose.glsl`` adds the layers with their weights into
+two accumulation targets and resolves them over the sky. The sorter groups the order by layer, so
+each layer is one contiguous range of it.
 """
 
 from __future__ import annotations
@@ -16,8 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.camera import ViewCamera
-from app.splats import BLEND_MODES, SplatArrays, covariances
-from drivingscene.gaussians.core import DEFAULT_BLEND
+from app.sorter import layer_ids
+from app.splats import SplatArrays, covariances
+from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND
 from drivingscene.gl import load_program
 
 TEX_W = 4096
@@ -100,6 +107,8 @@ class GpuSplats:
         self.num = 0
         self.sh_k = 1
         self.origin = np.zeros(3)
+        self.layer_ids = np.zeros(0, np.uint16)  # sorter.layer_ids of every splat
+        self.segments: list[tuple[int, int, int, int]] | None = []  # (keyframe, camera, start, end) of the order
         self.cov_scale = 1.0
         self._cov_b_base = np.zeros((0, 2), np.float32)
 
@@ -125,6 +134,7 @@ class GpuSplats:
         texels = _rows(n) * TEX_W
         means = (splats.means.astype(np.float64) - self.origin).astype(np.float32)
         pos = np.concatenate([means, splats.keyframes[:, None].astype(np.float32)], axis=1)
+        self.layer_ids = layer_ids(splats.keyframes, splats.cameras)
         self._texture("pos", texels, 4, "f4", _pad(pos, texels).tobytes())
         cov = covariances(splats.quats, splats.log_scales).astype(np.float32)
         self._texture("cov_a", texels, 4, "f4", _pad(cov[:, :4], texels).tobytes())
@@ -166,7 +176,19 @@ class GpuSplats:
         if self.count:
             used = _rows(self.count)
             tex.write(_pad(order.astype(np.uint32), used * TEX_W).tobytes(), viewport=(0, 0, TEX_W, used))
+        self.segments = self._segments(order)
         return time.perf_counter() - start
+
+    def _segments(self, order: np.ndarray) -> list[tuple[int, int, int, int]] | None:
+        """``(keyframe, camera, start, end)`` ranges of a front-to-back order grouped by layer
+        (camera -1 throughout when grouped by keyframe only), or None when it is not grouped."""
+        for ids, shift in ((self.layer_ids[order].astype(np.int64), 0), ((self.layer_ids[order] >> 12).astype(np.int64), 12)):
+            if len(ids) == 0 or not bool((ids[1:] < ids[:-1]).any()):
+                ids = ids << shift
+                cuts = np.flatnonzero(np.diff(ids)) + 1
+                starts, ends = np.r_[0, cuts], np.r_[cuts, len(ids)]
+                return [(int(ids[a] >> 12), int(ids[a] & 0xFFF) - 1, int(a), int(b)) for a, b in zip(starts, ends) if b > a]
+        return None
 
     def release(self) -> None:
         for tex in self._textures.values():
@@ -190,9 +212,11 @@ class SplatRenderer:
         self.depth_lut = _lut_texture(ctx, depth_lut())
         self.flow_lut = _lut_texture(ctx, flow_lut())
         self._targets: dict[str, Target] = {}
+        self._acc: dict = {}  # the two-attachment framebuffer over the accumulation targets
         self._quads = 0
         self._ibo = self._splat_vao = None
         self.sky = np.zeros((1, 3), np.float32)
+        self.source_axes: np.ndarray | None = None  # [2, V, 3] input cameras' optical axes ("cameras")
 
     def _quad_vao(self, count: int):
         """Index buffer ``4 i + (0, 1, 2, 2, 1, 3)``: two triangles per splat sharing 2 vertices, so the
@@ -213,6 +237,11 @@ class SplatRenderer:
         if sky_sh is None:
             sky_sh = np.array([[(0.18 - 0.5) / 0.28209479177387814] * 3], np.float32)
         self.sky = np.asarray(sky_sh, np.float32)[:16]
+
+    def set_cameras(self, source_axes: np.ndarray | None) -> None:
+        """World optical axes ``[2, V, 3]`` of the input cameras (origin-independent), for the
+        "cameras" blend; None draws it as "layers"."""
+        self.source_axes = None if source_axes is None else np.asarray(source_axes, np.float64)
 
     # --- drawing ----------------------------------------------------------------------------
     def target(self, width: int, height: int, dtype: str | None = None, name: str = "view") -> Target:
@@ -237,24 +266,77 @@ class SplatRenderer:
     ) -> Target:
         """Draw splats ``[start, start + count)`` of the back-to-front order into ``target`` (the sky
         first when ``start`` is 0): drawing a picture in several calls gives the same result. The
-        "layers" blend draws each keyframe's splats into a target of its own and composes the two
-        into ``target`` after every call (shaders/compose.glsl)."""
-        if opts.blend == "layers" and opts.mode != "depth":
-            layers = [self.target(target.width, target.height, target.dtype, name=f"layer{k}@{target.texture.glo}") for k in (0, 1)]
-            for k, layer in enumerate(layers):
-                self._draw(splats, camera, t, opts, layer, start, count, layer=k)
-            self._compose(layers, target, t)
+        layered blends draw into a target per layer and compose them into ``target`` after every
+        call (module docstring)."""
+        if opts.blend in ("layers", "cameras") and opts.mode != "depth":
+            self._draw_layers(splats, camera, t, opts, target, start, count)
             return target
         return self._draw(splats, camera, t, opts, target, start, count)
 
+    def _layers(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions):
+        """``(name, weight, [(start, end) back to front], keyframe filter)`` of each layer to draw."""
+        from drivingscene.render.scene import CAMERA_ANGLE_SCALE, LAYER_FLOOR
+
+        n = splats.count
+        if splats.segments is None:  # an order not grouped by layer: each keyframe over the whole range
+            return [(f"k{k}", (1.0 - t if k == 0 else t) + LAYER_FLOOR, [(0, n)], k) for k in (0, 1)]
+        by_camera = opts.blend == "cameras" and self.source_axes is not None
+        axis = camera.world_to_cam[2, :3]
+        groups: dict[tuple[int, int], list] = {}
+        for k, c, a, b in splats.segments:
+            key = (k, c if by_camera else -1)
+            groups.setdefault(key, []).append((n - b, n - a))  # front-to-back [a, b) -> back to front
+        layers = []
+        for (k, c), ranges in sorted(groups.items()):
+            weight = (1.0 - t if k == 0 else t) + LAYER_FLOOR
+            if c >= 0 and c < self.source_axes.shape[1]:
+                weight *= float(np.exp((axis @ self.source_axes[k, c] - 1.0) / CAMERA_ANGLE_SCALE))
+            layers.append((f"k{k}c{c}", weight, ranges, -1))
+        return layers
+
+    def _draw_layers(self, splats, camera, t, opts, target: Target, start: int, count: int) -> None:
+        end = start + min(count, splats.count - start)
+        layers = self._layers(splats, camera, t, opts)
+        acc = [self.target(target.width, target.height, "f4", name=f"acc{i}@{target.texture.glo}") for i in (0, 1)]
+        if "fbo" not in self._acc or self._acc["key"] != (acc[0].texture.glo, acc[1].texture.glo):
+            if "fbo" in self._acc:
+                self._acc["fbo"].release()
+            self._acc = {"fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]), "key": (acc[0].texture.glo, acc[1].texture.glo)}
+        acc_fbo = self._acc["fbo"]
+        acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        for name, weight, ranges, keyframe in layers:
+            layer = self.target(target.width, target.height, target.dtype, name=f"layer-{name}@{target.texture.glo}")
+            if start == 0:
+                layer.fbo.clear(0.0, 0.0, 0.0, 0.0)
+            for a, b in ranges:  # this call's part of the layer's range
+                lo, hi = max(a, start), min(b, end)
+                if hi > lo:
+                    self._draw(splats, camera, t, opts, layer, lo, hi - lo, layer=keyframe, sky=False)
+            self._accumulate(layer, acc_fbo, weight)
+        self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
+        self._resolve(acc, target)
+
     def _draw(
-        self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, target: Target, start: int, count: int, layer: int = -1
+        self,
+        splats: GpuSplats,
+        camera: ViewCamera,
+        t: float,
+        opts: RenderOptions,
+        target: Target,
+        start: int,
+        count: int,
+        layer: int = -1,
+        sky: bool | None = None,
     ) -> Target:
+        """Splats ``[start, start + count)`` into ``target``, the sky first when ``start`` is 0 (or as
+        ``sky`` says; False clears to transparent black); ``layer`` >= 0 draws one keyframe only."""
         target.fbo.use()
         self.ctx.viewport = (0, 0, camera.width, camera.height)
         self.ctx.disable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
         cam = camera.shifted(splats.origin)
-        if start == 0:
+        if sky is None:
+            sky = start == 0
+        if sky:
             if opts.mode == "depth":
                 target.fbo.clear(0.0, 0.0, 0.0, 0.0)
             else:
@@ -264,19 +346,32 @@ class SplatRenderer:
             self._draw_splats(splats, cam, t, opts, start, count, layer)
         return target
 
-    def _compose(self, layers: list[Target], target: Target, t: float) -> None:
-        from drivingscene.render.scene import LAYER_FLOOR
+    def _accumulate(self, layer: Target, acc_fbo, weight: float) -> None:
+        acc_fbo.use()
+        self.ctx.viewport = (0, 0, layer.width, layer.height)
+        self.ctx.enable(self.ctx.BLEND)
+        self.ctx.blend_func = (self.ctx.ONE, self.ctx.ONE)
+        self.ctx.blend_equation = (self.ctx.FUNC_ADD, self.ctx.MAX)
+        layer.texture.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
+        layer.texture.use(0)
+        prog = self.compose_prog
+        prog["u_pass"].value, prog["u_layer"].value, prog["u_weight"].value = 0, 0, float(weight)
+        self.compose_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
+        self.ctx.blend_equation = self.ctx.FUNC_ADD
+        self.ctx.disable(self.ctx.BLEND)
 
+    def _resolve(self, acc: list[Target], target: Target) -> None:
         target.fbo.use()
         self.ctx.viewport = (0, 0, target.width, target.height)
-        self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
-        for unit, layer in enumerate(layers):
-            layer.texture.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
-            layer.texture.use(unit)
-            self.compose_prog[f"u_layer{unit}"].value = unit
-        self.compose_prog["u_t"].value = float(t)
-        self.compose_prog["u_floor"].value = LAYER_FLOOR
+        self.ctx.enable(self.ctx.BLEND)
+        self.ctx.blend_func = (self.ctx.SRC_ALPHA, self.ctx.ONE_MINUS_SRC_ALPHA, self.ctx.ONE, self.ctx.ONE_MINUS_SRC_ALPHA)
+        for unit, a in enumerate(acc):
+            a.texture.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
+            a.texture.use(unit + 1)
+        prog = self.compose_prog
+        prog["u_pass"].value, prog["u_acc0"].value, prog["u_acc1"].value = 1, 1, 2
         self.compose_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
+        self.ctx.disable(self.ctx.BLEND)
 
     def _camera_uniforms(self, prog, cam: ViewCamera) -> None:
         k = cam.intrinsics
@@ -311,7 +406,10 @@ class SplatRenderer:
         prog["u_count"].value = splats.count
         prog["u_sh_k"].value = splats.sh_k
         prog["u_t"].value = float(t)
-        blend = opts.blend if opts.blend != "layers" or layer >= 0 else "all"  # depth mode: both sets together
+        if layer >= 0:
+            blend = "layers"  # one keyframe's splats (shader: u_blend 3 with u_layer)
+        else:  # a layered blend draws its layers' ranges (or, in depth mode, everything) at full opacity
+            blend = "all" if opts.blend in ("layers", "cameras") else opts.blend
         prog["u_blend"].value = BLEND_MODES.index(blend)
         prog["u_layer"].value = max(layer, 0)
         prog["u_mode"].value = MODES.index(opts.mode)
@@ -349,6 +447,8 @@ class SplatRenderer:
         return out.read()[..., :3].copy()
 
     def release(self) -> None:
+        if "fbo" in self._acc:
+            self._acc.pop("fbo").release()
         for t in self._targets.values():
             t.release()
         self._targets.clear()

@@ -15,8 +15,6 @@ import torch
 
 from drivingscene.gaussians.core import Gaussians
 
-BLEND_MODES = ("all", "fade", "nearest", "layers")  # Gaussians.time_weights, render_layers
-
 
 @dataclass(frozen=True, eq=False)
 class SplatArrays:

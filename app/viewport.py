@@ -24,6 +24,7 @@ from app.renderer import GpuSplats, RenderOptions, SplatRenderer, Target
 from app.sorter import SortInput, SortRequest, SortWorker, depth_order, make_sort_input
 from app.splats import SplatArrays
 from app.state import SceneDoc
+from drivingscene.render.scene import source_axes
 
 SCALES = (1.0, 0.85, 0.7, 0.6, 0.5, 0.42, 0.35, 0.3)
 
@@ -130,6 +131,7 @@ class Viewport:
             self.doc, self.levels, self._lod_result = doc, [], None
             self.ladder.set_levels(0)
             self.renderer.set_sky(None if doc.recon.sky_sh is None else doc.recon.sky_sh.cpu().numpy())
+            self.renderer.set_cameras(source_axes(doc.recon).numpy())
             self._start_lod(doc)
         if new_doc or v["geometry"] != self._versions["geometry"]:
             self.full.upload(doc.splats, doc.origin, self._flags(doc))
@@ -186,7 +188,9 @@ class Viewport:
 
     # --- sorting -------------------------------------------------------------------------------
     def _request(self, s: SplatSet, camera: ViewCamera, t: float, opts: RenderOptions) -> SortRequest:
-        stamp = (s.name, _camera_key(camera), float(t), opts.blend, id(s.sort_input))
+        # depth mode draws a layered blend's splats all together: a plain depth order
+        blend = "all" if opts.mode == "depth" and opts.blend in ("layers", "cameras") else opts.blend
+        stamp = (s.name, _camera_key(camera), float(t), blend, id(s.sort_input))
         cam = camera.shifted(self.doc.origin)
         return SortRequest(
             cam.world_to_cam,
@@ -194,7 +198,7 @@ class Viewport:
             camera.width,
             camera.height,
             float(t),
-            opts.blend,
+            blend,
             opts.near,
             opts.far,
             self.keys,

@@ -1,7 +1,10 @@
 #version 330 core
-// The "layers" blend (drivingscene.render.scene.render_layers): each keyframe's splats were drawn
-// alone over the sky into their own target; per pixel the two pictures are blended with weights
-// (1 - t + floor) alpha_0 and (t + floor) alpha_1 (both 0.5 where neither layer has a splat).
+// The layered blends (drivingscene.render.scene: "layers", "cameras"). Each layer's splats were
+// drawn alone over transparent black (premultiplied colour C_l, coverage a_l).
+// u_pass 0 adds one layer with its weight w_l into two accumulation targets (blend ONE, ONE with
+// equation ADD for colour and MAX for alpha): acc0 = (sum w_l C_l, max a_l), acc1.r = sum w_l a_l.
+// u_pass 1 resolves them over the sky already in the target (blend SRC_ALPHA, ONE_MINUS_SRC_ALPHA):
+// colour sum w_l C_l / sum w_l a_l with alpha max a_l (render.scene._compose).
 
 #if defined VERTEX_SHADER
 
@@ -15,23 +18,27 @@ void main() {
 
 #elif defined FRAGMENT_SHADER
 
-uniform sampler2D u_layer0;
-uniform sampler2D u_layer1;
-uniform float u_t;
-uniform float u_floor;
+uniform int u_pass;
+uniform sampler2D u_layer;
+uniform sampler2D u_acc0;
+uniform sampler2D u_acc1;
+uniform float u_weight;
 in vec2 v_uv;
-out vec4 fragColor;
+layout(location = 0) out vec4 out0;
+layout(location = 1) out vec4 out1;
 
 void main() {
-    vec4 a = texture(u_layer0, v_uv);
-    vec4 b = texture(u_layer1, v_uv);
-    float w0 = (1.0 - u_t + u_floor) * a.a;
-    float w1 = (u_t + u_floor) * b.a;
-    if (w0 + w1 < 1e-6) {
-        w0 = 0.5;
-        w1 = 0.5;
+    if (u_pass == 0) {
+        vec4 c = texture(u_layer, v_uv);
+        out0 = vec4(u_weight * c.rgb, c.a);
+        out1 = vec4(u_weight * c.a, 0.0, 0.0, 0.0);
+        return;
     }
-    fragColor = vec4((w0 * a.rgb + w1 * b.rgb) / (w0 + w1), max(a.a, b.a));
+    vec4 acc = texture(u_acc0, v_uv);
+    float total = texture(u_acc1, v_uv).r;
+    vec3 color = total > 1e-12 ? acc.rgb / total : vec3(0.0);
+    out0 = vec4(color, acc.a);
+    out1 = vec4(0.0);
 }
 
 #endif

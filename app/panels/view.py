@@ -7,9 +7,9 @@ from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
 
 from app.renderer import MODES, depth_lut, flow_lut
-from app.splats import BLEND_MODES
 from app.textures import texture_ref
 from app.viewer import Viewer
+from drivingscene.gaussians.core import BLEND_MODES
 
 MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "dynamic": "Dynamic", "flow": "Flow |m|"}
 
@@ -30,14 +30,18 @@ def draw(viewer: Viewer) -> None:
         _, v.flow_max = imgui.drag_float("max flow (m)", v.flow_max, 0.01, 0.01, 100.0, "%.2f")
     imgui.set_next_item_width(200)
     _, blend = imgui.combo(
-        "blend", BLEND_MODES.index(v.blend), ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe", "keyframe layers (layers)"]
+        "blend",
+        BLEND_MODES.index(v.blend),
+        ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe", "keyframe layers (layers)", "camera layers (cameras)"],
     )
     v.blend = BLEND_MODES[blend]
     if imgui.is_item_hovered():
         imgui.set_tooltip(
-            "all: both keyframes' Gaussians fully opaque (the library's default, as training renders)\n"
+            "all: both keyframes' Gaussians fully opaque, nearest surface wins\n"
             "fade: keyframe-0 opacity x (1 - t), keyframe-1 x t\nnearest: only the keyframe nearer in time\n"
-            "layers: each keyframe's Gaussians drawn alone, the two pictures blended by time and coverage"
+            "layers: each keyframe's Gaussians drawn alone, the two pictures blended by time and coverage\n"
+            "cameras (default): each input image's Gaussians drawn alone, blended by time, camera direction\n"
+            "and coverage: a camera's own Gaussians decide where they cover, neighbours fill the rest"
         )
     imgui.separator_text("Camera")
     _camera(viewer)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,7 +11,7 @@ import torch
 
 from app.camera import rig_camera
 from app.renderer import GpuSplats, RenderOptions, SplatRenderer
-from app.sorter import SortRequest, depth_order, make_sort_input
+from app.sorter import SortRequest, depth_order, layer_ids, make_sort_input
 from app.splats import SplatArrays
 from drivingscene.render.scene import render_gaussians
 from tests.app.scenes import random_gaussians
@@ -25,11 +26,12 @@ def _camera():
     return rig_camera(c2w, K, (H, W))
 
 
-def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb"):
+def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None):
     renderer, gpu = SplatRenderer(ctx), GpuSplats(ctx)
     splats = SplatArrays.from_gaussians(gaussians)
     gpu.set_splats(splats, origin=np.array([0.1, 0.2, 3.0]))
     renderer.set_sky(sky.numpy())
+    renderer.set_cameras(axes)
     cam = _camera()
     req = SortRequest(cam.shifted(gpu.origin).world_to_cam, cam.intrinsics, W, H, t, blend, keys=keys)
     gpu.set_order(depth_order(make_sort_input(splats, gpu.origin), req))
@@ -56,10 +58,21 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.mark.gl
 @pytest.mark.parametrize(
     "sh_degree, t, blend, keys",
-    [(0, 0.0, "all", "u16"), (1, 0.3, "all", "u16"), (3, 0.7, "fade", "float"), (2, 0.6, "nearest", "u16"), (0, 0.4, "layers", "u16")],
+    [
+        (0, 0.0, "all", "u16"),
+        (1, 0.3, "all", "u16"),
+        (3, 0.7, "fade", "float"),
+        (2, 0.6, "nearest", "u16"),
+        (0, 0.4, "layers", "u16"),
+        (1, 0.3, "cameras", "u16"),
+    ],
 )
 def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
     gaussians = random_gaussians(300, sh_degree=sh_degree, seed=sh_degree)
+    # three source cameras, the third with unknown (-1) splats as well; axes 0, 40 and 80 degrees off
+    gaussians = dataclasses.replace(gaussians, cameras=torch.arange(len(gaussians)) % 4 - 1)
+    rad = np.radians([[0.0, 40.0, 80.0], [10.0, 50.0, 90.0]])
+    axes = np.stack([np.sin(rad), np.zeros_like(rad), np.cos(rad)], -1)
     sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
     cam = _camera()
     ref = (
@@ -72,6 +85,7 @@ def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
             W,
             sky_sh=sky,
             blend=blend,
+            source_axes=torch.from_numpy(axes).float(),
             max_layers=1024,
             backend="torch",
         )
@@ -79,7 +93,7 @@ def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
         .clamp(0, 1)
         .numpy()
     )
-    gl = _gl_render(gl_ctx, gaussians, sky, t, blend, keys)
+    gl = _gl_render(gl_ctx, gaussians, sky, t, blend, keys, axes=axes)
     assert _psnr(gl, ref) >= 35.0
     assert ref.std() > 0.05  # the scene is not trivially empty
 
@@ -122,6 +136,29 @@ def test_sort_matches_float_argsort():
         # 16-bit log-depth buckets: any inversion is within one bucket (relative depth 1e-4 here).
         zs = z[u16]
         assert np.all(np.diff(np.log(zs)) >= -np.log(zs.max() / zs.min()) / 65535 * 1.01)
+
+
+def test_layered_blends_sort_each_layer_front_to_back():
+    g = random_gaussians(2000, seed=3)
+    g = dataclasses.replace(g, cameras=torch.arange(len(g)) % 3 - 1)
+    splats = SplatArrays.from_gaussians(g)
+    cam = _camera()
+    data = make_sort_input(splats, np.zeros(3))
+    plain = depth_order(data, SortRequest(cam.world_to_cam, K, W, H, 0.3, keys="float"))
+    order = depth_order(data, SortRequest(cam.world_to_cam, K, W, H, 0.3, blend="cameras", keys="float"))
+    assert set(order.tolist()) == set(plain.tolist())
+    keys = splats.keyframes[order].astype(int) * 10 + splats.cameras[order]
+    assert np.all(np.diff(keys) >= 0)  # grouped: keyframe, then camera
+    z = splats.means_at(0.3).astype(np.float64) @ cam.world_to_cam[2, :3]
+    for key in np.unique(keys):  # each group in the plain order's (front-to-back) order
+        np.testing.assert_array_equal(order[keys == key], plain[np.isin(plain, order[keys == key])])
+        assert np.all(np.diff(z[order[keys == key]]) >= 0)
+    gpu_segments = GpuSplats.__new__(GpuSplats)
+    gpu_segments.layer_ids = layer_ids(splats.keyframes, splats.cameras)
+    segments = gpu_segments._segments(order)
+    assert [(k, c) for k, c, _, _ in segments] == sorted({(int(k), int(c)) for k, c in zip(splats.keyframes[order], splats.cameras[order])})
+    assert segments[0][2] == 0 and segments[-1][3] == len(order)
+    assert gpu_segments._segments(plain) is None  # a plain depth order is not grouped
 
 
 def test_sort_culls_conservatively():
