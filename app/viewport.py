@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -256,6 +256,9 @@ class Viewport:
     def _preview(self, camera: ViewCamera, t: float, opts: RenderOptions) -> bool:
         level, scale = self.ladder.step
         s = self.levels[level] if level >= 0 and self.levels else self.full
+        if s is not self.full and opts.blend == "cameras":
+            # a merged level mixes cameras' Gaussians: previewed with one layer per keyframe (2 passes, not 2V)
+            opts = replace(opts, blend="layers")
         req = self._request(s, camera, t, opts)
         if req.stamp != self._submitted:
             self.worker.submit(s.sort_input, req)
