@@ -266,8 +266,8 @@ class SplatRenderer:
     ) -> Target:
         """Draw splats ``[start, start + count)`` of the back-to-front order into ``target`` (the sky
         first when ``start`` is 0): drawing a picture in several calls gives the same result. The
-        layered blends draw into a target per layer and compose them into ``target`` after every
-        call (module docstring)."""
+        layered blends draw into a target per layer; a layer is added to the accumulation when its
+        last splat is drawn, and every call resolves what is complete over the sky (module docstring)."""
         if opts.blend in ("layers", "cameras") and opts.mode != "depth":
             self._draw_layers(splats, camera, t, opts, target, start, count)
             return target
@@ -303,7 +303,8 @@ class SplatRenderer:
                 self._acc["fbo"].release()
             self._acc = {"fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]), "key": (acc[0].texture.glo, acc[1].texture.glo)}
         acc_fbo = self._acc["fbo"]
-        acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        if start == 0:
+            acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
         for name, weight, ranges, keyframe in layers:
             layer = self.target(target.width, target.height, target.dtype, name=f"layer-{name}@{target.texture.glo}")
             if start == 0:
@@ -312,7 +313,8 @@ class SplatRenderer:
                 lo, hi = max(a, start), min(b, end)
                 if hi > lo:
                     self._draw(splats, camera, t, opts, layer, lo, hi - lo, layer=keyframe, sky=False)
-            self._accumulate(layer, acc_fbo, weight)
+            if start < max(b for _, b in ranges) <= end:  # the layer is complete: add it once
+                self._accumulate(layer, acc_fbo, weight)
         self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
         self._resolve(acc, target)
 
