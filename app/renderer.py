@@ -24,7 +24,7 @@ import numpy as np
 from app.camera import ViewCamera
 from app.sorter import layer_ids
 from app.splats import SplatArrays, covariances
-from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND
+from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND, LAYERED_BLENDS
 from drivingscene.gl import load_program
 
 TEX_W = 4096
@@ -268,18 +268,18 @@ class SplatRenderer:
         first when ``start`` is 0): drawing a picture in several calls gives the same result. The
         layered blends draw into a target per layer; a layer is added to the accumulation when its
         last splat is drawn, and every call resolves what is complete over the sky (module docstring)."""
-        if opts.blend in ("layers", "cameras") and opts.mode != "depth":
+        if opts.blend in LAYERED_BLENDS and opts.mode != "depth":
             self._draw_layers(splats, camera, t, opts, target, start, count)
             return target
         return self._draw(splats, camera, t, opts, target, start, count)
 
     def _layers(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions):
         """``(name, weight, [(start, end) back to front], keyframe filter)`` of each layer to draw."""
-        from drivingscene.render.scene import CAMERA_ANGLE_SCALE, LAYER_FLOOR
+        from drivingscene.render.scene import CAMERA_ANGLE_SCALE, layer_time_weight
 
         n = splats.count
         if splats.segments is None:  # an order not grouped by layer: each keyframe over the whole range
-            return [(f"k{k}", (1.0 - t if k == 0 else t) + LAYER_FLOOR, [(0, n)], k) for k in (0, 1)]
+            return [(f"k{k}", layer_time_weight(k, t), [(0, n)], k) for k in (0, 1)]
         by_camera = opts.blend == "cameras" and self.source_axes is not None
         axis = camera.world_to_cam[2, :3]
         groups: dict[tuple[int, int], list] = {}
@@ -288,7 +288,7 @@ class SplatRenderer:
             groups.setdefault(key, []).append((n - b, n - a))  # front-to-back [a, b) -> back to front
         layers = []
         for (k, c), ranges in sorted(groups.items()):
-            weight = (1.0 - t if k == 0 else t) + LAYER_FLOOR
+            weight = layer_time_weight(k, t)
             if c >= 0 and c < self.source_axes.shape[1]:
                 weight *= float(np.exp((axis @ self.source_axes[k, c] - 1.0) / CAMERA_ANGLE_SCALE))
             layers.append((f"k{k}c{c}", weight, ranges, -1))
@@ -411,7 +411,7 @@ class SplatRenderer:
         if layer >= 0:
             blend = "layers"  # one keyframe's splats (shader: u_blend 3 with u_layer)
         else:  # a layered blend draws its layers' ranges (or, in depth mode, everything) at full opacity
-            blend = "all" if opts.blend in ("layers", "cameras") else opts.blend
+            blend = "all" if opts.blend in LAYERED_BLENDS else opts.blend
         prog["u_blend"].value = BLEND_MODES.index(blend)
         prog["u_layer"].value = max(layer, 0)
         prog["u_mode"].value = MODES.index(opts.mode)

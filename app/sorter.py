@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivingscene.gaussians.core import LAYERED_BLENDS
+
 KEY_KINDS = ("u16", "float")
 MIN_ALPHA = 1.0 / 255.0
 
@@ -126,7 +128,7 @@ def depth_order(data: SortInput, req: SortRequest) -> np.ndarray:
     return order
 
 
-FULL_OPACITY_BLENDS = ("all", "layers", "cameras")  # every splat drawn at its opacity (layers: each in its own pass)
+FULL_OPACITY_BLENDS = ("all", *LAYERED_BLENDS)  # every splat drawn at its opacity (layers: each in its own pass)
 
 
 def layer_ids(keyframes: np.ndarray, cameras: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ from app.renderer import GpuSplats, RenderOptions, SplatRenderer, Target
 from app.sorter import SortInput, SortRequest, SortWorker, depth_order, make_sort_input
 from app.splats import SplatArrays
 from app.state import SceneDoc
+from drivingscene.gaussians.core import LAYERED_BLENDS
 from drivingscene.render.scene import source_axes
 
 SCALES = (1.0, 0.85, 0.7, 0.6, 0.5, 0.42, 0.35, 0.3)
@@ -189,7 +190,7 @@ class Viewport:
     # --- sorting -------------------------------------------------------------------------------
     def _request(self, s: SplatSet, camera: ViewCamera, t: float, opts: RenderOptions) -> SortRequest:
         # depth mode draws a layered blend's splats all together: a plain depth order
-        blend = "all" if opts.mode == "depth" and opts.blend in ("layers", "cameras") else opts.blend
+        blend = "all" if opts.mode == "depth" and opts.blend in LAYERED_BLENDS else opts.blend
         stamp = (s.name, _camera_key(camera), float(t), blend, id(s.sort_input))
         cam = camera.shifted(self.doc.origin)
         return SortRequest(

@@ -117,7 +117,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def score_variant(model, pair, variant: Variant) -> dict[str, float]:
-
     from drivingscene.eval.reconstruction import score_depth, score_input_views, score_novel_views
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
 

@@ -24,6 +24,7 @@ from torch import Tensor
 from drivingscene.errors import InputError
 
 BLEND_MODES = ("all", "fade", "nearest", "layers", "cameras")
+LAYERED_BLENDS = ("layers", "cameras")  # rendered as separate layers, then composed
 # Each input image's Gaussians (keyframe x camera) rendered alone and the images blended by time,
 # camera direction and coverage (render/scene.py `render_camera_layers`). Chosen on the validation
 # pairs by the in-between frame (`drivingscene bench choices`, docs/choices.md): over "layers"
@@ -175,7 +176,7 @@ class Gaussians:
         """
         t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
         k1 = self.keyframes == 1
-        if mode in ("all", "layers", "cameras"):
+        if mode == "all" or mode in LAYERED_BLENDS:
             return torch.ones_like(self.opacity_logits)
         if mode == "fade":
             return torch.where(k1, t, 1 - t).expand_as(self.opacity_logits)

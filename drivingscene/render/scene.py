@@ -91,13 +91,13 @@ def render_layers(
     over black (premultiplied colour) and the blend goes over the background once, so a layer's
     partly transparent splats do not bring their own background into the mix (`_compose`)."""
     t = float(t)
-    black = torch.zeros(3, device=world_to_cam.device)
-    layers = [
-        render_gaussians(gaussians.index(gaussians.keyframes == k), t, world_to_cam, intrinsics, height, width, background=black, **kwargs)
-        for k in (0, 1)
-    ]
-    weights = torch.tensor([1.0 - t + LAYER_FLOOR, t + LAYER_FLOOR])[:, None].expand(2, world_to_cam.shape[0])
-    return _compose(layers, weights, _background(world_to_cam, intrinsics, height, width, sky_sh, background))
+    sets = [(gaussians.keyframes == k, torch.full((world_to_cam.shape[0],), layer_time_weight(k, t))) for k in (0, 1)]
+    return _render_sets(gaussians, t, world_to_cam, intrinsics, height, width, sets, sky_sh=sky_sh, background=background, **kwargs)
+
+
+def layer_time_weight(keyframe: int, t: float) -> float:
+    """Weight of a keyframe's layer at normalised time t in the layered blends."""
+    return (1.0 - t if keyframe == 0 else t) + LAYER_FLOOR
 
 
 # "cameras": how fast a layer's weight falls with the angle between its camera's optical axis and
@@ -128,23 +128,40 @@ def render_camera_layers(
     t = float(t)
     target_axes = world_to_cam[:, 2, :3].float()  # camera z axis in world: the third row of R_w2c
     num_cameras = source_axes.shape[1]
-    weights, layers = [], []
+    sets = []
     for k in (0, 1):
-        time_weight = (1.0 - t if k == 0 else t) + LAYER_FLOOR
         for c in gaussians.cameras[gaussians.keyframes == k].unique().tolist():
             if c >= num_cameras:
                 raise InputError(f"Gaussians.cameras: index {c} but source_axes has {num_cameras} cameras")
-            subset = gaussians.index((gaussians.keyframes == k) & (gaussians.cameras == c))
             if c < 0:
                 view_weight = torch.ones(len(target_axes))
             else:
                 view_weight = torch.exp((target_axes @ source_axes[k, c].to(target_axes) - 1.0) / CAMERA_ANGLE_SCALE)
-            weights.append(time_weight * view_weight)
-            black = torch.zeros(3, device=world_to_cam.device)
-            layers.append(render_gaussians(subset, t, world_to_cam, intrinsics, height, width, background=black, **kwargs))
-    if not layers:  # no Gaussians: the background alone
+            sets.append(((gaussians.keyframes == k) & (gaussians.cameras == c), layer_time_weight(k, t) * view_weight))
+    return _render_sets(gaussians, t, world_to_cam, intrinsics, height, width, sets, sky_sh=sky_sh, background=background, **kwargs)
+
+
+def _render_sets(
+    gaussians: Gaussians,
+    t: float,
+    world_to_cam: Tensor,
+    intrinsics: Tensor,
+    height: int,
+    width: int,
+    sets: list[tuple[Tensor, Tensor]],  # (mask [N], weights [B]) per layer
+    *,
+    sky_sh: Tensor | None,
+    background: Tensor | None,
+    **kwargs,
+) -> RenderOutput:
+    """Each set of Gaussians rendered alone over black and the layers composed (`_compose`) over the
+    background; no sets: the background alone."""
+    if not sets:
         return render_gaussians(gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **kwargs)
-    return _compose(layers, torch.stack(weights), _background(world_to_cam, intrinsics, height, width, sky_sh, background))
+    black = torch.zeros(3, device=world_to_cam.device)
+    layers = [render_gaussians(gaussians.index(mask), t, world_to_cam, intrinsics, height, width, background=black, **kwargs) for mask, _ in sets]
+    weights = torch.stack([w for _, w in sets])
+    return _compose(layers, weights, _background(world_to_cam, intrinsics, height, width, sky_sh, background))
 
 
 def _compose(layers: list[RenderOutput], weights: Tensor, background: Tensor) -> RenderOutput:
