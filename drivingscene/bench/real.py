@@ -33,6 +33,8 @@ from drivingscene.errors import InputError
 FULL, STATIC = "DrivingScene", "DrivingScene, static-only (no residual flow)"
 COPY, BLEND = "copy the nearest keyframe", "blend the two keyframes"
 BASELINES = (COPY, BLEND)
+ROAD = "road plane (80 m at and above the horizon)"
+NEAREST = "nearest kept LiDAR return (held-out half)"
 DEPTH_COLS = (("abs_rel", "AbsRel", "{:.3f}"), ("sq_rel", "SqRel", "{:.3f}"), ("rmse", "RMSE (m)", "{:.2f}"), ("a1", "δ<1.25", "{:.3f}"))
 
 
@@ -66,6 +68,7 @@ class SceneScores:
     camera_names: list[str] = field(default_factory=list)
     figure: str | None = None  # markdown link to the side-by-side figure
     depths: dict[str, dict] = field(default_factory=dict)  # method -> depth scores (the model and refined ones)
+    depth_baselines: dict[str, dict] = field(default_factory=dict)  # trivial depth baseline -> depth scores
     refine: dict[str, dict] = field(default_factory=dict)  # refined method -> its refinement meta
 
 
@@ -100,11 +103,12 @@ def _images(array: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(array)).float() / 255.0
 
 
-def depth_scores(recon, pair) -> dict[str, dict[str, list[float]]]:
-    """Per camera, both keyframes averaged: metric and median-scaled depth errors against LiDAR."""
+def depth_scores(depth: np.ndarray, pair) -> dict[str, dict[str, list[float]]]:
+    """Per camera, both keyframes averaged: metric and median-scaled errors of ``depth``
+    ``[2, V, H, W]`` against LiDAR."""
     from drivingscene.eval.metrics import depth_metrics
 
-    pred = torch.from_numpy(recon.depth).flatten(0, 1)
+    pred = torch.from_numpy(depth).flatten(0, 1)
     gt = torch.from_numpy(pair.gt_depth).flatten(0, 1)
     mask = torch.from_numpy(np.broadcast_to(pair.world_mask()[None], pair.gt_depth.shape).copy()).flatten(0, 1)
     out = {}
@@ -112,7 +116,7 @@ def depth_scores(recon, pair) -> dict[str, dict[str, list[float]]]:
         m = depth_metrics(pred, gt, mask, median_scaling=scaled)
         out[kind] = {name: _per_camera(getattr(m, name), pair.num_views) for name, _, _ in DEPTH_COLS}
         out[kind]["scale"] = _per_camera(m.scale, pair.num_views)
-    pred_med = [float(np.median(recon.depth[:, v][pair.gt_depth[:, v] > 0])) for v in range(pair.num_views)]
+    pred_med = [float(np.median(depth[:, v][pair.gt_depth[:, v] > 0])) for v in range(pair.num_views)]
     gt_med = [float(np.median(pair.gt_depth[:, v][pair.gt_depth[:, v] > 0])) for v in range(pair.num_views)]
     out["medians"] = {"pred": pred_med, "lidar": gt_med}
     return out
@@ -175,6 +179,8 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
 
     keyframe_mask = masks(2)
     renders = {}
+    if pair.gt_depth is not None:
+        s.depth_baselines = baseline_depths(pair)
     for method, fn, extra in methods:
         recon, s.seconds[method] = _timed(fn, pair, extra.get("repeats", repeats))
         g = recon.visible()
@@ -182,7 +188,7 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
         if extra.get("refine"):
             s.refine[method] = recon.meta.get("refinement", {})
         if recon.depth is not None and pair.gt_depth is not None and (FULL == method or extra.get("refine")):
-            s.depths[method] = depth_scores(recon, extra.get("depth_pair", lambda p: p)(pair))
+            s.depths[method] = depth_scores(recon.depth, extra.get("depth_pair", lambda p: p)(pair))
             if FULL == method:
                 s.depth = s.depths[method]
                 s.depths[FULL + " (held-out half)"] = _held_out_depth(recon, pair)
@@ -204,7 +210,20 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
 def _held_out_depth(recon, pair) -> dict:
     from drivingscene.bench.real_refine import lidar_halves
 
-    return depth_scores(recon, replace(pair, gt_depth=lidar_halves(pair.gt_depth)[1]))
+    return depth_scores(recon.depth, replace(pair, gt_depth=lidar_halves(pair.gt_depth)[1]))
+
+
+def baseline_depths(pair) -> dict[str, dict]:
+    """Depth scores of the trivial depth baselines (`drivingscene.eval.baselines`): the road plane
+    on every LiDAR return, the nearest kept return on the held-out half of them."""
+    from drivingscene.bench.real_refine import lidar_halves
+    from drivingscene.eval.baselines import nearest_return_depth, road_plane_depth
+
+    kept, held = lidar_halves(np.where(pair.world_mask()[None], pair.gt_depth, 0))
+    return {
+        ROAD: depth_scores(road_plane_depth(pair), pair),
+        NEAREST: depth_scores(nearest_return_depth(kept), replace(pair, gt_depth=held)),
+    }
 
 
 def _mean(values: list[float]) -> float:
@@ -263,6 +282,8 @@ def _scene_section(s: SceneScores, lpips_name: str, figure: str | None) -> str:
             for key, name, fmt in DEPTH_COLS:
                 vals = s.depth[kind][key]
                 rows.append([f"{name} ({label})", *[_fmt(v, fmt) for v in vals], _fmt(_mean(vals), fmt)])
+        for base, scores in s.depth_baselines.items():
+            rows.append([f"AbsRel, {base}", *[_fmt(v, "{:.3f}") for v in scores["metric"]["abs_rel"]], _fmt(_mean(scores["metric"]["abs_rel"]), "{:.3f}")])
         med = s.depth["medians"]
         rows.append(["median depth, model (m)", *[_fmt(v, "{:.1f}") for v in med["pred"]], ""])
         rows.append(["median depth, LiDAR (m)", *[_fmt(v, "{:.1f}") for v in med["lidar"]], ""])
@@ -311,12 +332,39 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
         )
     header = ["scene", "depth AbsRel", "AbsRel (median-scaled)", "keyframe re-render PSNR", "in-between PSNR", "best baseline PSNR", "dynamic Gaussians", "s / pair, median (range)"]
     refined = ""
+    if any(s.depth_baselines for s in scenes):
+        refined += "\n" + depth_baseline_table(scenes)
     if any(s.refine for s in scenes):
         from drivingscene.bench.real_refine import refine_table
 
         refined = "\n" + refine_table(scenes, lpips_name)
     return "\n".join(head) + _table(header, rows) + refined + "\n## Per scene and camera\n\n" + "\n".join(
         _scene_section(s, lpips_name, s.figure) for s in scenes
+    )
+
+
+def depth_baseline_table(scenes: list[SceneScores]) -> str:
+    """The model's depth next to the trivial depth baselines, on the same LiDAR returns."""
+    rows = []
+    for s in scenes:
+        if not s.depth_baselines:
+            continue
+        held = s.depths.get(FULL + " (held-out half)")
+        for method, scores, returns in (
+            (FULL, s.depth, "all"),
+            (ROAD, s.depth_baselines[ROAD], "all"),
+            (FULL, held, "held-out half"),
+            (NEAREST, s.depth_baselines[NEAREST], "held-out half"),
+        ):
+            if scores:
+                rows.append([s.name, method, returns, *[_fmt(_mean(scores[k]["abs_rel"]), "{:.3f}") for k in ("metric", "median")]])
+    return (
+        "## Depth next to trivial baselines\n\n"
+        "Two references that look at no image: the road plane (each ray meets the ego frame's z = 0 plane, else 80 m) "
+        "and, on a checkerboard of 16-pixel blocks of the LiDAR returns, each held-out return predicted by the nearest "
+        "kept one: how far a dense depth map at this resolution that agrees with every kept return can still be from "
+        "returns it did not see (depth edges, leaves, poles).\n\n"
+        + _table(["scene", "method", "LiDAR returns", "depth AbsRel", "AbsRel (median-scaled)"], rows)
     )
 
 

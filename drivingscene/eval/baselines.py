@@ -1,14 +1,25 @@
-"""Two trivial baselines for the in-between frame, with no geometry: what a method must beat.
+"""Trivial baselines: what a method must beat.
+
+For the in-between frame, with no geometry:
 
 - copy the nearest keyframe: each camera's eval image predicted by that camera's keyframe image
   nearest in time (t <= 0.5: keyframe 0);
 - blend the two keyframes: (1 - t) I_0 + t I_1 per pixel.
 
 t is each image's own normalised capture time (`FramePair.eval_camera_times`).
+
+For depth against LiDAR:
+
+- the road plane: every ray meets the ego frame's z = 0 plane (the road under the car in nuScenes
+  and DDAD) or, at and above the horizon, the far limit; no image is looked at;
+- the nearest LiDAR return: each held-out return predicted by the nearest return that was kept
+  (`nearest_return_depth`), a reference for how far any dense depth map at this resolution can
+  agree with returns it did not see (depth edges, leaves, thin poles).
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -36,3 +47,34 @@ def blend_frames(pair: FramePair) -> Tensor:
     t = torch.from_numpy(np.clip(_check(pair), 0.0, 1.0)).float()[..., None, None, None]  # [M, V, 1, 1, 1]
     images = torch.from_numpy(pair.images).float() / 255.0  # [2, V, H, W, 3]
     return (1 - t) * images[0] + t * images[1]
+
+
+def road_plane_depth(pair: FramePair, far: float = 80.0) -> np.ndarray:
+    """``[2, V, H, W]`` float32 z-depth where each pixel's ray meets the ego frame's z = 0 plane,
+    ``far`` where it does not within ``far`` (at and above the horizon, or a camera mounted below z = 0)."""
+    from drivingscene.geometry.camera import unproject
+
+    height, width = pair.image_size
+    rays = unproject(torch.ones(pair.num_views, height, width), torch.from_numpy(pair.intrinsics).float())  # z = 1
+    cam_to_ego = torch.from_numpy(pair.cam_to_ego).float()
+    down = -torch.einsum("vj,vhwj->vhw", cam_to_ego[:, 2, :3], rays)  # metres the ray drops per metre of depth
+    mount = cam_to_ego[:, 2, 3].view(-1, 1, 1)  # camera height above z = 0
+    depth = torch.where((down > 0) & (mount > 0), mount / down.clamp(min=1e-9), torch.full_like(down, far)).clamp(max=far)
+    return np.broadcast_to(depth.numpy().astype(np.float32), (2, *depth.shape)).copy()
+
+
+def nearest_return_depth(kept: np.ndarray) -> np.ndarray:
+    """``[..., H, W]`` float32: at every pixel the depth of the nearest (Euclidean, in pixels)
+    non-zero return of ``kept`` ``[..., H, W]``; 0 in images with no return at all."""
+    flat = kept.reshape(-1, *kept.shape[-2:])
+    out = np.zeros_like(flat, dtype=np.float32)
+    for i, image in enumerate(flat):
+        has = image > 0
+        if not has.any():
+            continue
+        # labels of the nearest zero pixel of the input: the returns are its zeros
+        _, labels = cv2.distanceTransformWithLabels((~has).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE, labelType=cv2.DIST_LABEL_PIXEL)
+        values = np.zeros(labels.max() + 1, np.float32)
+        values[labels[has]] = image[has]
+        out[i] = values[labels]
+    return out.reshape(kept.shape)

@@ -120,3 +120,35 @@ def test_depth_scores_ignore_masked_pixels():
     assert score_depth(SimpleNamespace(depth=depth), pair) == score_depth(
         SimpleNamespace(depth=depth), replace(pair, valid_mask=np.ones_like(mask))
     )
+
+
+def test_road_plane_depth_meets_the_ground():
+    from drivingscene.eval.baselines import road_plane_depth
+    from drivingscene.geometry.camera import unproject
+
+    pair = make_pair(3, 12, 16)  # cameras level, 1.5 m above the ego's z = 0
+    depth = road_plane_depth(pair, far=80.0)
+    assert depth.shape == (2, 3, 12, 16) and depth.dtype == np.float32
+    points = unproject(torch.from_numpy(depth[0]), torch.from_numpy(pair.intrinsics))  # [V, H, W, 3]
+    ego = torch.einsum("vij,vhwj->vhwi", torch.from_numpy(pair.cam_to_ego[:, :3, :3]), points) + torch.from_numpy(
+        pair.cam_to_ego[:, None, None, :3, 3]
+    )
+    below = depth[0] < 80
+    rows = np.arange(12)[:, None] > (12 - 1) / 2  # level cameras: the rows under the principal point look down
+    assert np.array_equal(below[0], np.broadcast_to(rows, (12, 16)))
+    assert torch.allclose(ego[..., 2][torch.from_numpy(below)], torch.tensor(0.0), atol=1e-4)
+    # a camera mounted under the plane never meets it
+    cam_to_ego = pair.cam_to_ego.copy()
+    cam_to_ego[:, 2, 3] = -1.5
+    assert (road_plane_depth(replace(pair, cam_to_ego=cam_to_ego)) == 80).all()
+
+
+def test_nearest_return_depth():
+    from drivingscene.eval.baselines import nearest_return_depth
+
+    kept = np.zeros((2, 5, 7), np.float32)
+    kept[0, 0, 0], kept[0, 4, 6] = 3.0, 9.0
+    out = nearest_return_depth(kept)
+    assert out[0, 0, 1] == 3.0 and out[0, 4, 5] == 9.0 and out[0, 1, 1] == 3.0 and out[0, 3, 5] == 9.0
+    assert out[0, 0, 0] == 3.0  # a kept return keeps its value
+    assert (out[1] == 0).all()  # no returns, no prediction

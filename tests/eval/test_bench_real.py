@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from drivingscene.bench.real import BLEND, COPY, FULL, losers
+from drivingscene.bench.real import BLEND, COPY, FULL, NEAREST, ROAD, losers
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
@@ -31,13 +31,15 @@ def test_bench_real_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
     args = ["bench", "real", str(scene), "--names", "tiny", "--weights", str(tiny_weights), "--repeats", "1"]
     assert main([*args, "--lpips", "stlpips", "--out", str(md), "--json", str(js), "--images", str(figs)]) == 0
     text = md.read_text()
-    for needle in ("## Summary", "### tiny", COPY, BLEND, "median-scaled", "re-rendered", "](figs/tiny.png)", "not committed"):
+    for needle in ("## Summary", "### tiny", COPY, BLEND, "median-scaled", "re-rendered", "](figs/tiny.png)", "not committed", ROAD, NEAREST):
         assert needle in text
     scores = json.loads(js.read_text())["tiny"]
     assert set(scores["novel"]) == {FULL, "DrivingScene, static-only (no residual flow)", COPY, BLEND}
     v = synth_pair.num_views
     assert all(len(scores["novel"][m]["psnr"]) == v for m in scores["novel"])
     assert all(math.isfinite(x) for x in scores["depth"]["metric"]["abs_rel"])
+    assert set(scores["depth_baselines"]) == {ROAD, NEAREST}
+    assert all(math.isfinite(x) for b in scores["depth_baselines"].values() for x in b["metric"]["abs_rel"])
     assert (figs / "tiny.png").stat().st_size > 1000
 
 
