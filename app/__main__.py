@@ -5,6 +5,7 @@
     drivingscene-view recon.npz | splats.ply  open a saved reconstruction or another tool's 3DGS PLY
     drivingscene-view scene.npz --headless --out DIR [--time T ...] [--camera NAME ...]
     drivingscene-view --bench OUT.md [scene]  performance on llvmpipe at 1280x720
+    drivingscene-view --benchmark REPORT.json the report View > Benchmark charts (default docs/benchmark.json)
 
 Errors are one line on stderr (exit code 2); in the window they also appear in the status bar and the
 window stays up.
@@ -60,6 +61,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="headless/bench: overwrite existing output files")
     p.add_argument("--bench", type=Path, default=None, metavar="OUT.md", help="measure rendering performance, write a table")
     p.add_argument("--frames", type=int, default=40, help="--bench: frames per measurement")
+    p.add_argument(
+        "--benchmark",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="the JSON of `drivingscene bench report` shown by View > Benchmark (default: docs/benchmark.json in the repository)",
+    )
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 
@@ -71,6 +79,8 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         parser.error("--headless needs --out DIR")
     if args.out is not None and not args.headless:
         parser.error("--out is only used with --headless")
+    if args.benchmark is not None and (args.headless or args.bench):
+        parser.error("--benchmark is only used in the window (View > Benchmark)")
     if args.path is None:
         args.path = asset_path(DEMO_SCENE)
         args.demo = True

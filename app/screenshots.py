@@ -1,7 +1,8 @@
 """Make the documentation screenshots: ``python -m app.screenshots OUT_DIR SCENE`` (needs a display,
 e.g. ``xvfb-run -s "-screen 0 1600x900x24" python -m app.screenshots docs/images assets/demo_scene.npz``).
 
-Writes viewer_main.png (RGB view, flow panel), viewer_depth.png (depth mode, depth panel),
+Writes viewer_main.png (RGB view, flow panel), viewer_benchmark.png (View > Benchmark over it, when
+docs/benchmark.json exists), viewer_depth.png (depth mode, depth panel),
 viewer_rig.png (snapped to a rig camera, dynamic highlighted), viewer_edit_before.png (the moving
 objects selected), viewer_edit_after.png (deleted), viewer_refine_running.png (Refine in progress,
 clicked with xdotool when it is installed) and viewer_refine_after.png (refined).
@@ -74,6 +75,7 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     v.camera.nav.pitch, v.camera.nav.distance = -0.5, 24.0
     v.panels["cameras"] = StripState(kind="total_flow")
     shoot(win, out / "viewer_main.png")
+    benchmark_shot(win, out)
     v.view.mode = "depth"
     v.panels["cameras"] = StripState(kind="depth")
     shoot(win, out / "viewer_depth.png")
@@ -92,6 +94,22 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     v.doc.clear_selection()
     refine_shots(win, out)
     win.close()
+
+
+def benchmark_shot(win: ViewerWindow, out: Path) -> None:
+    """The Benchmark panel opened over the view, reading the viewer's report (docs/benchmark.json unless
+    the window was given another); skipped with a note when the report is not there."""
+    from app.panels import benchmark
+
+    v = win.viewer
+    path = benchmark.report_path(v)
+    if not path.is_file():
+        print(f"skipped viewer_benchmark.png: {path} not found (write it with drivingscene bench report)")
+        return
+    if not benchmark.is_open(v):
+        benchmark.toggle(v)
+    shoot(win, out / "viewer_benchmark.png")
+    benchmark.toggle(v)
 
 
 def _click_refine(win: ViewerWindow) -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
 
-from app.panels import cameras, edit, export, filedialog, menu, scene, stats, timeline, view
+from app.panels import benchmark, cameras, edit, export, filedialog, menu, scene, stats, timeline, view
 from app.viewer import Viewer
 
 LEFT_W = 340
@@ -79,6 +79,7 @@ def layout(viewer: Viewer, width: int, height: int) -> None:
     _window("Timeline", (0, height - bottom), (width, TIMELINE_H), lambda: timeline.draw(viewer))
     _window("Status", (0, height - STATUS_H), (width, STATUS_H), lambda: _status_bar(viewer))
     cameras.draw_enlarged(viewer)
+    benchmark.draw(viewer)
     filedialog.draw(viewer)
     _view_overlay(viewer)
 

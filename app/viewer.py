@@ -54,9 +54,10 @@ class ExportState:
 class Viewer:
     """Everything the window shows, independent of the windowing toolkit."""
 
-    def __init__(self, ctx, method: str = "auto", weights: Path | None = None, lod: bool = True):
+    def __init__(self, ctx, method: str = "auto", weights: Path | None = None, lod: bool = True, benchmark: Path | None = None):
         self.ctx = ctx
         self.method, self.weights = method, weights
+        self.benchmark_path = benchmark  # the Benchmark panel's report (None: docs/benchmark.json in the repository)
         self.viewport = Viewport(ctx, lod=lod)
         self.lines = LineRenderer(ctx)
         self.textures = TextureCache(ctx)

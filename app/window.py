@@ -34,10 +34,18 @@ KEY_NAMES = {
 class ViewerWindow:
     """One pyglet window running a ``Viewer``; ``step()`` runs one frame (for scripted sessions)."""
 
-    def __init__(self, width: int = 1600, height: int = 900, method: str = "auto", weights: Path | None = None, lod: bool = True):
+    def __init__(
+        self,
+        width: int = 1600,
+        height: int = 900,
+        method: str = "auto",
+        weights: Path | None = None,
+        lod: bool = True,
+        benchmark: Path | None = None,
+    ):
         import moderngl
         import pyglet
-        from imgui_bundle import imgui
+        from imgui_bundle import imgui, implot
         from imgui_bundle.python_backends.pyglet_backend import create_renderer
 
         config = pyglet.gl.Config(major_version=3, minor_version=3, forward_compatible=True, double_buffer=True)
@@ -46,13 +54,14 @@ class ViewerWindow:
         )
         self.ctx = moderngl.create_context()
         imgui.create_context()
+        implot.create_context()  # the Benchmark panel's chart
         imgui.get_io().set_ini_filename("")
         ui.setup_style()
         self.impl = create_renderer(self.window)
         self.keys = pyglet.window.key.KeyStateHandler()
         self.window.push_handlers(self.keys)
         self.window.push_handlers(self)
-        self.viewer = Viewer(self.ctx, method, weights, lod)
+        self.viewer = Viewer(self.ctx, method, weights, lod, benchmark)
         self._dragging = False
         self._last = time.perf_counter()
         self.closed = False
@@ -187,7 +196,7 @@ def run_window(args) -> int:
             "no display (DISPLAY is not set): use --headless --out DIR, or run under Xvfb (xvfb-run drivingscene-view)"
         )
     size = args.size if args.size != (1280, 720) else (1600, 900)
-    win = ViewerWindow(*size, method=args.method, weights=args.weights)
+    win = ViewerWindow(*size, method=args.method, weights=args.weights, benchmark=getattr(args, "benchmark", None))
     if args.path is not None and args.path.exists():
         win.viewer.open(args.path)
     elif args.path is not None:

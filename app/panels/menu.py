@@ -1,11 +1,11 @@
-"""The main menu bar: File, Edit, View, Help."""
+"""The main menu bar: File, Edit, View (display modes, overlays, camera, the Benchmark panel), Help."""
 
 from __future__ import annotations
 
 from imgui_bundle import imgui
 
 from app import interaction
-from app.panels import filedialog
+from app.panels import benchmark, filedialog
 from app.renderer import MODES
 from app.viewer import Viewer
 
@@ -39,7 +39,9 @@ def draw(viewer: Viewer) -> int:
     if imgui.begin_menu("Edit"):
         _edit_menu(viewer)
         imgui.end_menu()
-    if imgui.begin_menu("View"):
+    opened = imgui.begin_menu("View")
+    viewer.ui_rects["menu_view"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())
+    if opened:
         _view_menu(viewer)
         imgui.end_menu()
     if imgui.begin_menu("Help"):
@@ -131,3 +133,7 @@ def _view_menu(viewer: Viewer) -> None:
         viewer.reset_camera()
     if imgui.menu_item_simple("Follow ego", "G", viewer.camera.follow_ego, viewer.doc is not None):
         viewer.set_follow(not viewer.camera.follow_ego)
+    imgui.separator()
+    if imgui.menu_item_simple("Benchmark", "", benchmark.is_open(viewer)):
+        benchmark.toggle(viewer)
+    viewer.ui_rects["menu_benchmark"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())

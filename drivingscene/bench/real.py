@@ -337,7 +337,7 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
     if any(s.refine for s in scenes):
         from drivingscene.bench.real_refine import refine_table
 
-        refined = "\n" + refine_table(scenes, lpips_name)
+        refined += "\n" + refine_table(scenes, lpips_name)
     return "\n".join(head) + _table(header, rows) + refined + "\n## Per scene and camera\n\n" + "\n".join(
         _scene_section(s, lpips_name, s.figure) for s in scenes
     )

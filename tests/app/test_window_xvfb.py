@@ -1,5 +1,6 @@
 """The real window under Xvfb, driven by real X input (xdotool): drag the time slider and see the
-scene at the new time, rectangle-select + Delete + Ctrl+Z, and export a PNG from the File menu."""
+scene at the new time, rectangle-select + Delete + Ctrl+Z, export a PNG from the File menu, and open
+View > Benchmark."""
 
 from __future__ import annotations
 
@@ -65,6 +66,8 @@ def test_scripted_session(xvfb, tmp_path):
     assert r["after_delete"] == r["count"] - r["selected"] and r["after_undo"] == r["count"]
     # File > Export view as PNG wrote a file that loads back at the chosen size.
     assert len(r["exported"]) == 1 and cv2.imread(r["exported"][0]).shape == (180, 320, 3)
+    # View > Benchmark: the report read when opened, its chart drawn, the tooltip of the hovered point.
+    assert r["benchmark"] == {"open": True, "error": "", "points": 4, "hovered": "DrivingScene + refine"}
     # A scene without model weights: one-line error in the window, which stays up and offers the oracle.
     assert "model weights not found" in r["error"] and "\n" not in r["error"]
     assert r["actions"] == ["Reconstruct from ground truth (oracle)"] and r["after_offer"] == "oracle"

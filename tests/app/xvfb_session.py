@@ -3,7 +3,8 @@
 
 Opens a small reconstruction through File-open's code path, drags the time slider, checks that the
 3D view now shows the scene at the new time, selects with the rectangle tool and deletes with the
-Delete key, undoes with Ctrl+Z, and clicks the export button; writes ``OUT_DIR/result.json``.
+Delete key, undoes with Ctrl+Z, clicks the export button, opens View > Benchmark and hovers a point of
+its chart; writes ``OUT_DIR/result.json``.
 """
 
 from __future__ import annotations
@@ -107,6 +108,7 @@ def run(out: Path) -> dict:
     result["err_to_old_time"] = float(np.abs(after - ref_before).mean())
     _edit(s, result)
     _export(s, result)
+    _benchmark(s, result)
     _missing_weights(s, result)
     s.win.close()
     return result
@@ -127,6 +129,29 @@ def _missing_weights(s: Session, result: dict) -> None:
     _xdo("click", "1")
     s.pump(3, until=lambda: viewer.job is None and viewer.doc is not None and viewer.doc.info.get("method") == "oracle")
     result["after_offer"] = viewer.doc.info.get("method")
+
+
+def _benchmark(s: Session, result: dict) -> None:
+    """View > Benchmark with the mouse (a report from ``example_report``), then hover its slowest point."""
+    from drivingscene.bench.report_schema import example_report
+
+    viewer = s.win.viewer
+    viewer.benchmark_path = s.out / "benchmark.json"
+    viewer.benchmark_path.write_text(json.dumps(example_report()))
+    for item in ("menu_view", "menu_benchmark"):
+        x0, y0, x1, y1 = viewer.ui_rects[item]
+        s.move((x0 + x1) / 2, (y0 + y1) / 2)
+        _xdo("click", "1")
+        s.pump(3, settle=False)
+    st = viewer.panels["benchmark"]
+    s.pump(3, until=lambda: "benchmark_plot" in viewer.ui_rects)
+    rows = st.report.sets["procedural"].chart(st.accuracy).rows
+    x, y, _, _ = viewer.ui_rects[f"benchmark_point_{len(rows) - 1}"]
+    s.move(x + 2, y + 2)
+    s.pump(3)
+    result["benchmark"] = {"open": st.open, "error": st.error, "points": len(rows), "hovered": st.hovered}
+    st.open = False
+    s.pump(2)
 
 
 def _edit(s: Session, result: dict) -> None:
