@@ -45,6 +45,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.refine",
         "test-time refinement at budgets of seconds on procedural pairs: in-between frame, depth, steps, s / step",
     ),
+    "report": (
+        "drivingscene.bench.report",
+        "the whole benchmark: speed against accuracy, stability sweeps, parsimony, ablations (docs/benchmark.md)",
+    ),
     "results": (
         "drivingscene.bench.results",
         "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)",

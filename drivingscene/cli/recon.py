@@ -1,4 +1,5 @@
-"""``drivingscene reconstruct`` (the model) and ``drivingscene oracle`` (ground truth)."""
+"""``drivingscene reconstruct`` (the model), ``drivingscene oracle`` (ground truth) and
+``drivingscene classical`` (the learning-free baseline)."""
 
 from __future__ import annotations
 
@@ -108,7 +109,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_oracle)
+    _register_classical(sub)
     _register_prune(sub)
+
+
+def _register_classical(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "classical",
+        help="learning-free baseline: OpenCV DIS optical flow triangulated with the known poses, no network",
+    )
+    p.add_argument("scene", type=Path, metavar="SCENE")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON")
+    p.add_argument(
+        "--preset", choices=("medium", "fast", "ultrafast"), default="medium", help="OpenCV DIS preset (default medium)"
+    )
+    p.add_argument(
+        "--refine",
+        type=non_negative_int,
+        default=0,
+        metavar="N",
+        help="colour deconvolution steps (default 0 = raw pixel colours)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
+    p.set_defaults(func=run_classical)
 
 
 def _register_prune(sub: argparse._SubParsersAction) -> None:
@@ -215,5 +238,17 @@ def run_oracle(args: argparse.Namespace) -> int:
     if args.refine < 0:
         raise InputError(f"--refine: expected a number of steps >= 0, found {args.refine}")
     recon = oracle_reconstruction(load_frame_pair(args.scene), use_scene_flow=not args.no_flow, refine=args.refine)
+    _report(recon, save_reconstruction(recon, args.out))
+    return 0
+
+
+def run_classical(args: argparse.Namespace) -> int:
+    from drivingscene.data.frame_pair import load_frame_pair
+    from drivingscene.gaussians.recon import save_reconstruction
+    from drivingscene.methods.classical import ClassicalConfig, classical_reconstruction
+
+    check_output(args.out, args.force, "-o")
+    config = ClassicalConfig(preset=args.preset, refine=args.refine)
+    recon = classical_reconstruction(load_frame_pair(args.scene), config)
     _report(recon, save_reconstruction(recon, args.out))
     return 0

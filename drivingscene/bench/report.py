@@ -1,0 +1,625 @@
+"""``drivingscene bench report``: speed against accuracy, stability, parsimony, ablations (docs/benchmark.md).
+
+One command regenerates the whole benchmark from scratch: the procedural test pairs are generated
+(or read with ``--data``), the real scenes given with ``--scenes`` are read, every method runs on
+the same inputs, and the report is written as markdown, JSON (schema: `report_schema`) and charts.
+
+- **Speed against accuracy**: every method at each of its settings (input resolution, refinement
+  budget) on the procedural test pairs and on the real scenes: median seconds per pair against the
+  in-between frame's PSNR, depth AbsRel and the flow error on moving pixels; Pareto fronts marked.
+- **Stability**: generator knobs swept one at a time from their easiest setting on the same seeds;
+  a method breaks where it falls more than ``BREAK_DB`` below its easiest setting, emits NaN or
+  raises. Our methods must never raise or emit NaN (the quick run's test checks it).
+- **Parsimony**: the model's Gaussians under budgets (`gaussians.budget`), count against PSNR and
+  render seconds; the smallest budget within 0.1 dB of the per-pixel Gaussians is named.
+- **Ablations**: the paper's (residual flow, single-stage training, warp loss) where weights for
+  them exist, with what the data say about why a direction does or does not reproduce.
+
+``--quick`` runs the same code on a tiny split with few settings (a smoke test in the suite).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import time
+from dataclasses import dataclass, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from drivingscene.bench.machine import machine_description
+from drivingscene.bench.report_schema import FORMAT, VERSION, breaks_at, mark_pareto
+from drivingscene.errors import InputError
+
+FULL = "DrivingScene"
+STATIC = "DrivingScene, static-only"
+R_ALONE = "DrivingScene, R alone (no search)"
+SEARCH_ALONE = "DrivingScene, search alone (no R)"
+SINGLE = "DrivingScene, single-stage"
+REFINED = "DrivingScene + refine"
+SCRATCH = "refinement from scratch"
+CLASSICAL = "classical (DIS flow + triangulation)"
+ORACLE = "oracle (GT depth + scene flow)"
+COPY, BLEND = "copy the nearest keyframe", "blend the two keyframes"
+OFF_FRONT = ("oracle", SCRATCH + " + LiDAR")  # families never on a Pareto front (other inputs)
+KEYS = {"psnr": "psnr", "psnr_dyn": "psnr_dyn", "ssim": "ssim", "lpips": "lpips", "abs_rel": "depth_abs_rel", "epe_dyn": "epe_dyn_total"}
+
+
+@dataclass(frozen=True)
+class Axis:
+    name: str
+    knob: str  # SynthConfig field
+    values: tuple
+    easiest: int  # index into values
+    unit: str = ""
+
+
+AXES = (
+    Axis("object speed", "object_speed_scale", (0.0, 1.0, 2.0, 4.0), 0, "x"),
+    Axis("ego speed", "ego_speed", (0.0, 4.0, 8.0, 16.0, 24.0), 0, "m/s"),
+    Axis("keyframe gap", "keyframe_gap", (0.1, 0.25, 0.5, 1.0), 0, "s"),
+    Axis("texture", "texture_strength", (1.0, 0.5, 0.25, 0.0), 0, "x"),
+    Axis("exposure change", "exposure_change", (1.0, 1.25, 1.5, 2.0), 0, "gain"),
+    Axis("image noise", "noise_std", (0.0, 0.02, 0.05, 0.1), 0, "std"),
+    Axis("dead camera", "blackout_camera", ("none", "0"), 0),
+    Axis("rig", "rig", ("nuscenes", "ddad", "random"), 0),
+    Axis("photometric jitter", "photometric", (0.0, 0.5, 1.0), 0),
+)
+
+
+@dataclass(frozen=True)
+class Profile:
+    pairs: int
+    size: tuple[int, int]
+    input_scales: tuple[float, ...]  # the model's input resolution relative to the pair's
+    refine: tuple[float, ...]  # refinement budgets (s) after the model
+    scratch: tuple[float, ...]  # refinement budgets (s) from a flat start
+    classical: tuple[str, ...]  # DIS presets
+    budget_fractions: tuple[float, ...]  # Gaussian targets as fractions of the per-pixel count
+    stability_size: tuple[int, int]
+    stability_seeds: int
+    ends_only: bool  # stability: only the easiest and the hardest setting of each axis
+    perceptual: bool
+
+
+PROFILES = {
+    "full": Profile(8, (176, 320), (1.0, 0.5), (5.0, 15.0), (15.0,), ("fast", "medium"), (0.5, 0.25), (96, 176), 2, False, True),
+    "quick": Profile(1, (48, 88), (1.0,), (1.0,), (1.0,), ("fast",), (0.5,), (48, 88), 1, True, False),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="tiny split, few settings: a smoke test (about 2 minutes)")
+    p.add_argument("--data", type=Path, default=None, help="read the procedural pairs from this folder instead of generating the test split")
+    p.add_argument("--count", type=int, default=None, help="procedural pairs (default: 8, quick: 1)")
+    p.add_argument("--scenes", type=Path, nargs="*", default=[], metavar="SCENE", help="real scenes (from `drivingscene import`) with eval frames")
+    p.add_argument("--names", nargs="*", default=None, metavar="NAME", help="a label per real scene")
+    p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
+    p.add_argument("--joint-weights", type=Path, default=None, help="a single-stage (joint) model for the ablation")
+    p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
+    p.add_argument("--out", type=Path, default=None, help="markdown report (e.g. docs/benchmark.md)")
+    p.add_argument("--json", type=Path, default=None, help="the report as JSON (e.g. docs/benchmark.json)")
+    p.add_argument("--charts", type=Path, default=None, help="folder for the charts (e.g. docs/images)")
+    p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables")
+
+
+# ---------------------------------------------------------------------------------------------
+# methods
+
+
+@dataclass
+class Method:
+    name: str
+    setting: str
+    family: str
+    run: Callable  # pair -> Reconstruction, or [M, V, H, W, 3] frames when ``frames``
+    frames: bool = False
+    score_pair: Callable | None = None  # pair -> the pair to score on (e.g. held-out LiDAR)
+
+
+def resized_pair(pair, scale: float):
+    """The pair's keyframes at ``scale`` of their size (what the model reads), without ground truth
+    or eval frames."""
+    import cv2
+    import torch
+
+    from drivingscene.geometry.camera import scale_intrinsics
+
+    height, width = pair.image_size
+    h, w = max(8, round(height * scale)), max(8, round(width * scale))
+    images = np.stack([[cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in frame] for frame in pair.images])
+    k = scale_intrinsics(torch.from_numpy(pair.intrinsics), w / width, h / height).numpy()
+    mask = None
+    if pair.valid_mask is not None:
+        mask = np.stack([cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0 for m in pair.valid_mask])
+    empty = dict.fromkeys(("gt_depth", "gt_flow", "gt_scene_flow", "gt_dynamic", "eval_images", "eval_timestamps",
+                           "eval_ego_to_world", "eval_dynamic", "eval_camera_ego_to_world", "eval_camera_timestamps"))
+    return replace(pair, images=images, intrinsics=k, valid_mask=mask, **empty)
+
+
+def at_full_size(recon, pair):
+    """A reconstruction made from a resized pair, with its per-pixel maps brought to ``pair``'s size
+    (depth nearest, flows bilinear and scaled) and ``pair``'s cameras, so it is scored like the others."""
+    import cv2
+
+    height, width = pair.image_size
+    h, w = recon.image_size
+
+    def up(a: np.ndarray | None, interp: int, scale: float = 1.0) -> np.ndarray | None:
+        if a is None:
+            return None
+        flat = a.reshape(-1, h, w, *a.shape[4:])
+        out = np.stack([cv2.resize(x, (width, height), interpolation=interp) for x in flat]) * scale
+        return out.reshape(*a.shape[:2], height, width, *a.shape[4:]).astype(np.float32)
+
+    return replace(
+        recon,
+        intrinsics=pair.intrinsics,
+        image_size=pair.image_size,
+        images=pair.images,
+        valid_mask=pair.valid_mask,
+        depth=up(recon.depth, cv2.INTER_NEAREST),
+        rigid_flow=up(recon.rigid_flow, cv2.INTER_LINEAR, width / w),
+        residual_flow=up(recon.residual_flow, cv2.INTER_LINEAR, width / w),
+    )
+
+
+def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
+    from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
+    from drivingscene.methods.classical import ClassicalConfig, classical_reconstruction
+    from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+    from drivingscene.methods.refine import RefineConfig, refine
+    from drivingscene.methods.scratch import refine_from_scratch
+    from drivingscene.models.pipeline import MotionSearchConfig
+
+    out = []
+    for scale in profile.input_scales:
+        if scale == 1.0:
+            out.append(Method(FULL, "native", FULL, lambda p: reconstruct(model, p)))
+        else:
+            out.append(Method(FULL, f"input x{scale:g}", FULL, lambda p, s=scale: at_full_size(reconstruct(model, resized_pair(p, s)), p)))
+    out.append(Method(STATIC, "native", STATIC, lambda p: reconstruct(model, p, InferenceOptions(use_residual=False))))
+    if not real:
+        out.append(Method(R_ALONE, "native", R_ALONE, lambda p: reconstruct(model, p, InferenceOptions(search=None))))
+        search = InferenceOptions(search=MotionSearchConfig(use_network=False))
+        out.append(Method(SEARCH_ALONE, "native", SEARCH_ALONE, lambda p: reconstruct(model, p, search)))
+    if args.joint_weights is not None:
+        joint = load_model(args.joint_weights)
+        out.append(Method(SINGLE, "native", SINGLE, lambda p: reconstruct(joint, p)))
+    for seconds in profile.refine:
+        out.append(Method(REFINED, f"{seconds:g} s", REFINED, lambda p, s=seconds: refine(model, p, reconstruct(model, p), RefineConfig(seconds=s))))
+    for seconds in profile.scratch:
+        out.append(Method(SCRATCH, f"flat start, {seconds:g} s", SCRATCH, lambda p, s=seconds: refine_from_scratch(p, s)))
+        if real:
+            from drivingscene.bench.real_refine import lidar_halves
+
+            def lidar_run(p, s=seconds):
+                return refine_from_scratch(p, s, lidar=lidar_halves(np.where(p.world_mask()[None], p.gt_depth, 0))[0])
+
+            def held_out(p):
+                return replace(p, gt_depth=lidar_halves(p.gt_depth)[1])
+
+            out.append(Method(SCRATCH, f"LiDAR start (half), {seconds:g} s", SCRATCH + " + LiDAR", lidar_run, score_pair=held_out))
+    for preset in profile.classical:
+        config = ClassicalConfig(preset=preset)
+        out.append(Method(CLASSICAL, f"DIS {preset}", CLASSICAL, lambda p, c=config: classical_reconstruction(p, c)))
+    if not real:
+        from drivingscene.methods.oracle import oracle_reconstruction
+
+        out.append(Method(ORACLE, "-", "oracle", oracle_reconstruction))
+    out.append(Method(COPY, "-", "baselines", copy_nearest_frames, frames=True))
+    out.append(Method(BLEND, "-", "baselines", blend_frames, frames=True))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# scoring
+
+
+def _score(method: Method, pair, perceptual) -> tuple[dict, float, object]:
+    """Scores of one method on one pair, its seconds, and its reconstruction (None for frames)."""
+    from drivingscene.eval.reconstruction import score_frames, score_reconstruction
+
+    start = time.perf_counter()
+    result = method.run(pair)
+    seconds = time.perf_counter() - start
+    target = method.score_pair(pair) if method.score_pair else pair
+    if method.frames:
+        return score_frames(result, target, perceptual), seconds, None
+    return score_reconstruction(result, target, perceptual), seconds, result
+
+
+def _point(method: Method, rows: list[dict], seconds: list[float]) -> dict:
+    def mean(key: str):
+        vals = [r[key] for r in rows if key in r and r[key] is not None and math.isfinite(r[key])]
+        return sum(vals) / len(vals) if vals else None
+
+    point = {"method": method.name, "setting": method.setting, "family": method.family, "seconds": statistics.median(seconds)}
+    point.update({k: mean(src) for k, src in KEYS.items()})
+    point["gaussians"] = mean("gaussians")
+    return point
+
+
+def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tuple[list[dict], dict]:
+    """One point per method over ``pairs``; also the per-pair rows and the model's reconstructions
+    (for the budgets)."""
+    rows: dict[int, list[dict]] = {i: [] for i in range(len(methods))}
+    seconds: dict[int, list[float]] = {i: [] for i in range(len(methods))}
+    recons = []
+    methods[0].run(pairs[0])  # warm-up, not timed: kernels built, caches filled (the model's first pass)
+    for n, pair in enumerate(pairs):
+        for i, method in enumerate(methods):
+            scores, secs, recon = _score(method, pair, perceptual)
+            rows[i].append(scores)
+            seconds[i].append(secs)
+            if i == 0:
+                recons.append(recon)
+        print(f"{label}: pair {n + 1}/{len(pairs)} scored", file=sys.stderr)
+    points = [_point(m, rows[i], seconds[i]) for i, m in enumerate(methods)]
+    # the front is among what a user could run on the same inputs: not the oracle (ground truth) nor
+    # a method that also reads LiDAR (scored on other returns)
+    mark_pareto([p for p in points if p["family"] not in OFF_FRONT])
+    for p in points:
+        p.setdefault("pareto", {k: False for k in ("psnr", "abs_rel", "epe_dyn")})
+    return points, {"rows": {f"{m.name} | {m.setting}": rows[i] for i, m in enumerate(methods)}, "recons": recons}
+
+
+# ---------------------------------------------------------------------------------------------
+# data
+
+
+def procedural_pairs(args, profile: Profile) -> tuple[list, str]:
+    count = args.count if args.count is not None else profile.pairs
+    if count < 1:
+        raise InputError(f"--count: expected at least 1, found {count}")
+    if args.data is not None:
+        from drivingscene.data.frame_pair import load_frame_pair
+
+        files = sorted(args.data.glob("pair_*.npz"))[:count]
+        if not files:
+            raise InputError(f"{args.data}: --data: expected a folder of pair_*.npz (drivingscene synth), found none")
+        return [load_frame_pair(f) for f in files], f"{len(files)} pairs of {args.data}"
+    from drivingscene.synth.config import resolve_config, split_seeds
+    from drivingscene.synth.generate import generate_pair
+    from drivingscene.synth.render import SynthRenderer
+
+    height, width = profile.size
+    config = resolve_config("default", height=height, width=width)
+    renderer = SynthRenderer()
+    seeds = list(split_seeds("test", count))
+    return [generate_pair(config, s, renderer) for s in seeds], f"test split seeds {seeds[0]}-{seeds[-1]}, default preset, generated"
+
+
+# ---------------------------------------------------------------------------------------------
+# stability
+
+
+def _axis_config(axis: Axis, value, size: tuple[int, int]):
+    from drivingscene.synth.config import resolve_config
+
+    height, width = size
+    return resolve_config("default", height=height, width=width, **{axis.knob: value})
+
+
+def _live_cameras(pair, axis: Axis, value):
+    """The pair to score on: with a dead camera, its in-between images (black as well) are not
+    scored; what is tested is whether its black inputs spoil the other cameras' views."""
+    if axis.knob != "blackout_camera" or value == "none":
+        return pair
+    names = list(pair.camera_names)
+    dead = names.index(value) if value in names else int(value)
+    mask = pair.world_mask().copy()
+    mask[dead] = False
+    return replace(pair, valid_mask=mask)
+
+
+def stability(methods: list[Method], profile: Profile) -> list[dict]:
+    """Each axis swept on the same seeds; PSNR per method and setting (mean over seeds)."""
+    from drivingscene.eval.reconstruction import score_frames, score_novel_views
+    from drivingscene.synth.config import split_seeds
+    from drivingscene.synth.generate import generate_pair
+    from drivingscene.synth.render import SynthRenderer
+
+    renderer = SynthRenderer()
+    seeds = list(split_seeds("test", profile.stability_seeds))
+    out = []
+    for axis in AXES:
+        values = (axis.values[axis.easiest], axis.values[-1]) if profile.ends_only else axis.values
+        curves = {m.name: {"psnr": [], "error": []} for m in methods}
+        for value in values:
+            pairs = [generate_pair(_axis_config(axis, value, profile.stability_size), s, renderer) for s in seeds]
+            for m in methods:
+                scores, error = [], None
+                for pair in pairs:
+                    target = _live_cameras(pair, axis, value)
+                    try:
+                        result = m.run(pair)
+                        psnr = (score_frames(result, target, None) if m.frames else score_novel_views(result, target, None))["psnr"]
+                        scores.append(psnr)
+                    except Exception as e:  # a method that raises breaks here: recorded, not fatal
+                        error = f"{type(e).__name__}: {e}"[:200]
+                        break
+                value_psnr = None if error or not scores or not all(math.isfinite(s) for s in scores) else sum(scores) / len(scores)
+                curves[m.name]["psnr"].append(value_psnr)
+                curves[m.name]["error"].append(error)
+        easiest = 0
+        breaks = {name: breaks_at(c["psnr"], c["error"], easiest) for name, c in curves.items()}
+        out.append({"name": axis.name, "knob": axis.knob, "unit": axis.unit, "values": list(values), "easiest": easiest, "curves": curves, "breaks": breaks})
+        print(f"stability: {axis.name} done", file=sys.stderr)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# parsimony and ablations
+
+
+def parsimony(recons: list, pairs: list, fractions: tuple[float, ...]) -> dict:
+    """The model's Gaussians under budgets: count, in-between PSNR and render seconds (means over pairs)."""
+    from drivingscene.eval.reconstruction import score_novel_views
+    from drivingscene.gaussians.budget import BudgetConfig, apply_budget
+
+    levels: dict[str, dict[str, list[float]]] = {}
+
+    def add(level: str, recon, pair) -> None:
+        start = time.perf_counter()
+        psnr = score_novel_views(recon, pair, None)["psnr"]
+        entry = levels.setdefault(level, {"gaussians": [], "psnr": [], "seconds": []})
+        entry["gaussians"].append(float(len(recon.visible())))
+        entry["psnr"].append(psnr)
+        entry["seconds"].append(time.perf_counter() - start)
+
+    for recon, pair in zip(recons, pairs):
+        add("per-pixel", recon, pair)
+        merged, _ = apply_budget(recon.visible(), BudgetConfig())
+        add("pruned + merged", recon.with_gaussians(merged), pair)
+        for f in fractions:
+            g, _ = apply_budget(recon.visible(), BudgetConfig(target_count=max(1, int(f * len(recon.visible())))))
+            add(f"target {100 * f:g} %", recon.with_gaussians(g), pair)
+    budgets = [{"level": k, **{m: sum(v[m]) / len(v[m]) for m in v}} for k, v in levels.items()]
+    best = budgets[0]["psnr"]
+    within = [b for b in budgets if b["psnr"] >= best - 0.1]
+    chosen = min(within, key=lambda b: b["gaussians"])["level"] if within else None
+    return {"budgets": budgets, "chosen": chosen, "widths": []}
+
+
+def _find(points: list[dict], method: str, setting: str = "native") -> dict | None:
+    return next((p for p in points if p["method"] == method and p["setting"] == setting), None)
+
+
+def ablations(points: list[dict], args) -> list[dict]:
+    full, static = _find(points, FULL), _find(points, STATIC)
+    out = []
+    if full and static:
+        diff = full["psnr"] - static["psnr"]
+        dyn = (full["psnr_dyn"] or math.nan) - (static["psnr_dyn"] or math.nan)
+        out.append(
+            {
+                "name": "residual flow (full − static-only)",
+                "paper_db": 2.4,
+                "ours_db": diff,
+                "reproduces": diff > 0,
+                "note": f"on moving pixels {dyn:+.2f} dB; moving pixels are a small share of the in-between frame, "
+                "so the all-pixel difference is bounded by that share (docs/results.md counts them per pair)",
+            }
+        )
+    single = _find(points, SINGLE)
+    if full and single:
+        diff = full["psnr"] - single["psnr"]
+        out.append({"name": "two-stage − single-stage", "paper_db": 28.76 - 13.69, "ours_db": diff, "reproduces": diff > 0, "note": ""})
+    else:
+        out.append(
+            {
+                "name": "two-stage − single-stage",
+                "paper_db": 28.76 - 13.69,
+                "ours_db": None,
+                "reproduces": None,
+                "note": "not measured in this run: pass --joint-weights (a model from `drivingscene train --stage joint`)",
+            }
+        )
+    out.append(
+        {
+            "name": "warp loss",
+            "paper_db": None,
+            "ours_db": None,
+            "reproduces": None,
+            "note": "not measured: needs a stage 2 trained without L_warp (`drivingscene train --stage dynamic`); "
+            "the paper reports no figure for it alone",
+        }
+    )
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# markdown
+
+
+def _f(value, fmt: str) -> str:
+    return "–" if value is None or (isinstance(value, float) and not math.isfinite(value)) else fmt.format(value)
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
+
+
+def _points_table(points: list[dict]) -> str:
+    rows = []
+    for p in sorted(points, key=lambda p: p["seconds"]):
+        front = [k for k, v in p["pareto"].items() if v]
+        rows.append(
+            [
+                p["method"],
+                p["setting"],
+                _f(p["seconds"], "{:.3g}"),
+                _f(p["psnr"], "{:.2f}"),
+                _f(p["psnr_dyn"], "{:.2f}"),
+                _f(p["ssim"], "{:.3f}"),
+                _f(p["lpips"], "{:.3f}"),
+                _f(p["abs_rel"], "{:.3f}"),
+                _f(p["epe_dyn"], "{:.2f}"),
+                _f(p["gaussians"] and p["gaussians"] / 1000, "{:.0f}k"),
+                ", ".join(front) or "",
+            ]
+        )
+    header = ["method", "setting", "s / pair", "PSNR", "PSNR moving", "SSIM", "LPIPS", "AbsRel", "flow error moving (px)", "Gaussians", "Pareto front"]
+    return _table(header, rows)
+
+
+def _stability_md(axes: list[dict]) -> str:
+    out = []
+    for axis in axes:
+        unit = f" ({axis['unit']})" if axis.get("unit") else ""
+        header = ["method", *[f"{v}" for v in axis["values"]], "breaks at"]
+        rows = []
+        for name, c in axis["curves"].items():
+            cells = [_f(v, "{:.2f}") if e is None else "error" for v, e in zip(c["psnr"], c["error"])]
+            b = axis["breaks"][name]
+            rows.append([name, *cells, "–" if b is None else str(axis["values"][b])])
+        out.append(f"### {axis['name']}{unit}: `{axis['knob']}`\n\n" + _table(header, rows))
+    return "\n".join(out)
+
+
+def markdown(report: dict, charts: dict[str, Path], out: Path | None) -> str:
+    import os
+
+    def link(key: str, alt: str) -> str:
+        if key not in charts:
+            return ""
+        path = charts[key] if out is None else os.path.relpath(charts[key], out.parent)
+        return f"![{alt}]({path})\n"
+
+    lines = [
+        "# Benchmark: speed against accuracy, stability, parsimony\n",
+        f"Regenerated by `{report['command']}` on {report['machine']}; networks in {report['precision']}; {report['created']}.\n",
+        "Seconds are wall-clock seconds per pair of the reconstruction alone (median over pairs, after one untimed run of the model; for the baselines the "
+        "frames' arithmetic; a refinement's seconds include the model's pass and its budget). PSNR, SSIM and LPIPS are of "
+        "the in-between frames; AbsRel of the depth of both keyframes against ground truth (procedural) or LiDAR (real); "
+        "the flow error is the end-point error in pixels of the total flow on moving pixels (procedural only). A point is "
+        "on the Pareto front of an accuracy when no other point is both at least as fast and at least as accurate; the "
+        "oracle (ground truth) and methods that also read LiDAR are left off the fronts (other inputs).\n",
+    ]
+    for name, s in report["sets"].items():
+        lines.append(f"## Speed against accuracy: {name} ({s['description']}, {s['pairs']} pairs, {s['size']})\n")
+        lines.append(link(f"speed_{name}", f"seconds per pair against accuracy, {name}"))
+        lines.append(_points_table(s["points"]))
+    if report["stability"]["axes"]:
+        lines.append("## Stability: where methods break\n")
+        lines.append(
+            "Each axis is one generator knob swept on the same seeds with every other knob at the default preset; "
+            "the first value is the easiest. In-between PSNR (dB), mean over seeds; *breaks at*: the first setting "
+            f"more than {report['stability']['break_db']:g} dB below the easiest, NaN, or an error.\n"
+        )
+        lines.append(link("stability", "PSNR per generator knob and method"))
+        lines.append(_stability_md(report["stability"]["axes"]))
+    par = report["parsimony"]
+    if par["budgets"]:
+        lines.append("## Parsimony: no more Gaussians than a scene needs\n")
+        lines.append(link("parsimony", "Gaussians against PSNR"))
+        rows = [[b["level"], _f(b["gaussians"] / 1000, "{:.0f}k"), _f(b["psnr"], "{:.2f}"), _f(b["seconds"], "{:.2f}")] for b in par["budgets"]]
+        lines.append(_table(["budget", "Gaussians", "in-between PSNR", "render + score s"], rows))
+        lines.append(f"Smallest budget within 0.1 dB of the per-pixel Gaussians: **{par['chosen']}**.\n")
+        if not par["widths"]:
+            lines.append("Network width against quality and speed: not measured in this run (needs a second trained width).\n")
+    lines.append("## The paper's ablations\n")
+    rows = [
+        [a["name"], _f(a["paper_db"], "{:+.2f}"), _f(a["ours_db"], "{:+.2f}"), {True: "yes", False: "**no**", None: "–"}[a["reproduces"]], a["note"]]
+        for a in report["ablations"]
+    ]
+    lines.append(_table(["ablation", "paper (dB)", "ours (dB, all pixels)", "direction reproduces", "note"], rows))
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _real_pairs(args) -> list[tuple[str, object]]:
+    from drivingscene.data.frame_pair import load_frame_pair
+
+    if args.names is not None and len(args.names) != len(args.scenes):
+        raise InputError(f"--names: expected one name per scene ({len(args.scenes)}), found {len(args.names)}")
+    pairs = [load_frame_pair(p) for p in args.scenes]
+    for path, pair in zip(args.scenes, pairs):
+        if pair.num_eval == 0:
+            raise InputError(f"{path}: eval_images: expected a scene with in-between frames (drivingscene import ... --eval), found none")
+    return list(zip(args.names or [p.stem for p in args.scenes], pairs))
+
+
+def build_report(args) -> dict:
+    from drivingscene.bench.real import _precision
+    from drivingscene.bench.report_schema import BREAK_DB
+    from drivingscene.eval.lpips import load_perceptual
+
+    profile = PROFILES["quick" if args.quick else "full"]
+    real = _real_pairs(args)  # every file checked before the long part
+    perceptual = load_perceptual("auto") if profile.perceptual else None
+    from drivingscene.methods.feedforward import load_model
+
+    model = load_model(args.weights)
+    pairs, description = procedural_pairs(args, profile)
+    methods = _methods(model, args, profile, real=False)
+    points, extra = score_set(pairs, methods, perceptual, "procedural")
+    height, width = pairs[0].image_size
+    sets = {"procedural": {"description": description, "pairs": len(pairs), "size": f"{width}x{height}", "points": points}}
+    if real:
+        names, real_pairs = zip(*real)
+        real_points, _ = score_set(list(real_pairs), _methods(model, args, profile, real=True), perceptual, "real")
+        h, w = real_pairs[0].image_size
+        sets["real"] = {"description": ", ".join(names), "pairs": len(real_pairs), "size": f"{w}x{h}", "points": real_points}
+    axes = []
+    if not args.no_stability:
+        names = (FULL, STATIC, CLASSICAL, BLEND)
+        axes = stability([m for m in methods if m.name in names and m.setting in ("native", "-", f"DIS {profile.classical[0]}")], profile)
+    command = "drivingscene bench report" + (" --quick" if args.quick else "")
+    if args.scenes:
+        command += " --scenes " + " ".join(str(s) for s in args.scenes)
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "command": command,
+        "machine": machine_description(),
+        "precision": _precision(argparse.Namespace(amp=None)),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "quick": bool(args.quick),
+        "sets": sets,
+        "stability": {"axes": axes, "break_db": BREAK_DB, "size": "x".join(map(str, profile.stability_size[::-1])), "seeds": profile.stability_seeds},
+        "parsimony": parsimony(extra["recons"], pairs, profile.budget_fractions),
+        "ablations": ablations(points, args),
+    }
+
+
+def finite_or_none(obj):
+    """``obj`` with every non-finite float replaced by None (strict JSON: other tools reject NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_none(v) for v in obj]
+    return obj
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivingscene.bench import write_report
+
+    notes = ""
+    if args.notes is not None:
+        try:
+            notes = args.notes.read_text()
+        except OSError as e:
+            raise InputError(f"{args.notes}: --notes: expected a readable markdown file, found {e.strerror}") from None
+    report = finite_or_none(build_report(args))
+    charts: dict[str, Path] = {}
+    if args.charts is not None:
+        from drivingscene.bench.report_charts import write_charts
+
+        charts = write_charts(report, args.charts)
+    text = markdown(report, charts, args.out)
+    if notes:
+        text += "\n" + notes
+    write_report(text, args.out, args.json, report)
+    return 0

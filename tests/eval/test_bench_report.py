@@ -1,0 +1,99 @@
+"""`drivingscene bench report`: the quick run end to end (a smoke test of the full benchmark's code),
+and its pieces."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from drivingscene.bench.report import (
+    AXES,
+    BLEND,
+    CLASSICAL,
+    COPY,
+    FULL,
+    ORACLE,
+    REFINED,
+    SCRATCH,
+    STATIC,
+    at_full_size,
+    finite_or_none,
+    resized_pair,
+)
+from drivingscene.bench.report_schema import FORMAT, VERSION
+from drivingscene.cli import main
+from drivingscene.data import save_frame_pair
+from tests.eval.test_bench_real import _real_like
+
+
+@pytest.mark.gl
+@pytest.mark.slow
+def test_bench_report_quick(synth_pair, tmp_path):
+    real = tmp_path / "real.npz"
+    save_frame_pair(_real_like(synth_pair), real)
+    md, js, charts = tmp_path / "benchmark.md", tmp_path / "benchmark.json", tmp_path / "images"
+    args = ["bench", "report", "--quick", "--scenes", str(real), "--names", "tiny real"]
+    assert main([*args, "--out", str(md), "--json", str(js), "--charts", str(charts)]) == 0
+    text = js.read_text()
+    assert "NaN" not in text  # strict JSON
+    report = json.loads(text)
+    assert report["format"] == FORMAT and report["version"] == VERSION and report["quick"] is True
+    assert set(report["sets"]) == {"procedural", "real"}
+    points = report["sets"]["procedural"]["points"]
+    assert {FULL, STATIC, REFINED, SCRATCH, CLASSICAL, ORACLE, COPY, BLEND} <= {p["method"] for p in points}
+    full = next(p for p in points if p["method"] == FULL)
+    for key in ("seconds", "psnr", "abs_rel", "epe_dyn"):
+        assert full[key] is not None and math.isfinite(full[key]) and full[key] > 0
+    for key in ("psnr", "abs_rel", "epe_dyn"):
+        assert any(p["pareto"][key] for p in points)
+    real_points = report["sets"]["real"]["points"]
+    assert any(p["method"] == SCRATCH and "LiDAR" in p["setting"] for p in real_points)
+    # stability: at least six knobs; our methods never raise or emit NaN on any of them
+    axes = report["stability"]["axes"]
+    assert len(axes) >= 6 and len(axes) == len(AXES)
+    for axis in axes:
+        for name in (FULL, STATIC, CLASSICAL):
+            curve = axis["curves"][name]
+            assert curve["error"] == [None] * len(axis["values"]), (axis["name"], name, curve["error"])
+            assert all(v is not None and math.isfinite(v) for v in curve["psnr"]), (axis["name"], name)
+    par = report["parsimony"]
+    assert par["budgets"][0]["level"] == "per-pixel" and par["chosen"] in {b["level"] for b in par["budgets"]}
+    assert len(report["ablations"]) == 3
+    page = md.read_text()
+    for needle in ("## Speed against accuracy: procedural", "## Speed against accuracy: real", "## Stability", "## Parsimony", "## The paper's ablations"):
+        assert needle in page
+    pngs = sorted(charts.glob("*.png"))
+    assert len(pngs) >= 3 and all(f"images/{p.name}" in page for p in pngs)
+
+
+def test_resized_pair_and_back(synth_pair):
+    small = resized_pair(synth_pair, 0.5)
+    assert small.images.shape[2:4] == (32, 56) and small.gt_depth is None and small.num_eval == 0
+    # the same ray through a pixel centre: u' + 0.5 = (u + 0.5) / 2
+    k, k2 = synth_pair.intrinsics[0], small.intrinsics[0]
+    assert k2[0, 0] == pytest.approx(k[0, 0] / 2) and k2[0, 2] == pytest.approx((k[0, 2] + 0.5) / 2 - 0.5)
+
+    from drivingscene.methods.scratch import flat_initialisation
+
+    recon = flat_initialisation(small)
+    big = at_full_size(recon, synth_pair)
+    assert big.depth.shape == synth_pair.gt_depth.shape and big.rigid_flow.shape == synth_pair.gt_flow.shape
+    assert np.array_equal(big.depth[..., ::2, ::2], recon.depth)  # nearest
+    ratio = np.abs(big.rigid_flow).mean() / np.abs(recon.rigid_flow).mean()
+    assert ratio == pytest.approx(2.0, rel=0.1)  # flows in pixels scale with the size
+    assert big.image_size == synth_pair.image_size and np.array_equal(big.intrinsics, synth_pair.intrinsics)
+
+
+def test_finite_or_none():
+    assert finite_or_none({"a": [1.0, float("nan")], "b": (float("inf"), "x"), "c": 3}) == {"a": [1.0, None], "b": [None, "x"], "c": 3}
+
+
+def test_bench_report_refuses_bad_arguments(tmp_path, capsys):
+    scene = tmp_path / "missing.npz"
+    assert main(["bench", "report", "--quick", "--scenes", str(scene)]) == 2
+    assert "missing.npz" in capsys.readouterr().err
+    assert main(["bench", "report", "--quick", "--count", "0", "--no-stability"]) == 2
+    assert "--count" in capsys.readouterr().err
