@@ -8,7 +8,7 @@ TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup run test lint clean-venv real-data
+.PHONY: setup run test lint clean-venv real-data benchmark
 
 setup: $(STAMP)
 
@@ -53,3 +53,12 @@ real-data: setup
 	$(VENV)/bin/drivingscene bench real $(REAL_OUT)/ddad02_0-1.npz $(REAL_OUT)/ddad02_1-2.npz $(REAL_OUT)/ddad02_0-2.npz \
 		--names "DDAD scene_02, 0->1" "DDAD scene_02, 1->2" "DDAD scene_02, 0->2 (1 held out)" \
 		--notes docs/real-data-notes.md --out docs/real-data.md --json docs/real-data.json --images $(OUT)/real-data $(REAL_REFINE)
+
+# The whole benchmark (docs/benchmark.md, docs/benchmark.json, docs/images/benchmark_*.png): every
+# method at its settings on generated procedural test pairs and on the real DDAD pair (import it
+# first: `make real-data`), stability sweeps, parsimony, ablations. About 30-45 minutes on 2 cores.
+# The single-stage ablation needs a joint run and its two-stage pair (docs/benchmark-notes.md).
+BENCH_ABLATION ?= $(if $(wildcard runs/joint-match/model.safetensors),--joint-weights runs/joint-match/model.safetensors --two-stage-weights runs/dynamic-match/model.safetensors,)
+benchmark: setup
+	$(VENV)/bin/drivingscene bench report --scenes $(REAL_OUT)/ddad02_0-2.npz --names "DDAD scene_02, 0->2 (1 held out)" \
+		$(BENCH_ABLATION) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images

@@ -9,7 +9,7 @@ Top level::
       "sets": {SET: {                       # SET: "procedural" and, when scenes were given, "real"
           "description": str, "pairs": int, "size": "WxH",
           "points": [POINT, ...]}},
-      "stability": {"axes": [AXIS, ...]},
+      "stability": {"axes": [AXIS, ...], "break_db": float, "size": "WxH", "seeds": int},
       "parsimony": {"budgets": [BUDGET, ...], "chosen": str | None, "widths": [WIDTH, ...]},
       "ablations": [ABLATION, ...],
     }
@@ -26,7 +26,7 @@ POINT: one method at one setting, means over the set's pairs::
 A score a method or a set does not define is ``null`` (NaN in Python). AXIS: one generator knob
 swept from its easiest setting::
 
-    {"name": str, "knob": str, "values": [float | str, ...], "easiest": int,  # index into values
+    {"name": str, "knob": str, "unit": str, "values": [float | str, ...], "easiest": int,  # index into values
      "curves": {method: {"psnr": [float | null, ...], "error": [str | null, ...]}},
      "breaks": {method: int | null}}    # first index more than BREAK_DB below the easiest, NaN or an error
 
@@ -109,13 +109,13 @@ def example_report() -> dict:
     values = [0.0, 1.0, 2.0, 4.0]
     curves = {"DrivingScene": {"psnr": [21.0, 20.5, 19.0, 17.5], "error": [None] * 4},
               "blend the two keyframes": {"psnr": [17.0, 16.5, 16.0, None], "error": [None, None, None, "ValueError: x"]}}
-    axis = {"name": "object speed", "knob": "object_speed_scale", "values": values, "easiest": 0, "curves": curves}
+    axis = {"name": "object speed", "knob": "object_speed_scale", "unit": "x", "values": values, "easiest": 0, "curves": curves}
     axis["breaks"] = {m: breaks_at(c["psnr"], c["error"], 0) for m, c in curves.items()}
     return {
         "format": FORMAT, "version": VERSION, "command": "drivingscene bench report --quick", "machine": "test machine",
         "precision": "float32", "created": "2026-11-25T00:00:00+00:00", "quick": True,
         "sets": {"procedural": {"description": "test split", "pairs": 2, "size": "320x176", "points": points}},
-        "stability": {"axes": [axis]},
+        "stability": {"axes": [axis], "break_db": BREAK_DB, "size": "176x96", "seeds": 2},
         "parsimony": {"budgets": [{"level": "per-pixel", "gaussians": 6.7e5, "psnr": 20.5, "seconds": 0.5},
                                   {"level": "50 %", "gaussians": 3.3e5, "psnr": 20.45, "seconds": 0.45}],
                       "chosen": "50 %", "widths": []},

@@ -97,3 +97,20 @@ def test_bench_report_refuses_bad_arguments(tmp_path, capsys):
     assert "missing.npz" in capsys.readouterr().err
     assert main(["bench", "report", "--quick", "--count", "0", "--no-stability"]) == 2
     assert "--count" in capsys.readouterr().err
+
+
+def test_bench_report_from_json(tmp_path, capsys):
+    from drivingscene.bench.report_schema import example_report
+
+    saved = tmp_path / "saved.json"
+    saved.write_text(json.dumps(example_report()))
+    md, notes = tmp_path / "b.md", tmp_path / "notes.md"
+    notes.write_text("## Notes\nhand-written\n")
+    assert main(["bench", "report", "--from-json", str(saved), "--notes", str(notes), "--out", str(md), "--charts", str(tmp_path / "img")]) == 0
+    page = md.read_text()
+    assert "## Speed against accuracy: procedural" in page and page.endswith("hand-written\n")
+    assert (tmp_path / "img" / "benchmark_speed_procedural.png").exists()
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"format": "something else"}))
+    assert main(["bench", "report", "--from-json", str(bad)]) == 2
+    assert "bad.json: format: expected 'drivingscene/benchmark'" in capsys.readouterr().err
