@@ -30,7 +30,8 @@ swept from its easiest setting::
      "curves": {method: {"psnr": [float | null, ...], "error": [str | null, ...]}},
      "breaks": {method: int | null}}    # first index more than BREAK_DB below the easiest, NaN or an error
 
-BUDGET: one Gaussian budget level ``{"level": str, "gaussians": float, "psnr": float, "seconds": float}``;
+BUDGET: one Gaussian budget level ``{"level": str, "gaussians": float, "psnr": float, "budget_s": float, "seconds": float}``
+(seconds to apply the budget; to render and score the in-between frames);
 WIDTH: ``{"width": int, "psnr": float, "abs_rel": float, "seconds": float, "weights": str}``;
 ABLATION: ``{"name": str, "paper_db": float | None, "ours_db": float, "reproduces": bool | None, "note": str}``.
 """
