@@ -159,8 +159,13 @@ def _series(chart: Chart) -> None:
     if len(chart.front.seconds) > 1:
         line = implot.Spec(line_color=FRONT_COLOR, line_weight=1.5)
         implot.plot_line("Pareto front", chart.front.seconds, chart.front.values, line)
+    from drivingscene.bench.report_charts import family_styles  # the report's charts' colours
+
+    styles = family_styles(s.label for s in chart.families)
     for series in chart.families:
-        implot.plot_scatter(series.label, series.seconds, series.values, implot.Spec(marker=implot.Marker_.circle, marker_size=5))
+        colour = imgui.ImVec4(*styles[series.label][0])
+        spec = implot.Spec(marker=implot.Marker_.circle, marker_size=5, marker_fill_color=colour, marker_line_color=colour)
+        implot.plot_scatter(series.label, series.seconds, series.values, spec)
     # a ring around the front's points (also when the front is a single point), same legend entry as the line
     ring = implot.Spec(marker=implot.Marker_.circle, marker_size=9, marker_line_color=FRONT_COLOR, fill_alpha=0.0)
     implot.plot_scatter("Pareto front", chart.front.seconds, chart.front.values, ring)

@@ -460,7 +460,7 @@ def _budget_panel(ax, budgets: list[dict], chosen: str | None) -> list[tuple]:
     xs, ys = [b["gaussians"] for b in budgets], [b["psnr"] for b in budgets]
     top = budgets[-1]["psnr"]
     ax.axhspan(top - 0.1, top, color="tab:green", alpha=0.15, label="within 0.1 dB of the largest budget")
-    label = "PSNR by Gaussian budget (labels: level, seconds per pair)"
+    label = "PSNR by Gaussian budget (labels: level, seconds to render and score the in-between frames)"
     ax.plot(xs, ys, marker="o", color=_colour(0), linewidth=1.5, markersize=7, label=label, zorder=3)
     labels = []
     for b in budgets:
