@@ -43,6 +43,7 @@ SEARCH_ALONE = "DrivingScene, search alone (no R)"
 SINGLE = "DrivingScene, single-stage"
 TWO_STAGE = "DrivingScene, two-stage (ablation pair)"
 BUDGETED = "DrivingScene + Gaussian budget"
+NO_WARP = "DrivingScene, stage 2 without L_warp"
 REFINED = "DrivingScene + refine"
 SCRATCH = "refinement from scratch"
 CLASSICAL = "classical (DIS flow + triangulation)"
@@ -116,6 +117,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         help="the two-stage model the single-stage one is compared with (same start and steps; default: --weights)",
+    )
+    p.add_argument(
+        "--no-warp-weights",
+        type=Path,
+        default=None,
+        help="a model whose stage 2 was trained without L_warp (same start and steps as --two-stage-weights), for the ablation",
     )
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
     p.add_argument("--out", type=Path, default=None, help="markdown report (e.g. docs/benchmark.md)")
@@ -214,9 +221,12 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
     if args.joint_weights is not None and not real:
         joint = load_model(args.joint_weights)
         out.append(Method(SINGLE, "native", SINGLE, lambda p: reconstruct(joint, p)))
-        if args.two_stage_weights is not None:
-            two = load_model(args.two_stage_weights)
-            out.append(Method(TWO_STAGE, "native", TWO_STAGE, lambda p: reconstruct(two, p)))
+    if (args.joint_weights is not None or args.no_warp_weights is not None) and args.two_stage_weights is not None and not real:
+        two = load_model(args.two_stage_weights)
+        out.append(Method(TWO_STAGE, "native", TWO_STAGE, lambda p: reconstruct(two, p)))
+    if args.no_warp_weights is not None and not real:
+        no_warp = load_model(args.no_warp_weights)
+        out.append(Method(NO_WARP, "native", NO_WARP, lambda p: reconstruct(no_warp, p)))
     for seconds in profile.refine:
         out.append(Method(REFINED, f"{seconds:g} s", REFINED, lambda p, s=seconds: refine(model, p, reconstruct(model, p), RefineConfig(seconds=s))))
     for seconds in profile.scratch:
@@ -473,16 +483,25 @@ def ablations(points: list[dict]) -> list[dict]:
                 "note": "not measured in this run: pass --joint-weights (a model from `drivingscene train --stage joint`)",
             }
         )
-    out.append(
-        {
-            "name": "warp loss",
-            "paper_db": None,
-            "ours_db": None,
-            "reproduces": None,
-            "note": "not measured: needs a stage 2 trained without L_warp (`drivingscene train --stage dynamic`); "
-            "the paper reports no figure for it alone",
-        }
-    )
+    no_warp, two = _find(points, NO_WARP), _find(points, TWO_STAGE) or full
+    if no_warp and two:
+        diff = two["psnr"] - no_warp["psnr"]
+        note = (
+            f"{two['method']} {two['psnr']:.2f} dB against {no_warp['psnr']:.2f} dB without L_warp; moving pixels "
+            f"{two['psnr_dyn']:.2f} against {no_warp['psnr_dyn']:.2f} dB; flow error on moving pixels {two['epe_dyn']:.1f} "
+            f"against {no_warp['epe_dyn']:.1f} px"
+        )
+        out.append({"name": "with L_warp − without", "paper_db": None, "ours_db": diff, "reproduces": diff > 0, "note": note})
+    else:
+        out.append(
+            {
+                "name": "with L_warp − without",
+                "paper_db": None,
+                "ours_db": None,
+                "reproduces": None,
+                "note": "not measured in this run: pass --no-warp-weights (a stage 2 trained with the warp weight 0)",
+            }
+        )
     return out
 
 
@@ -633,7 +652,8 @@ def build_report(args) -> dict:
         names = (FULL, STATIC, CLASSICAL, BLEND)
         axes = stability([m for m in methods if m.name in names and m.setting in ("native", "-", f"DIS {profile.classical[0]}")], profile)
     command = "drivingscene bench report" + (" --quick" if args.quick else "")
-    for flag, value in (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights)):
+    flags = (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights), ("--no-warp-weights", args.no_warp_weights))
+    for flag, value in flags:
         command += f" {flag} {value}" if value is not None else ""
     if args.scenes:
         command += " --scenes " + " ".join(str(s) for s in args.scenes)
