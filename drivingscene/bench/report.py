@@ -581,7 +581,8 @@ def markdown(report: dict, charts: dict[str, Path], out: Path | None) -> str:
     if report["stability"]["axes"]:
         lines.append("## Stability: where methods break\n")
         lines.append(
-            "Each axis is one generator knob swept on the same seeds with every other knob at the default preset; "
+            f"Each axis is one generator knob swept on the same {report['stability'].get('seeds', '')} test seeds at "
+            f"{report['stability'].get('size', '')} with every other knob at the default preset; "
             "the first value is the easiest. In-between PSNR (dB), mean over seeds; *breaks at*: the first setting "
             f"more than {report['stability']['break_db']:g} dB below the easiest, NaN, or an error.\n"
         )
