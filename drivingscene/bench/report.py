@@ -674,6 +674,38 @@ def build_report(args) -> dict:
     }
 
 
+def add_ablation_models(report: dict, args) -> None:
+    """Score the ablation models (``--joint-weights``, ``--no-warp-weights`` and their two-stage pair)
+    on the saved report's procedural pairs (the same seeds, regenerated) and put their points in
+    it, replacing earlier points of the same methods; the report says when, where and how."""
+    from drivingscene.eval.lpips import load_perceptual
+    from drivingscene.methods.feedforward import load_model
+
+    saved = report["sets"].get("procedural")
+    if saved is None:
+        raise InputError(f"{args.from_json}: sets: expected a procedural set to add the ablation models to, found none")
+    if args.data is None and "generated" not in saved["description"]:
+        raise InputError(f"{args.from_json}: its procedural pairs were read from a folder: pass the same --data")
+    profile = PROFILES["quick" if report.get("quick") else "full"]
+    args = argparse.Namespace(**{**vars(args), "count": saved["pairs"]})
+    pairs, _ = procedural_pairs(args, profile)
+    width, height = (int(x) for x in saved["size"].split("x"))
+    if pairs[0].image_size != (height, width):
+        raise InputError(f"{args.from_json}: size: expected the saved pairs' {saved['size']}, found {pairs[0].image_size[::-1]}")
+    model = load_model(args.weights)
+    names = (SINGLE, TWO_STAGE, NO_WARP)
+    methods = [m for m in _methods(model, args, profile, real=False) if m.name in names]
+    perceptual = load_perceptual("auto") if profile.perceptual else None
+    points, _ = score_set(pairs, methods, perceptual, "ablation models")
+    kept = [p for p in saved["points"] if p["method"] not in {m.name for m in methods}]
+    saved["points"] = finite_or_none(kept + points)
+    mark_pareto([p for p in saved["points"] if p["family"] not in OFF_FRONT])
+    flags = " ".join(f"{f} {v}" for f, v in (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights),
+                                               ("--no-warp-weights", args.no_warp_weights)) if v is not None)
+    report["command"] += f" && drivingscene bench report --from-json {args.from_json} {flags}"
+    report["machine"] += f" (the second command, which added {', '.join(m.name for m in methods)}: {machine_description()})"
+
+
 def load_report(path: Path) -> dict:
     """A report saved with ``--json``, checked for its format and version."""
     import json
@@ -710,6 +742,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{args.notes}: --notes: expected a readable markdown file, found {e.strerror}") from None
     if args.from_json is not None:
         report = load_report(args.from_json)
+        if any(w is not None for w in (args.joint_weights, args.no_warp_weights)):
+            add_ablation_models(report, args)
         # derived from the saved points, so that their wording follows the code that renders them
         report["ablations"] = finite_or_none(ablations(report["sets"].get("procedural", {}).get("points", [])))
     else:

@@ -15,10 +15,13 @@ from drivingscene.bench.report import (
     CLASSICAL,
     COPY,
     FULL,
+    NO_WARP,
     ORACLE,
     REFINED,
     SCRATCH,
+    SINGLE,
     STATIC,
+    TWO_STAGE,
     at_full_size,
     finite_or_none,
     resized_pair,
@@ -27,6 +30,7 @@ from drivingscene.bench.report_schema import FORMAT, VERSION
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
 from tests.eval.test_bench_real import _real_like
+from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
 
 
 @pytest.mark.gl
@@ -114,3 +118,23 @@ def test_bench_report_from_json(tmp_path, capsys):
     bad.write_text(json.dumps({"format": "something else"}))
     assert main(["bench", "report", "--from-json", str(bad)]) == 2
     assert "bad.json: format: expected 'drivingscene/benchmark'" in capsys.readouterr().err
+
+
+@pytest.mark.gl
+@pytest.mark.slow
+def test_bench_report_adds_ablation_models_to_a_saved_report(tiny_weights, tmp_path):  # noqa: F811
+    js = tmp_path / "saved.json"
+    args = ["bench", "report", "--quick", "--no-stability", "--json", str(js), "--out", str(tmp_path / "a.md")]
+    assert main(args) == 0
+    before = json.loads(js.read_text())
+    add = ["bench", "report", "--from-json", str(js), "--joint-weights", str(tiny_weights), "--no-warp-weights", str(tiny_weights)]
+    assert main([*add, "--two-stage-weights", str(tiny_weights), "--json", str(js), "--out", str(tmp_path / "b.md")]) == 0
+    after = json.loads(js.read_text())
+    methods = {p["method"] for p in after["sets"]["procedural"]["points"]}
+    assert {SINGLE, NO_WARP, TWO_STAGE} <= methods
+    assert len(after["sets"]["procedural"]["points"]) == len(before["sets"]["procedural"]["points"]) + 3
+    rows = {a["name"]: a for a in after["ablations"]}
+    # the same tiny model three times: every difference is exactly 0, not missing
+    assert rows["two-stage − single-stage"]["ours_db"] == pytest.approx(0.0, abs=1e-6)
+    assert rows["with L_warp − without"]["ours_db"] == pytest.approx(0.0, abs=1e-6)
+    assert "--from-json" in after["command"] and "--from-json" in (tmp_path / "b.md").read_text()
