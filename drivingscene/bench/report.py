@@ -33,7 +33,9 @@ from typing import Callable
 import numpy as np
 
 from drivingscene.bench.machine import machine_description
-from drivingscene.bench.report_schema import FORMAT, VERSION, breaks_at, mark_pareto
+from drivingscene.bench.report_markdown import markdown
+from drivingscene.bench.report_schema import FORMAT, VERSION, mark_pareto
+from drivingscene.bench.report_stability import AXES, stability  # noqa: F401  (AXES: re-exported)
 from drivingscene.errors import InputError
 
 FULL = "DrivingScene"
@@ -59,28 +61,6 @@ KEYS = {
     "epe_dyn": "epe_dyn_total",
     "dynamic_share": "dynamic_share",  # share of the scored in-between pixels that move
 }
-
-
-@dataclass(frozen=True)
-class Axis:
-    name: str
-    knob: str  # SynthConfig field
-    values: tuple
-    easiest: int  # index into values
-    unit: str = ""
-
-
-AXES = (
-    Axis("object speed", "object_speed_scale", (0.0, 1.0, 2.0, 4.0), 0, "x"),
-    Axis("ego speed", "ego_speed", (0.0, 4.0, 8.0, 16.0, 24.0), 0, "m/s"),
-    Axis("keyframe gap", "keyframe_gap", (0.1, 0.25, 0.5, 1.0), 0, "s"),
-    Axis("texture", "texture_strength", (1.0, 0.5, 0.25, 0.0), 0, "x"),
-    Axis("exposure change", "exposure_change", (1.0, 1.25, 1.5, 2.0), 0, "gain"),
-    Axis("image noise", "noise_std", (0.0, 0.02, 0.05, 0.1), 0, "std"),
-    Axis("dead camera", "blackout_camera", ("none", "0"), 0),
-    Axis("rig", "rig", ("nuscenes", "ddad", "random"), 0),
-    Axis("photometric jitter", "photometric", (0.0, 0.5, 1.0), 0),
-)
 
 
 @dataclass(frozen=True)
@@ -332,65 +312,6 @@ def procedural_pairs(args, profile: Profile) -> tuple[list, str]:
 
 
 # ---------------------------------------------------------------------------------------------
-# stability
-
-
-def _axis_config(axis: Axis, value, size: tuple[int, int]):
-    from drivingscene.synth.config import resolve_config
-
-    height, width = size
-    return resolve_config("default", height=height, width=width, **{axis.knob: value})
-
-
-def _live_cameras(pair, axis: Axis, value):
-    """The pair to score on: with a dead camera, its in-between images (black as well) are not
-    scored; what is tested is whether its black inputs spoil the other cameras' views."""
-    if axis.knob != "blackout_camera" or value == "none":
-        return pair
-    names = list(pair.camera_names)
-    dead = names.index(value) if value in names else int(value)
-    mask = pair.world_mask().copy()
-    mask[dead] = False
-    return replace(pair, valid_mask=mask)
-
-
-def stability(methods: list[Method], profile: Profile) -> list[dict]:
-    """Each axis swept on the same seeds; PSNR per method and setting (mean over seeds)."""
-    from drivingscene.eval.reconstruction import score_frames, score_novel_views
-    from drivingscene.synth.config import split_seeds
-    from drivingscene.synth.generate import generate_pair
-    from drivingscene.synth.render import SynthRenderer
-
-    renderer = SynthRenderer()
-    seeds = list(split_seeds("test", profile.stability_seeds))
-    out = []
-    for axis in AXES:
-        values = (axis.values[axis.easiest], axis.values[-1]) if profile.ends_only else axis.values
-        curves = {m.name: {"psnr": [], "error": []} for m in methods}
-        for value in values:
-            pairs = [generate_pair(_axis_config(axis, value, profile.stability_size), s, renderer) for s in seeds]
-            for m in methods:
-                scores, error = [], None
-                for pair in pairs:
-                    target = _live_cameras(pair, axis, value)
-                    try:
-                        result = m.run(pair)
-                        psnr = (score_frames(result, target, None) if m.frames else score_novel_views(result, target, None))["psnr"]
-                        scores.append(psnr)
-                    except Exception as e:  # a method that raises breaks here: recorded, not fatal
-                        error = f"{type(e).__name__}: {e}"[:200]
-                        break
-                value_psnr = None if error or not scores or not all(math.isfinite(s) for s in scores) else sum(scores) / len(scores)
-                curves[m.name]["psnr"].append(value_psnr)
-                curves[m.name]["error"].append(error)
-        easiest = 0
-        breaks = {name: breaks_at(c["psnr"], c["error"], easiest) for name, c in curves.items()}
-        out.append({"name": axis.name, "knob": axis.knob, "unit": axis.unit, "values": list(values), "easiest": easiest, "curves": curves, "breaks": breaks})
-        print(f"stability: {axis.name} done", file=sys.stderr)
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
 # parsimony and ablations
 
 
@@ -506,110 +427,6 @@ def ablations(points: list[dict]) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------------------------
-# markdown
-
-
-def _f(value, fmt: str) -> str:
-    return "–" if value is None or (isinstance(value, float) and not math.isfinite(value)) else fmt.format(value)
-
-
-def _table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
-
-
-def _points_table(points: list[dict]) -> str:
-    rows = []
-    for p in sorted(points, key=lambda p: p["seconds"]):
-        front = [k for k, v in p["pareto"].items() if v]
-        rows.append(
-            [
-                p["method"],
-                p["setting"],
-                _f(p["seconds"], "{:.3g}"),
-                _f(p["psnr"], "{:.2f}"),
-                _f(p["psnr_dyn"], "{:.2f}"),
-                _f(p["ssim"], "{:.3f}"),
-                _f(p["lpips"], "{:.3f}"),
-                _f(p["abs_rel"], "{:.3f}"),
-                _f(p["epe_dyn"], "{:.2f}"),
-                _f(p["gaussians"] and p["gaussians"] / 1000, "{:.0f}k"),
-                ", ".join(front) or "",
-            ]
-        )
-    header = ["method", "setting", "s / pair", "PSNR", "PSNR moving", "SSIM", "LPIPS", "AbsRel", "flow error moving (px)", "Gaussians", "Pareto front"]
-    return _table(header, rows)
-
-
-def _stability_md(axes: list[dict]) -> str:
-    out = []
-    for axis in axes:
-        unit = f" ({axis['unit']})" if axis.get("unit") else ""
-        header = ["method", *[f"{v}" for v in axis["values"]], "breaks at"]
-        rows = []
-        for name, c in axis["curves"].items():
-            cells = [_f(v, "{:.2f}") if e is None else "error" for v, e in zip(c["psnr"], c["error"])]
-            b = axis["breaks"][name]
-            rows.append([name, *cells, "–" if b is None else str(axis["values"][b])])
-        out.append(f"### {axis['name']}{unit}: `{axis['knob']}`\n\n" + _table(header, rows))
-    return "\n".join(out)
-
-
-def markdown(report: dict, charts: dict[str, Path], out: Path | None) -> str:
-    import os
-
-    def link(key: str, alt: str) -> str:
-        if key not in charts:
-            return ""
-        path = charts[key] if out is None else os.path.relpath(charts[key], out.parent)
-        return f"![{alt}]({path})\n"
-
-    lines = [
-        "# Benchmark: speed against accuracy, stability, parsimony\n",
-        f"Regenerated by `{report['command']}` on {report['machine']}; networks in {report['precision']}; {report['created']}.\n",
-        "Seconds are wall-clock seconds per pair of the reconstruction alone (median over pairs, after one untimed run of the model; for the baselines the "
-        "frames' arithmetic; a refinement's seconds include the model's pass and its budget). PSNR, SSIM and LPIPS are of "
-        "the in-between frames; AbsRel of the depth of both keyframes against ground truth (procedural) or LiDAR (real); "
-        "the flow error is the end-point error in pixels of the total flow on moving pixels (procedural only). A point is "
-        "on the Pareto front of an accuracy when no other point is both at least as fast and at least as accurate; the "
-        "oracle (ground truth) and methods that also read LiDAR are left off the fronts (other inputs).\n",
-    ]
-    for name, s in report["sets"].items():
-        lines.append(f"## Speed against accuracy: {name} ({s['description']}, {s['pairs']} pairs, {s['size']})\n")
-        lines.append(link(f"speed_{name}", f"seconds per pair against accuracy, {name}"))
-        lines.append(_points_table(s["points"]))
-    if report["stability"]["axes"]:
-        lines.append("## Stability: where methods break\n")
-        lines.append(
-            f"Each axis is one generator knob swept on the same {report['stability'].get('seeds', '')} test seeds at "
-            f"{report['stability'].get('size', '')} with every other knob at the default preset; "
-            "the first value is the easiest. In-between PSNR (dB), mean over seeds; *breaks at*: the first setting "
-            f"more than {report['stability']['break_db']:g} dB below the easiest, NaN, or an error.\n"
-        )
-        lines.append(link("stability", "PSNR per generator knob and method"))
-        lines.append(_stability_md(report["stability"]["axes"]))
-    par = report["parsimony"]
-    if par["budgets"]:
-        lines.append("## Parsimony: no more Gaussians than a scene needs\n")
-        lines.append(link("parsimony", "Gaussians against PSNR"))
-        rows = [
-            [b["level"], _f(b["gaussians"] / 1000, "{:.0f}k"), _f(b["psnr"], "{:.2f}"), _f(b.get("budget_s"), "{:.2f}"), _f(b["seconds"], "{:.2f}")]
-            for b in par["budgets"]
-        ]
-        lines.append(_table(["budget", "Gaussians", "in-between PSNR", "s to apply the budget", "s to render and score"], rows))
-        lines.append(f"Smallest budget within 0.1 dB of the per-pixel Gaussians: **{par['chosen']}**.\n")
-        if not par["widths"]:
-            lines.append("Network width against quality and speed: not measured in this run (needs a second trained width).\n")
-    lines.append("## The paper's ablations\n")
-    rows = [
-        [a["name"], _f(a["paper_db"], "{:+.2f}"), _f(a["ours_db"], "{:+.2f}"), {True: "yes", False: "**no**", None: "–"}[a["reproduces"]], a["note"]]
-        for a in report["ablations"]
-    ]
-    lines.append(_table(["ablation", "paper (dB)", "ours (dB, all pixels)", "direction reproduces", "note"], rows))
-    return "\n".join(lines)
-
-
-# ---------------------------------------------------------------------------------------------
 
 
 def _real_pairs(args) -> list[tuple[str, object]]:
@@ -651,7 +468,8 @@ def build_report(args) -> dict:
     axes = []
     if not args.no_stability:
         names = (FULL, STATIC, CLASSICAL, BLEND)
-        axes = stability([m for m in methods if m.name in names and m.setting in ("native", "-", f"DIS {profile.classical[0]}")], profile)
+        chosen = [m for m in methods if m.name in names and m.setting in ("native", "-", f"DIS {profile.classical[0]}")]
+        axes = stability(chosen, profile.stability_size, profile.stability_seeds, profile.ends_only)
     command = "drivingscene bench report" + (" --quick" if args.quick else "")
     flags = (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights), ("--no-warp-weights", args.no_warp_weights))
     for flag, value in flags:
