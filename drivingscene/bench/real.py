@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drivingscene.bench import write_report
+from drivingscene.bench import read_notes, write_report
 from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
 
@@ -421,12 +421,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--names: expected one name per scene ({len(args.scenes)}), found {len(args.names)}")
     if args.repeats < 1:
         raise InputError(f"--repeats: expected at least 1, found {args.repeats}")
-    notes = ""
-    if args.notes is not None:
-        try:
-            notes = args.notes.read_text()
-        except OSError as e:
-            raise InputError(f"{args.notes}: --notes: expected a readable markdown file, found {e.strerror}") from None
+    notes = read_notes(args.notes)
     pairs = [load_frame_pair(p) for p in args.scenes]  # every file checked before the long part
     names = args.names or [p.stem for p in args.scenes]
     methods = _methods(args)

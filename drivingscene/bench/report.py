@@ -34,7 +34,7 @@ import numpy as np
 
 from drivingscene.bench.machine import machine_description
 from drivingscene.bench.report_markdown import markdown
-from drivingscene.bench.report_schema import FORMAT, VERSION, mark_pareto
+from drivingscene.bench.report_schema import ACCURACY, FORMAT, VERSION, mark_pareto
 from drivingscene.bench.report_stability import AXES, stability  # noqa: F401  (AXES: re-exported)
 from drivingscene.errors import InputError
 
@@ -261,6 +261,16 @@ def _point(method: Method, rows: list[dict], seconds: list[float]) -> dict:
     return point
 
 
+def mark_fronts(points: list[dict]) -> None:
+    """Each point's Pareto flags, in place. The fronts are among what a user could run on the same
+    inputs: not the oracle (ground truth) nor a method that also reads LiDAR (scored on other
+    returns); those points are on no front."""
+    mark_pareto([p for p in points if p["family"] not in OFF_FRONT])
+    for p in points:
+        if p["family"] in OFF_FRONT:
+            p["pareto"] = {key: False for key, _, _ in ACCURACY}
+
+
 def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tuple[list[dict], dict]:
     """One point per method over ``pairs``; also the per-pair rows and the model's reconstructions
     (for the budgets)."""
@@ -277,11 +287,7 @@ def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tup
                 recons.append(recon)
         print(f"{label}: pair {n + 1}/{len(pairs)} scored", file=sys.stderr)
     points = [_point(m, rows[i], seconds[i]) for i, m in enumerate(methods)]
-    # the front is among what a user could run on the same inputs: not the oracle (ground truth) nor
-    # a method that also reads LiDAR (scored on other returns)
-    mark_pareto([p for p in points if p["family"] not in OFF_FRONT])
-    for p in points:
-        p.setdefault("pareto", {k: False for k in ("psnr", "abs_rel", "epe_dyn")})
+    mark_fronts(points)
     return points, {"rows": {f"{m.name} | {m.setting}": rows[i] for i, m in enumerate(methods)}, "recons": recons}
 
 
@@ -464,7 +470,7 @@ def build_report(args) -> dict:
         sets["real"] = {"description": ", ".join(names), "pairs": len(real_pairs), "size": f"{w}x{h}", "points": real_points}
     par = parsimony(extra["recons"], pairs, profile.budget_fractions)
     points += budget_points(points, par)
-    mark_pareto([p for p in points if p["family"] not in OFF_FRONT])
+    mark_fronts(points)
     axes = []
     if not args.no_stability:
         names = (FULL, STATIC, CLASSICAL, BLEND)
@@ -517,7 +523,7 @@ def add_ablation_models(report: dict, args) -> None:
     points, _ = score_set(pairs, methods, perceptual, "ablation models")
     kept = [p for p in saved["points"] if p["method"] not in {m.name for m in methods}]
     saved["points"] = finite_or_none(kept + points)
-    mark_pareto([p for p in saved["points"] if p["family"] not in OFF_FRONT])
+    mark_fronts(saved["points"])
     flags = " ".join(f"{f} {v}" for f, v in (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights),
                                                ("--no-warp-weights", args.no_warp_weights)) if v is not None)
     report["command"] += f" && drivingscene bench report --from-json {args.from_json} {flags}"
@@ -550,14 +556,9 @@ def finite_or_none(obj):
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivingscene.bench import write_report
+    from drivingscene.bench import read_notes, write_report
 
-    notes = ""
-    if args.notes is not None:
-        try:
-            notes = args.notes.read_text()
-        except OSError as e:
-            raise InputError(f"{args.notes}: --notes: expected a readable markdown file, found {e.strerror}") from None
+    notes = read_notes(args.notes)
     if args.from_json is not None:
         report = load_report(args.from_json)
         if any(w is not None for w in (args.joint_weights, args.no_warp_weights)):

@@ -23,6 +23,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+from drivingscene.bench import read_notes
 from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
 
@@ -354,12 +355,7 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.train.data import list_pairs
 
     _extras(args.extra)  # argument errors before any work
-    notes = ""
-    if args.notes:
-        try:
-            notes = args.notes.read_text()
-        except OSError as e:
-            raise InputError(f"{args.notes}: --notes: expected a readable markdown file, found {e.strerror}") from None
+    notes = read_notes(args.notes)
     files = list_pairs(args.data)[: args.count]
     perceptual = load_perceptual(args.lpips)
     methods = _methods(args)

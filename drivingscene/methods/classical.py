@@ -61,7 +61,7 @@ from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency
 from drivingscene.geometry.se3 import rotate_vectors
-from drivingscene.methods.oracle import fit_sky_from_pixels, refine_colors
+from drivingscene.methods.oracle import fit_sky_from_pixels, refine_colors, world_cameras
 from drivingscene.models.depth import DepthConfig
 from drivingscene.models.pipeline import (
     FlowPrediction,
@@ -322,7 +322,7 @@ def _assemble(
     """Gaussians of both keyframes in the world frame, one per non-sky world pixel with its colour
     (after ``refine`` deconvolution steps), and the sky SH fitted to ``sky_pixels``."""
     num_views = batch.num_views
-    c2w = batch.local_to_world[None, None] @ batch.cam_to_local.double()  # [2, V, 4, 4]
+    c2w = world_cameras(batch)  # [2, V, 4, 4]
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, c2w, batch.intrinsics)
     colors = batch.images.permute(0, 1, 3, 4, 2)  # [2, V, H, W, 3]
     if refine > 0:

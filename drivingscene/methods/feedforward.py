@@ -24,7 +24,7 @@ from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
-from drivingscene.methods.oracle import fit_sky_from_pixels
+from drivingscene.methods.oracle import fit_sky_from_pixels, world_cameras
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
 from drivingscene.models.pipeline import (
     LiftConfig,
@@ -108,7 +108,7 @@ def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
     from drivingscene.geometry.se3 import invert_rigid
 
     num_views = batch.num_views
-    cams = (batch.local_to_world[None, None] @ batch.cam_to_local.double()).flatten(0, 1)
+    cams = world_cameras(batch).flatten(0, 1)
     world = None if batch.valid_mask is None else batch.valid_mask.repeat(2, 1, 1)
     keep = carve(
         gaussians,
@@ -192,9 +192,7 @@ def reconstruct(
         t1 = time.perf_counter()
         gaussians = _carved(gaussians, batch, depth, sky_pixels, options.carve)
         timings["carve_s"] = time.perf_counter() - t1
-    sky_sh = fit_sky_from_pixels(
-        batch.images, sky_pixels, batch.local_to_world[None, None] @ batch.cam_to_local.double(), batch.intrinsics
-    )
+    sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, world_cameras(batch), batch.intrinsics)
     _sync(device)
     timings["assembly_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - start

@@ -22,7 +22,7 @@ from drivingscene.render.scene import render_gaussians
 from drivingscene.render.sky import fit_sky, pixel_directions
 
 
-def _world_cameras(batch) -> torch.Tensor:
+def world_cameras(batch) -> torch.Tensor:
     """Camera-to-world ``[2, V, 4, 4]`` in float64."""
     return batch.local_to_world[None, None] @ batch.cam_to_local.double()
 
@@ -73,7 +73,7 @@ def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refin
     batch = pair_to_tensors(pair, with_eval=False)
     depth = batch.gt_depth
     sky = depth <= 0
-    c2w = _world_cameras(batch)
+    c2w = world_cameras(batch)
     if batch.valid_mask is not None:  # the ego's body is neither sky nor a Gaussian
         sky_sh = fit_sky_from_pixels(batch.images, sky & batch.valid_mask, c2w, batch.intrinsics)
         sky = sky | ~batch.valid_mask
