@@ -37,6 +37,7 @@ DEFAULT_VARIANTS = [
     "blend=cameras,parallax=on,head=off",  # P ablated: every pixel's default surfel
 ]
 CARVES = ("off", "same_time", "all")
+MATCHES = ("off", "medium", "fast", "ultrafast")
 
 
 @dataclass(frozen=True)
@@ -50,11 +51,26 @@ class Variant:
     photo: bool | None = None  # LiftConfig.photometric_check; None: the default
     parallax: bool | None = None  # LiftConfig.epipolar_static; None: the default
     head: bool = True  # InferenceOptions.gaussian_head: P's predictions (False: default surfels)
+    match: str | None = None  # InferenceOptions.match: "off" or a DIS preset; None: the default
+    windows: tuple[float, ...] | None = None  # MatchedDepthConfig.sigmas; None: the default
+    guide: str | None = None  # MatchedDepthConfig.guide
+    levels: str | None = None  # MatchedDepthConfig.levels
+    passes: int | None = None  # MatchedDepthConfig.passes
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
+        from drivingscene.methods.matched_depth import MatchedDepthConfig
 
         carve = None if self.carve == "off" else CarveConfig(voters=self.carve)
+        match = base.match
+        if self.match == "off":
+            match = None
+        elif self.match is not None:
+            match = replace(match or MatchedDepthConfig(), preset=self.match)
+        if match is not None:
+            for name, value in (("sigmas", self.windows), ("guide", self.guide), ("levels", self.levels), ("passes", self.passes)):
+                if value is not None:
+                    match = replace(match, **{name: value})
         lift = base.lift
         if self.region is not None:
             lift = replace(lift, min_dynamic_region=self.region)
@@ -65,7 +81,7 @@ class Variant:
         search = base.search if self.search else None
         if search is not None and self.bonus is not None:
             search = replace(search, static_bonus=self.bonus)
-        return replace(base, carve=carve, search=search, lift=lift, gaussian_head=self.head)
+        return replace(base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match)
 
 
 def _is_number(text: str) -> bool:
@@ -82,8 +98,10 @@ def _nanmean(values: list[float]) -> float:
 
 
 def parse_variant(text: str) -> Variant:
-    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, head, bonus, region."""
+    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, head, match,
+    windows, guide, levels, passes, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
+    from drivingscene.methods.matched_depth import GUIDES, LEVELS
 
     values: dict = {"name": text}
     for item in filter(None, text.split(",")):
@@ -98,12 +116,23 @@ def parse_variant(text: str) -> Variant:
             values["region"] = int(value)
         elif key in ("photo", "parallax", "head") and value in ("on", "off"):
             values[key] = value == "on"
+        elif key == "match" and value in MATCHES:
+            values["match"] = value
+        elif key == "guide" and value in GUIDES:
+            values["guide"] = value
+        elif key == "levels" and value in LEVELS:
+            values["levels"] = value
+        elif key == "passes" and value.isdigit() and int(value) >= 1:
+            values["passes"] = int(value)
+        elif key == "windows" and value and all(_is_number(w) and float(w) > 0 for w in value.split("+")):
+            values["windows"] = tuple(float(w) for w in value.split("+"))
         elif key == "bonus" and _is_number(value) and float(value) >= 0:
             values["bonus"] = float(value)
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, head=on|off, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
+                f"photo=on|off, parallax=on|off, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"levels={'|'.join(LEVELS)}, passes=N, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
             )
     return Variant(**values)
 

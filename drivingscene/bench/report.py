@@ -193,6 +193,8 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
             out.append(Method(FULL, "native", FULL, lambda p: reconstruct(model, p)))
         else:
             out.append(Method(FULL, f"input x{scale:g}", FULL, lambda p, s=scale: at_full_size(reconstruct(model, resized_pair(p, s)), p)))
+    # D's depth as it is (no classical matching at inference): the same model, faster
+    out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
     out.append(Method(STATIC, "native", STATIC, lambda p: reconstruct(model, p, InferenceOptions(use_residual=False))))
     if not real:
         out.append(Method(R_ALONE, "native", R_ALONE, lambda p: reconstruct(model, p, InferenceOptions(search=None))))

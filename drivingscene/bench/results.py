@@ -3,6 +3,8 @@
 On test-split pairs never seen in training, with the same inputs for every method:
 
 - DrivingScene (two-stage, rigid + residual flow, refined by the search along the rigid flow),
+- unmatched: the same without matching the keyframes at inference (D's depth as it is,
+  methods/matched_depth.py),
 - R alone: the same without the search (R's flow as it is),
 - static-only: the same weights without the residual flow (stage 1 alone: every Gaussian static),
 - single-stage: a model trained jointly from the start (``--joint-weights``),
@@ -30,6 +32,7 @@ from drivingscene.errors import InputError
 NVS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "{lpips}", "{:.3f}")]
 FULL, STATIC = "DrivingScene (two-stage)", "static-only (no residual flow)"
 R_ALONE = "DrivingScene, R alone (no search)"
+NO_MATCH = "DrivingScene, D's depth unmatched (no matching at inference)"
 SEARCH_ALONE = "diagnostic: the search without R"
 GT_FLOW = "diagnostic: DrivingScene depth + GT flow"
 GT_FLOW_QUARTER = "diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"
@@ -85,6 +88,7 @@ def _methods(args):
     model = load_model(args.weights)
     methods = [
         (FULL, lambda pair: reconstruct(model, pair)),
+        (NO_MATCH, lambda pair: reconstruct(model, pair, InferenceOptions(match=None))),
         (R_ALONE, lambda pair: reconstruct(model, pair, InferenceOptions(search=None))),
         (STATIC, lambda pair: reconstruct(model, pair, InferenceOptions(use_residual=False))),
     ]

@@ -93,6 +93,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="every pixel R and the search move stays dynamic, also where a static surface at another depth "
         "explains its flow (docs/depth.md, parallax before motion)",
     )
+    p.add_argument(
+        "--no-match",
+        action="store_true",
+        help="D's depth as it is, not corrected by matching the keyframes with classical flow "
+        "(docs/depth.md, depth from matching at inference; ~0.15 s faster at 176x320)",
+    )
     p.add_argument("--threads", type=positive_int, default=None)
     add_amp_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
@@ -204,6 +210,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         options = replace(options, search=None)
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
+    if args.no_match:
+        options = replace(options, match=None)
     recon = reconstruct(model, pair, options)
     if config is not None:
         recon = run_refinement(model, pair, recon, config)

@@ -59,7 +59,7 @@ from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
-from drivingscene.geometry.flow import backward_warp, forward_backward_consistency
+from drivingscene.geometry.flow import forward_backward_consistency
 from drivingscene.geometry.se3 import rotate_vectors
 from drivingscene.methods.oracle import fit_sky_from_pixels, refine_colors, world_cameras
 from drivingscene.models.depth import DepthConfig
@@ -214,9 +214,8 @@ def _triangulate(total: Tensor, rigid: Tensor, world: Tensor, batch: PairTensors
     `explain_by_parallax` with every world pixel whose flow is forward/backward consistent as a
     candidate, starting from depth 0 so that the determined pixels are exactly those it gives a
     depth. ``rigid``: the guide's rigid flow."""
-    sources = batch.images.flip(0).flatten(0, 1)
-    warped, _ = backward_warp(sources, rigid.flatten(0, 1))
-    flow = FlowPrediction(rigid=rigid, residuals=[total - rigid], warped_sources=warped.unflatten(0, rigid.shape[:2]))
+    # `explain_by_parallax` reads only the flows: no warped images
+    flow = FlowPrediction(rigid=rigid, residuals=[total - rigid], warped_sources=rigid.new_empty(0))
     # Occluded pixels and those that leave the view have no match: DIS gives them a flow anyway
     # (often the guide's, which lies on the epipolar line), which the other direction contradicts.
     consistent = torch.stack([forward_backward_consistency(total[k], total[1 - k]) for k in (0, 1)])

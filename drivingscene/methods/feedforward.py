@@ -24,6 +24,7 @@ from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
+from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
 from drivingscene.methods.oracle import fit_sky_from_pixels, world_cameras
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
 from drivingscene.models.pipeline import (
@@ -60,6 +61,9 @@ class InferenceOptions:
     carve: CarveConfig | None = None
     # False: P's predictions unused, every pixel's Gaussian its default surfel (ablation, bench choices)
     gaussian_head: bool = True
+    # D's depth corrected by classical matching between the keyframes (methods/matched_depth.py);
+    # None: D's depth as it is.
+    match: MatchedDepthConfig | None = MatchedDepthConfig()
 
 
 def resolve_device(name: str) -> torch.device:
@@ -151,6 +155,12 @@ def reconstruct(
     sky_pixels = sky if batch.valid_mask is None else sky & batch.valid_mask
     if batch.valid_mask is not None:
         sky = sky | ~batch.valid_mask
+    if options.match is not None:
+        t0 = time.perf_counter()
+        depth, _, _ = match_depth(depth, sky, pair, batch, options.match)
+        static = with_depth(static, depth)
+        _sync(device)
+        timings["match_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     search = options.search if flow_predictor is None else None
     if not options.use_residual:

@@ -104,7 +104,8 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     """The shipped model: the searched flow is, per pixel, R's flow (refined down to the search's
     proposal level) or a multiple of the rigid flow on the search's grid (--no-parallax: the rigid
     flow as D's depth makes it); --no-search keeps R's (every level); --static-only moves nothing;
-    by default parallax explains some of the moving pixels (fewer dynamic Gaussians)."""
+    by default parallax explains some of the moving pixels (fewer dynamic Gaussians); --no-match
+    keeps D's depth, which matching the keyframes otherwise corrects."""
     import numpy as np
 
     from drivingscene.gaussians.recon import load_reconstruction
@@ -113,12 +114,15 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
 
     scene = save_frame_pair(synth_pair, tmp_path / "scene.npz")
     recons = {}
-    runs = (("full", ["--no-parallax"]), ("r_alone", ["--no-search", "--no-parallax"]), ("static", ["--static-only"]), ("default", []))
+    runs = (("full", ["--no-parallax"]), ("r_alone", ["--no-search", "--no-parallax"]), ("static", ["--static-only"]), ("default", []), ("no_match", ["--no-match"]))
     for name, extra in runs:
         assert main(["reconstruct", str(scene), "-o", str(tmp_path / f"{name}.npz"), *extra]) == 0
         recons[name] = load_reconstruction(tmp_path / f"{name}.npz")
     assert not recons["static"].gaussians.dynamic.any() and recons["full"].gaussians.dynamic.any()
     assert recons["default"].gaussians.dynamic.sum() < recons["full"].gaussians.dynamic.sum()
+    assert "match_s" in recons["default"].meta["timings"] and "match_s" not in recons["no_match"].meta["timings"]
+    matched = recons["default"].depth > 0
+    assert not np.allclose(recons["default"].depth[matched], recons["no_match"].depth[matched], rtol=1e-3)
     full, alone = recons["full"], recons["r_alone"]
     rigid = full.rigid_flow
     total, r_total = rigid + full.residual_flow, rigid + alone.residual_flow

@@ -1,0 +1,217 @@
+"""Depth from matching at inference: the network's depth corrected by what the two keyframes'
+images triangulate along the known poses, at full image resolution.
+
+D already matches across time and cameras (models/matching.py), but it learned to on procedural
+streets only; a classical matcher does not need to learn what real texture looks like. After D:
+
+    guide           = rigid_flows(depth)                        the network's depth and the poses
+    total_k         = DIS(I_k, warp(I_{1-k}, guide)) o guide    guided OpenCV DIS, both directions
+                                                                (`classical.dis_flows`)
+    z, determined   = triangulate(total)                        forward/backward-consistent pixels on
+                                                                their epipolar line with enough
+                                                                parallax (`classical._triangulate`)
+    log c           = smooth(log z - log depth | determined)    normalised Gaussian convolution of the
+                                                                log ratio, coarse to fine
+    depth'          = z where determined, depth * c elsewhere
+
+The correction is a smooth field, so D keeps the shape of what it sees where nothing matches
+(sky, flat surfaces, straight ahead, moving objects: their flow is off the epipolar line) and
+takes the scale of its matched neighbours; where no pixel within a few windows is determined the
+depth is D's exactly. With the ego standing still nothing triangulates and the depth is D's,
+unchanged. Sky (as D decides it) and pixels outside ``valid_mask`` are neither matched nor
+corrected.
+
+Chosen on validation pairs (``data/val176``, ``data/val176rand``; `drivingscene bench choices`,
+docs/choices.md), never on the test pairs or the real scene.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+from kornia.filters import box_blur
+from torch import Tensor
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.data.tensors import PairTensors
+from drivingscene.eval.baselines import road_plane_depth
+from drivingscene.methods.classical import DIS_PRESETS, _triangulate, dis_flows
+from drivingscene.geometry.flow import backward_warp
+from drivingscene.models.pipeline import LiftConfig, rigid_flows
+
+
+GUIDES = ("depth", "prior", "both", "best")
+LEVELS = ("none", "image", "rig")
+
+
+@dataclass(frozen=True)
+class MatchedDepthConfig:
+    """Settings of `match_depth` (see the module docstring)."""
+
+    # OpenCV DIS preset: "medium", "fast" or "ultrafast".
+    preset: str = "medium"
+    # What guides DIS (`classical.dis_flows`): "depth" (D's depth, then each pass's), "prior" (the
+    # road plane below the horizon, ``prior_depth`` above it: knows nothing of D) or "both": a pixel
+    # is determined only where both guides triangulate it within ``agree`` (relative) of each
+    # other, at their geometric mean. Guided DIS returns its guide in flat regions, and a rigid
+    # flow is forward/backward consistent and on the epipolar line: matching guided by D alone
+    # can confirm D's error; two unrelated guides rarely echo the same wrong depth. "best": both
+    # guides, and where both triangulate a pixel the match whose 5x5 patches differ less.
+    guide: str = "depth"
+    prior_depth: float = 20.0
+    agree: float = 0.1
+    # Each further pass runs DIS again, guided by the previous pass's depth.
+    passes: int = 1
+    # Gaussian windows of the correction field (standard deviations, pixels at ``reference_width``
+    # image columns, scaled with the width), applied coarse to fine: a finer window overrides a
+    # coarser one in proportion to its support.
+    sigmas: tuple[float, ...] = (10.0,)
+    reference_width: int = 320
+    # Support (the window's weighted share of determined pixels) below ``min_support``: no
+    # correction from that window; from there to ``full_support``: a linear ramp to all of it.
+    min_support: float = 0.02
+    full_support: float = 0.1
+    # Coarser levels under the windows: "image", the image's median log ratio where at least
+    # ``image_share`` of its pixels are determined; "rig", also the median over every image of the
+    # keyframe for the images with fewer; "none": the windows alone.
+    levels: str = "rig"
+    image_share: float = 0.01
+    # Determined pixels take their triangulated depth (else only the smooth correction).
+    replace: bool = True
+    # Triangulation thresholds (`explain_by_parallax`), in image pixels: within ``epipolar_px``
+    # of the epipolar line, ``epipolar_min_parallax`` from the point at infinite depth.
+    lift: LiftConfig = field(default_factory=LiftConfig)
+
+    def __post_init__(self):
+        if self.preset not in DIS_PRESETS:
+            raise ValueError(f"MatchedDepthConfig.preset: expected one of {sorted(DIS_PRESETS)}, found {self.preset!r}")
+        if self.guide not in GUIDES:
+            raise ValueError(f"MatchedDepthConfig.guide: expected one of {GUIDES}, found {self.guide!r}")
+        if self.levels not in LEVELS:
+            raise ValueError(f"MatchedDepthConfig.levels: expected one of {LEVELS}, found {self.levels!r}")
+        if self.passes < 1:
+            raise ValueError(f"MatchedDepthConfig.passes: expected >= 1, found {self.passes}")
+        if not self.sigmas or min(self.sigmas) <= 0:
+            raise ValueError(f"MatchedDepthConfig.sigmas: expected positive widths, found {self.sigmas}")
+        if not 0.0 <= self.min_support < self.full_support <= 1.0:
+            raise ValueError(
+                "MatchedDepthConfig: expected 0 <= min_support < full_support <= 1, "
+                f"found {self.min_support} and {self.full_support}"
+            )
+
+
+def smooth_log_correction(
+    log_ratio: np.ndarray,  # [N, H, W] float32, anything where not determined
+    determined: np.ndarray,  # [N, H, W] bool
+    sigmas: tuple[float, ...],  # pixels
+    min_support: float,
+    full_support: float,
+    image_share: float = 0.0,
+    base: np.ndarray | None = None,
+) -> np.ndarray:
+    """``[N, H, W]`` float32: the log ratio spread from the determined pixels by normalised
+    Gaussian convolution, coarse to fine, faded out where the support is low (0 there); with
+    ``image_share`` > 0, an image with at least that share of determined pixels starts from their
+    median (one scale for the whole image) instead of 0, or instead of ``base[i]`` where given."""
+    out = np.zeros(log_ratio.shape, np.float32)
+    if base is not None:
+        out += np.asarray(base, np.float32).reshape(-1, 1, 1)
+    for i in range(len(log_ratio)):
+        weight = determined[i].astype(np.float32)
+        if not weight.any():
+            continue
+        if image_share > 0 and weight.mean() >= image_share:
+            out[i] = np.median(log_ratio[i][determined[i]])
+        stack = np.stack([np.where(determined[i], log_ratio[i], 0.0).astype(np.float32) * weight, weight], -1)
+        for sigma in sorted(sigmas, reverse=True):
+            num, den = cv2.GaussianBlur(stack, (0, 0), sigma, borderType=cv2.BORDER_REFLECT).transpose(2, 0, 1)
+            ramp = np.clip((den - min_support) / (full_support - min_support), 0.0, 1.0)
+            out[i] += ramp * (num / np.maximum(den, 1e-6) - out[i])
+    return out
+
+
+def _patch_cost(image: Tensor, other: Tensor, flow: Tensor) -> Tensor:
+    """``[V, H, W]``: mean |image - other sampled along flow| over 5x5 windows (grey images ``[V, H, W]``)."""
+    warped, _ = backward_warp(other[:, None], flow)
+    diff = (image[:, None] - warped).abs()
+    return box_blur(diff, (5, 5), border_type="replicate")[:, 0]
+
+
+@torch.no_grad()
+def match_depth(
+    depth: Tensor,  # [2, V, H, W] z-depth (metres), any device
+    excluded: Tensor,  # [2, V, H, W] bool: sky and pixels that do not see the world
+    pair: FramePair,
+    batch: PairTensors,
+    config: MatchedDepthConfig = MatchedDepthConfig(),
+) -> tuple[Tensor, Tensor, dict[str, float]]:
+    """The corrected depth (same dtype and device), the ``[2, V, H, W]`` mask of pixels that took
+    a triangulated depth, and timings (flow, triangulation, correction)."""
+    device, dtype = depth.device, depth.dtype
+    cpu = batch.to("cpu") if device.type != "cpu" else batch
+    d = depth.detach().float().cpu()
+    keep = (~excluded).cpu()
+    scale = d.shape[-1] / config.reference_width
+    timings = dict.fromkeys(("match_flow_s", "match_triangulate_s", "match_correct_s"), 0.0)
+    out = d
+
+    grey = batch.images.float().mean(2).cpu()  # [2, V, H, W]
+
+    def triangulated_with(guide_depth: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        t0 = time.perf_counter()
+        guide = rigid_flows(guide_depth, cpu).float()
+        total = torch.from_numpy(dis_flows(pair.images, config.preset, guide.numpy()))
+        t1 = time.perf_counter()
+        z, _ = _triangulate(total, guide, keep, cpu, config.lift)
+        cost = None
+        if config.guide == "best":
+            cost = torch.stack([_patch_cost(grey[k], grey[1 - k], total[k]) for k in (0, 1)])
+        timings["match_flow_s"] += t1 - t0
+        timings["match_triangulate_s"] += time.perf_counter() - t1
+        return z, (z > 0) & keep & (d > 0), cost
+
+    prior = None
+    if config.guide != "depth":
+        road = torch.from_numpy(road_plane_depth(pair, far=config.lift.epipolar_far))
+        prior = triangulated_with(torch.where(road >= config.lift.epipolar_far, torch.full_like(road, config.prior_depth), road))
+    for _ in range(config.passes):
+        if config.guide == "prior":
+            triangulated, determined, _ = prior
+        else:
+            triangulated, determined, cost = triangulated_with(out)
+        if config.guide == "both":
+            z_prior, determined_prior, _ = prior
+            agree = (triangulated.clamp_min(1e-3) / z_prior.clamp_min(1e-3)).log().abs() <= np.log1p(config.agree)
+            determined = determined & determined_prior & agree
+            triangulated = torch.where(determined, (triangulated * z_prior).sqrt(), torch.zeros_like(triangulated))
+        elif config.guide == "best":
+            z_prior, determined_prior, cost_prior = prior
+            take_prior = determined_prior & (~determined | (cost_prior < cost))
+            triangulated = torch.where(take_prior, z_prior, triangulated)
+            determined = determined | determined_prior
+        t2 = time.perf_counter()
+        log_ratio = (triangulated.clamp_min(1e-3) / d.clamp_min(1e-3)).log()
+        base = None
+        if config.levels == "rig":  # per keyframe: the median over its images' determined pixels
+            base = np.zeros(determined.shape[:2], np.float32)
+            for k in (0, 1):
+                if determined[k].float().mean() >= config.image_share:
+                    base[k] = float(log_ratio[k][determined[k]].median())
+        correction = smooth_log_correction(
+            log_ratio.flatten(0, 1).numpy(),
+            determined.flatten(0, 1).numpy(),
+            tuple(s * scale for s in config.sigmas),
+            config.min_support,
+            config.full_support,
+            config.image_share if config.levels != "none" else 0.0,
+            None if base is None else base.reshape(-1),
+        )
+        out = torch.where(keep, d * torch.from_numpy(correction).view_as(d).exp(), d)
+        if config.replace:
+            out = torch.where(determined, triangulated, out)
+        timings["match_correct_s"] += time.perf_counter() - t2
+    return out.to(device=device, dtype=dtype), determined.to(device), timings

@@ -1,0 +1,81 @@
+"""Depth from matching at inference (methods/matched_depth.py): D's depth corrected by what the
+keyframes triangulate."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from drivingscene.data.tensors import pair_to_tensors
+from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth, smooth_log_correction
+
+
+def _abs_rel(pred: torch.Tensor, gt: np.ndarray, mask: np.ndarray) -> float:
+    p = pred.numpy()[mask]
+    return float(np.mean(np.abs(p - gt[mask]) / gt[mask]))
+
+
+def _inputs(pair):
+    batch = pair_to_tensors(pair, with_gt=False, with_eval=False)
+    gt = pair.gt_depth
+    sky = torch.from_numpy(gt <= 0)
+    return batch, gt, sky
+
+
+def test_correction_spreads_from_determined_pixels_and_fades_without_support():
+    log_ratio = np.zeros((1, 60, 200), np.float32)
+    determined = np.zeros((1, 60, 200), bool)
+    determined[0, 20:40, 10:40] = True
+    log_ratio[0, 20:40, 10:40] = np.log(2.0)
+    out = smooth_log_correction(log_ratio, determined, (4.0,), 0.02, 0.1)
+    assert out[0, 30, 25] == pytest.approx(np.log(2.0), rel=1e-4)  # inside: the ratio itself
+    assert out[0, 30, 41] == pytest.approx(np.log(2.0), rel=1e-3)  # nearby, supported: the same ratio
+    assert 0.0 < out[0, 30, 47] < out[0, 30, 45] < 0.99 * np.log(2.0)  # support thinning: faded towards none
+    assert out[0, 30, 150] == 0.0  # far from any determined pixel: no correction
+    nothing = smooth_log_correction(log_ratio, np.zeros_like(determined), (4.0, 16.0), 0.02, 0.1)
+    assert not nothing.any()
+
+
+def test_a_wrong_scale_is_corrected_towards_the_ground_truth(synth_pair):
+    """D 1.6x too far everywhere: matching the keyframes brings it much nearer the truth."""
+    batch, gt, sky = _inputs(synth_pair)
+    world = gt > 0
+    wrong = torch.from_numpy(np.where(world, gt * 1.6, 50.0).astype(np.float32))
+    before = _abs_rel(wrong, gt, world)
+    depth, determined, timings = match_depth(wrong, sky, synth_pair, batch)
+    after = _abs_rel(depth, gt, world)
+    assert determined[torch.from_numpy(world)].float().mean() > 0.1
+    assert after < 0.5 * before, (before, after)  # 0.6 before
+    assert torch.equal(depth[sky], wrong[sky])  # sky is neither matched nor corrected
+    assert set(timings) == {"match_flow_s", "match_triangulate_s", "match_correct_s"}
+
+
+def test_the_right_depth_stays_about_right(synth_pair):
+    batch, gt, sky = _inputs(synth_pair)
+    world = gt > 0
+    right = torch.from_numpy(np.where(world, gt, 50.0).astype(np.float32))
+    depth, _, _ = match_depth(right, sky, synth_pair, batch)
+    assert _abs_rel(depth, gt, world) < 0.15
+
+
+def test_a_standing_ego_leaves_the_depth_exactly_as_it_was(synth_pair):
+    """No baseline, nothing triangulates: D's (monocular) answer, not noise."""
+    still = synth_pair.ego_to_world[:1].repeat(2, 0)
+    pair = replace(synth_pair, ego_to_world=still, camera_ego_to_world=None, camera_timestamps=None)
+    batch, gt, sky = _inputs(pair)
+    depth_in = torch.from_numpy(np.where(gt > 0, gt * 1.3, 50.0).astype(np.float32))
+    depth, determined, _ = match_depth(depth_in, sky, pair, batch)
+    assert not determined.any()
+    assert torch.equal(depth, depth_in)
+
+
+def test_config_is_checked():
+    with pytest.raises(ValueError, match="preset"):
+        MatchedDepthConfig(preset="slow")
+    with pytest.raises(ValueError, match="sigmas"):
+        MatchedDepthConfig(sigmas=())
+    with pytest.raises(ValueError, match="min_support"):
+        MatchedDepthConfig(min_support=0.2, full_support=0.1)
