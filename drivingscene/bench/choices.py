@@ -56,6 +56,7 @@ class Variant:
     guide: str | None = None  # MatchedDepthConfig.guide
     levels: str | None = None  # MatchedDepthConfig.levels
     passes: int | None = None  # MatchedDepthConfig.passes
+    mscale: float | None = None  # MatchedDepthConfig.scale
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -68,7 +69,7 @@ class Variant:
         elif self.match is not None:
             match = replace(match or MatchedDepthConfig(), preset=self.match)
         if match is not None:
-            for name, value in (("sigmas", self.windows), ("guide", self.guide), ("levels", self.levels), ("passes", self.passes)):
+            for name, value in (("sigmas", self.windows), ("guide", self.guide), ("levels", self.levels), ("passes", self.passes), ("scale", self.mscale)):
                 if value is not None:
                     match = replace(match, **{name: value})
         lift = base.lift
@@ -99,7 +100,7 @@ def _nanmean(values: list[float]) -> float:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, head, match,
-    windows, guide, levels, passes, bonus, region."""
+    windows, guide, levels, passes, mscale, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
 
@@ -122,6 +123,8 @@ def parse_variant(text: str) -> Variant:
             values["guide"] = value
         elif key == "levels" and value in LEVELS:
             values["levels"] = value
+        elif key == "mscale" and _is_number(value) and 0 < float(value) <= 1:
+            values["mscale"] = float(value)
         elif key == "passes" and value.isdigit() and int(value) >= 1:
             values["passes"] = int(value)
         elif key == "windows" and value and all(_is_number(w) and float(w) > 0 for w in value.split("+")):
@@ -132,7 +135,7 @@ def parse_variant(text: str) -> Variant:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
                 f"photo=on|off, parallax=on|off, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
-                f"levels={'|'.join(LEVELS)}, passes=N, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
+                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
             )
     return Variant(**values)
 

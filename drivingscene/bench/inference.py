@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_amp_arguments(p)  # default: bf16 autocast where the CPU/GPU does bf16 natively, else float32
     p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
+    p.add_argument("--no-match", action="store_true", help="D's depth as it is (no matching of the keyframes at inference)")
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
 
@@ -44,15 +45,16 @@ def _pair(size: str):
     return generate_pair(SynthConfig(height=height, width=width), 200000)
 
 
-def _options(amp: bool, threads: int, search: bool):
+def _options(amp: bool, threads: int, without: tuple[str, ...] = ()):
+    """Default inference options, less the steps named in ``without`` ("search", "match")."""
     from drivingscene.methods.feedforward import InferenceOptions
 
     options = InferenceOptions(amp=amp, threads=threads)
-    return options if search else replace(options, search=None)
+    return replace(options, **{step: None for step in without})
 
 
 def _peak_in_this_process(
-    weights: Path | None, device: str, pair_path: str, amp: bool, threads: int, search: bool
+    weights: Path | None, device: str, pair_path: str, amp: bool, threads: int, without: tuple[str, ...]
 ) -> tuple[float, float]:
     """MiB the process's resident memory peaks above where it stood with the model and the pair
     loaded, over one reconstruction, and the process's whole peak (run in a fresh process by
@@ -66,12 +68,14 @@ def _peak_in_this_process(
     model = load_model(weights, device=resolve_device(device))
     pair = load_frame_pair(pair_path)
     base = current_rss_bytes()
-    reconstruct(model, pair, _options(amp, threads, search))
+    reconstruct(model, pair, _options(amp, threads, without))
     peak = peak_rss_bytes()
     return (peak - base) / 2**20, peak / 2**20
 
 
-def peak_memory_mib(pair, weights: Path | None, device: str, amp: bool, threads: int, search: bool) -> tuple[float, float]:
+def peak_memory_mib(
+    pair, weights: Path | None, device: str, amp: bool, threads: int, without: tuple[str, ...] = ()
+) -> tuple[float, float]:
     """Peak resident memory (MiB) of one reconstruction of ``pair`` above the loaded model and
     pair, and of the whole process, in a fresh process (spawned, so it inherits none of this
     process's memory)."""
@@ -80,7 +84,7 @@ def peak_memory_mib(pair, weights: Path | None, device: str, amp: bool, threads:
     with tempfile.TemporaryDirectory() as tmp:
         path = str(save_frame_pair(pair, Path(tmp) / "pair.npz", compress=False))
         with multiprocessing.get_context("spawn").Pool(1) as pool:
-            return pool.apply(_peak_in_this_process, (weights, device, path, amp, threads, search))
+            return pool.apply(_peak_in_this_process, (weights, device, path, amp, threads, without))
 
 
 def measure(
@@ -89,7 +93,7 @@ def measure(
     runs: int,
     amp: bool,
     threads: int,
-    search: bool = True,
+    without: tuple[str, ...] = (),
     weights: Path | None = None,
     device: str = "cpu",
 ) -> list[dict]:
@@ -98,9 +102,9 @@ def measure(
     from a fresh process (`peak_memory_mib`, before any timing)."""
     from drivingscene.methods.feedforward import reconstruct
 
-    options = _options(amp, threads, search)
+    options = _options(amp, threads, without)
     pairs = {size: _pair(size) for size in sizes}
-    peak = {size: peak_memory_mib(pairs[size], weights, device, amp, threads, search) for size in sizes}
+    peak = {size: peak_memory_mib(pairs[size], weights, device, amp, threads, without) for size in sizes}
     totals, parts, count = {s: [] for s in sizes}, {s: [] for s in sizes}, {}
     for size in sizes:
         for _ in range(WARMUP_RUNS):  # oneDNN builds its kernels for each new shape on the first calls
@@ -116,6 +120,7 @@ def measure(
     for size in sizes:
         part = {k: statistics.median(p[k] for p in parts[size]) for k in parts[size][0]}
         part.setdefault("search_s", 0.0)
+        part.setdefault("match_s", 0.0)
         rows.append(
             dict(
                 size=size,
@@ -146,13 +151,15 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.precision import cpu_flags_summary, describe_precision, resolve_amp
 
     amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
-    rows = measure(model, args.sizes, args.runs, amp, args.threads, not args.no_search, args.weights, args.device)
+    without = tuple(step for step, off in (("search", args.no_search), ("match", args.no_match)) if off)
+    rows = measure(model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device)
     from drivingscene.render.cpp import load_extension
 
     kernels = "on" if device.type == "cpu" and load_extension() is not None else "off: torch paths"
     lines = [
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}"
         f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}"
+        f"{' --no-match' if args.no_match else ''}"
         f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}`"
         f" on {machine_description(cpu_flags_summary())}"
         f"{_gpu_name(device)}; precision: {describe_precision(device, args.amp)}; compiled CPU kernels {kernels}; "
@@ -160,13 +167,14 @@ def run(args: argparse.Namespace) -> int:
         "peak RSS: one reconstruction in a fresh process, above its memory with the model and the pair loaded "
         "/ that process's whole peak.",
         "",
-        "| size (H×W) | total s (median) | best s | networks D+P s | flow (rigid + R + search + lift) s | of which search s "
-        "| assembly + sky s | Gaussians | peak RSS: reconstruction / process |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| size (H×W) | total s (median) | best s | networks D+P s | matching s | flow (rigid + R + search + lift) s "
+        "| of which search s | assembly + sky s | Gaussians | peak RSS: reconstruction / process |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['size']} | {r['median']:.3f} | {r['best']:.3f} | {r['static_s']:.3f} | {r['flow_s']:.3f} | {r['search_s']:.3f} | "
+            f"| {r['size']} | {r['median']:.3f} | {r['best']:.3f} | {r['static_s']:.3f} | {r['match_s']:.3f} | {r['flow_s']:.3f} "
+            f"| {r['search_s']:.3f} | "
             f"{r['assembly_s']:.3f} | {r['gaussians'] / 1e3:.0f}k | {r['peak_mib'][0]:.0f} / {r['peak_mib'][1]:.0f} MiB |"
         )
     text = "\n".join(lines) + "\n"

@@ -36,6 +36,7 @@ from drivingscene.bench.machine import machine_description
 from drivingscene.bench.report_markdown import markdown
 from drivingscene.bench.report_schema import ACCURACY, FORMAT, VERSION, mark_pareto
 from drivingscene.bench.report_stability import AXES, stability  # noqa: F401  (AXES: re-exported)
+from drivingscene.data.resize import resized_pair  # noqa: F401  (re-exported)
 from drivingscene.errors import InputError
 
 FULL = "DrivingScene"
@@ -130,26 +131,6 @@ class Method:
     run: Callable  # pair -> Reconstruction, or [M, V, H, W, 3] frames when ``frames``
     frames: bool = False
     score_pair: Callable | None = None  # pair -> the pair to score on (e.g. held-out LiDAR)
-
-
-def resized_pair(pair, scale: float):
-    """The pair's keyframes at ``scale`` of their size (what the model reads), without ground truth
-    or eval frames."""
-    import cv2
-    import torch
-
-    from drivingscene.geometry.camera import scale_intrinsics
-
-    height, width = pair.image_size
-    h, w = max(8, round(height * scale)), max(8, round(width * scale))
-    images = np.stack([[cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in frame] for frame in pair.images])
-    k = scale_intrinsics(torch.from_numpy(pair.intrinsics), w / width, h / height).numpy()
-    mask = None
-    if pair.valid_mask is not None:
-        mask = np.stack([cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0 for m in pair.valid_mask])
-    empty = dict.fromkeys(("gt_depth", "gt_flow", "gt_scene_flow", "gt_dynamic", "eval_images", "eval_timestamps",
-                           "eval_ego_to_world", "eval_dynamic", "eval_camera_ego_to_world", "eval_camera_timestamps"))
-    return replace(pair, images=images, intrinsics=k, valid_mask=mask, **empty)
 
 
 def at_full_size(recon, pair):

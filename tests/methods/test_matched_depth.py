@@ -53,6 +53,27 @@ def test_a_wrong_scale_is_corrected_towards_the_ground_truth(synth_pair):
     assert set(timings) == {"match_flow_s", "match_triangulate_s", "match_correct_s"}
 
 
+@pytest.mark.parametrize("guide", ["prior", "both", "best"])
+def test_guides_that_know_nothing_of_d_correct_it_too(synth_pair, guide):
+    batch, gt, sky = _inputs(synth_pair)
+    world = gt > 0
+    wrong = torch.from_numpy(np.where(world, gt * 1.6, 50.0).astype(np.float32))
+    depth, determined, _ = match_depth(wrong, sky, synth_pair, batch, MatchedDepthConfig(guide=guide))
+    assert determined.any()
+    assert _abs_rel(depth, gt, world) < 0.5 * _abs_rel(wrong, gt, world)
+
+
+def test_matching_at_half_size_corrects_too(synth_pair):
+    """At half the image size the correction comes back upsampled; no pixel is taken as it is."""
+    batch, gt, sky = _inputs(synth_pair)
+    world = gt > 0
+    wrong = torch.from_numpy(np.where(world, gt * 1.6, 50.0).astype(np.float32))
+    depth, determined, _ = match_depth(wrong, sky, synth_pair, batch, MatchedDepthConfig(scale=0.5))
+    assert depth.shape == wrong.shape and not determined.any()
+    assert _abs_rel(depth, gt, world) < 0.5 * _abs_rel(wrong, gt, world)
+    assert torch.equal(depth[sky], wrong[sky])
+
+
 def test_the_right_depth_stays_about_right(synth_pair):
     batch, gt, sky = _inputs(synth_pair)
     world = gt > 0
@@ -77,5 +98,9 @@ def test_config_is_checked():
         MatchedDepthConfig(preset="slow")
     with pytest.raises(ValueError, match="sigmas"):
         MatchedDepthConfig(sigmas=())
+    with pytest.raises(ValueError, match="scale"):
+        MatchedDepthConfig(scale=1.5)
+    with pytest.raises(ValueError, match="guide"):
+        MatchedDepthConfig(guide="lidar")
     with pytest.raises(ValueError, match="min_support"):
         MatchedDepthConfig(min_support=0.2, full_support=0.1)
