@@ -57,6 +57,7 @@ class Variant:
     levels: str | None = None  # MatchedDepthConfig.levels
     passes: int | None = None  # MatchedDepthConfig.passes
     mscale: float | None = None  # MatchedDepthConfig.scale
+    pdepth: str | None = None  # LiftConfig.epipolar_depth
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -79,6 +80,8 @@ class Variant:
             lift = replace(lift, photometric_check=self.photo)
         if self.parallax is not None:
             lift = replace(lift, epipolar_static=self.parallax)
+        if self.pdepth is not None:
+            lift = replace(lift, epipolar_depth=self.pdepth)
         search = base.search if self.search else None
         if search is not None and self.bonus is not None:
             search = replace(search, static_bonus=self.bonus)
@@ -99,10 +102,11 @@ def _nanmean(values: list[float]) -> float:
 
 
 def parse_variant(text: str) -> Variant:
-    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, head, match,
+    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, head, match,
     windows, guide, levels, passes, mscale, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
+    from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
 
     values: dict = {"name": text}
     for item in filter(None, text.split(",")):
@@ -119,6 +123,8 @@ def parse_variant(text: str) -> Variant:
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
             values["match"] = value
+        elif key == "pdepth" and value in EPIPOLAR_DEPTHS:
+            values["pdepth"] = value
         elif key == "guide" and value in GUIDES:
             values["guide"] = value
         elif key == "levels" and value in LEVELS:
@@ -134,7 +140,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
             )
     return Variant(**values)

@@ -46,6 +46,7 @@ Gaussians); one colour deconvolution step 20.51 for 2 s more.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import cv2
@@ -143,22 +144,33 @@ def dis_flows(images: np.ndarray, preset: str = "medium", guide: np.ndarray | No
     With a ``guide`` flow ``[2, V, H, W, 2]`` DIS matches each image against the other keyframe
     warped by the guide, and the result r is composed with it: flow(p) = r(p) + guide(p + r(p)).
     DIS's coarse-to-fine search reaches a few tens of pixels; the guide (a rigid flow) takes out
-    the rest (rotation, the road, a typical distance), so that DIS only finds the parallax left."""
-    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
+    the rest (rotation, the road, a typical distance), so that DIS only finds the parallax left.
+
+    The images are matched in ``cv2.getNumThreads()`` threads (OpenCV releases the GIL; its own
+    parallel loops gain little on images this small): the same flows, in less time."""
     grey = [[cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY) for image in keyframe] for keyframe in images]
     height, width = images.shape[2:4]
     grid = np.stack(np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32)), -1)
     out = np.zeros((*images.shape[:4], 2), np.float32)
-    for k in (0, 1):
-        for v in range(images.shape[1]):
+    jobs = [(k, v) for k in (0, 1) for v in range(images.shape[1])]
+
+    def run(part: list[tuple[int, int]]) -> None:
+        dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
+        for k, v in part:
             if guide is None:
                 out[k, v] = _calc(dis, grey[k][v], grey[1 - k][v])
                 continue
             g = np.ascontiguousarray(guide[k, v], dtype=np.float32)
-            map_guide = grid + g
-            warped = cv2.remap(grey[1 - k][v], map_guide, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            warped = cv2.remap(grey[1 - k][v], grid + g, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             r = _calc(dis, grey[k][v], warped)
             out[k, v] = r + cv2.remap(g, grid + r, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    workers = max(1, min(cv2.getNumThreads(), len(jobs)))
+    if workers == 1:
+        run(jobs)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(run, [jobs[i::workers] for i in range(workers)]))
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
 
 

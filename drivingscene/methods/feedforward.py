@@ -155,9 +155,10 @@ def reconstruct(
     sky_pixels = sky if batch.valid_mask is None else sky & batch.valid_mask
     if batch.valid_mask is not None:
         sky = sky | ~batch.valid_mask
+    matched = None  # pixels whose depth the matching triangulated
     if options.match is not None:
         t0 = time.perf_counter()
-        depth, _, _ = match_depth(depth, sky, pair, batch, options.match)
+        depth, matched, _ = match_depth(depth, sky, pair, batch, options.match)
         static = with_depth(static, depth)
         _sync(device)
         timings["match_s"] = time.perf_counter() - t0
@@ -189,7 +190,8 @@ def reconstruct(
                 candidates = dynamic | ((flow.residual.square().sum(-1) > threshold**2) & ~sky)
                 if flow.behind is not None:
                     candidates &= ~flow.behind
-            depth, flow, explained = explain_by_parallax(depth, flow, candidates, batch, options.lift, net_width)
+            fixed = {"triangulated": None, "unmatched": matched, "keep": torch.ones_like(candidates)}[options.lift.epipolar_depth]
+            depth, flow, explained = explain_by_parallax(depth, flow, candidates, batch, options.lift, net_width, fixed)
             scene_flow = torch.where(explained[..., None], torch.zeros_like(scene_flow), scene_flow)
             static = with_depth(static, depth)
             timings["parallax_s"] = time.perf_counter() - t1

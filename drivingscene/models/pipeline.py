@@ -43,6 +43,8 @@ from drivingscene.models.matching import ViewGeometry, neighbour_views
 from drivingscene.models.model import DrivingSceneModel
 from drivingscene.render.cpp import select_op
 
+EPIPOLAR_DEPTHS = ("triangulated", "unmatched", "keep")
+
 
 @dataclass(frozen=True)
 class LiftConfig:
@@ -92,6 +94,15 @@ class LiftConfig:
     # Which pixels are tested: "dynamic" (those the lift calls moving) or "residual" (also every
     # pixel whose residual exceeds the threshold, which then may take a triangulated depth).
     epipolar_candidates: str = "dynamic"
+    # Which explained pixels take their triangulated depth: "triangulated" (every well-determined
+    # one), "unmatched" (not those whose depth the matching at inference already triangulated from
+    # its own flow, `methods/matched_depth.py`: they keep it), or "keep" (none: explained pixels only
+    # become static).
+    epipolar_depth: str = "triangulated"
+
+    def __post_init__(self):
+        if self.epipolar_depth not in EPIPOLAR_DEPTHS:
+            raise ValueError(f"LiftConfig.epipolar_depth: expected one of {EPIPOLAR_DEPTHS}, found {self.epipolar_depth!r}")
 
 
 def explain_by_parallax(
@@ -101,6 +112,7 @@ def explain_by_parallax(
     batch: PairTensors,
     config: LiftConfig,
     net_width: int | None = None,
+    fixed: Tensor | None = None,  # [2, V, H, W] bool: pixels whose depth stays as it is
 ) -> tuple[Tensor, FlowPrediction, Tensor]:
     """Moving pixels that a static surface at another depth explains (`LiftConfig.epipolar_static`).
 
@@ -109,56 +121,99 @@ def explain_by_parallax(
     poses from the batch) and triangulated along the pixel's ray (least squares over both image
     axes). Explained: within ``epipolar_px`` of the line, triangulated in front of both cameras
     within [``epipolar_near``, ``epipolar_far``], with at least ``epipolar_min_parallax``.
-    Returns the depth with the explained pixels at their triangulated depth, the flow with their
-    rigid flow set to the total flow (residual 0; the total flow unchanged), and the
-    ``[2, V, H, W]`` mask of explained pixels.
+    Returns the depth with the explained pixels at their triangulated depth (except those in
+    ``fixed``, which keep theirs), the flow with their rigid flow set to the total flow (residual
+    0; the total flow unchanged), and the ``[2, V, H, W]`` mask of explained pixels. The geometry
+    is `epipolar_geometry`'s.
     """
     total, rigid = flow.total, flow.rigid
-    num_views, height, width = depth.shape[1:]
+    width = depth.shape[-1]
     scale = width / net_width if net_width else 1.0
     c2l = batch.cam_to_local.float()
-    k_inv = torch.linalg.inv(batch.intrinsics.float())
-    grid = pixel_grid(height, width, device=depth.device, dtype=torch.float32)  # [H, W, 2] (u, v)
-    ones = torch.ones_like(grid[..., :1])
-    pixels_h = torch.cat([grid, ones], -1)  # [H, W, 3]
     depths, explained_all, determined_all = [], [], []
     for k in (0, 1):
         o = 1 - k
-        candidate = candidates[k]
         rel = torch.linalg.inv(c2l[o]) @ c2l[k]  # [V, 4, 4] camera at k -> the same camera at o
-        rot, trans = rel[:, :3, :3], rel[:, :3, 3]
-        rays = torch.einsum("vij,hwj->vhwi", k_inv, pixels_h)  # z = 1: the ray scaled by z-depth
-        a = torch.einsum("vij,vhwj->vhwi", rot, rays)  # the ray in the other camera's axes
-        target = torch.cat([grid + total[k].float(), ones.expand(num_views, -1, -1, -1)], -1)
-        x = torch.einsum("vij,vhwj->vhwi", k_inv, target)  # normalised coordinates of the end point
-        t = trans[:, None, None, :]
-        # lambda * (a_xy - x_xy a_z) = x_xy t_z - t_xy  (projection of lambda * a + t onto x)
-        coef = a[..., :2] - x[..., :2] * a[..., 2:3]
-        rhs = x[..., :2] * t[..., 2:3] - t[..., :2]
-        z = (coef * rhs).sum(-1) / coef.square().sum(-1).clamp_min(1e-12)
-        point = z[..., None] * a + t
-        proj = torch.einsum("vij,vhwj->vhwi", batch.intrinsics.float(), point)
-        proj = proj[..., :2] / proj[..., 2:3].clamp_min(1e-6)
-        off_line = (proj - target[..., :2]).norm(dim=-1)
-        # Parallax: how far along the line the point is from its image at infinite depth. The
-        # triangulated depth's relative error is about the flow's error over it (pixels).
-        at_infinity = torch.einsum("vij,vhwj->vhwi", batch.intrinsics.float(), a)
-        at_infinity = at_infinity[..., :2] / at_infinity[..., 2:3].clamp_min(1e-6)
-        parallax = (proj - at_infinity).norm(dim=-1)
-        ok = (point[..., 2] > NEAR_Z) & (z >= config.epipolar_near) & (z <= config.epipolar_far) & (a[..., 2] > 0)
-        inside = (target[..., 0] >= 0) & (target[..., 0] <= width - 1) & (target[..., 1] >= 0) & (target[..., 1] <= height - 1)
-        explained = candidate & ok & inside & (off_line <= config.epipolar_px * scale) & torch.isfinite(z)
+        z, off_line, parallax, valid = epipolar_geometry(total[k].float(), batch.intrinsics.float(), rel)
+        ok = valid & (z >= config.epipolar_near) & (z <= config.epipolar_far)
+        explained = candidates[k] & ok & (off_line <= config.epipolar_px * scale)
         # The depth is only taken where it is well determined; elsewhere the pixel is static at the
         # network's depth (which then moves it by less than the little parallax there is).
         determined = explained & (parallax >= config.epipolar_min_parallax * scale)
         if config.epipolar_min_texture > 0:
-            determined &= _texture_along(batch.images[k].float(), proj - at_infinity, scale) >= config.epipolar_min_texture
+            direction = _epipolar_direction(total[k].float(), batch.intrinsics.float(), rel)
+            determined &= _texture_along(batch.images[k].float(), direction, scale) >= config.epipolar_min_texture
+        if fixed is not None:
+            determined &= ~fixed[k]
         depths.append(torch.where(determined, z.to(depth.dtype), depth[k]))
         explained_all.append(explained)
         determined_all.append(determined)
     explained, determined = torch.stack(explained_all), torch.stack(determined_all)
     new_rigid = torch.where(determined[..., None], total, rigid)
     return torch.stack(depths), replace(flow, rigid=new_rigid, searched=total), explained
+
+
+def _rays(intrinsics: Tensor, rel: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
+    """``K^-1`` ``[V, 3, 3]`` and each pixel's ray in the other camera's axes ``[V, H, W, 3]``
+    (z = 1 in its own: the ray scaled by z-depth)."""
+    k_inv = torch.linalg.inv(intrinsics)
+    grid = pixel_grid(height, width, device=intrinsics.device, dtype=torch.float32)  # [H, W, 2] (u, v)
+    pixels_h = torch.cat([grid, torch.ones_like(grid[..., :1])], -1)  # [H, W, 3]
+    rays = torch.einsum("vij,hwj->vhwi", k_inv, pixels_h)
+    return k_inv, torch.einsum("vij,vhwj->vhwi", rel[:, :3, :3], rays)
+
+
+def epipolar_geometry(
+    flow: Tensor,  # [V, H, W, 2] one keyframe's flow to the same cameras at the other keyframe
+    intrinsics: Tensor,  # [V, 3, 3]
+    rel: Tensor,  # [V, 4, 4] each camera at this keyframe -> the same camera at the other
+    backend: str = "auto",
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each pixel's flow end point against its epipolar line (float32, ``[V, H, W]`` each): the
+    depth ``z`` along the pixel's ray whose image in the other camera is nearest the end point
+    (least squares over both image axes), that image's distance from the end point (off the
+    line, pixels), its distance from the image of the ray's point at infinite depth (the
+    parallax, pixels), and ``valid``: the point in front of the other camera (z-depth there
+    above ``NEAR_Z``), the ray pointing forward there, the end point inside the image and ``z``
+    finite. The compiled op (``render/csrc/flow.cpp``) computes the same in one pass per pixel
+    on the CPU; ``backend``: "auto", "cpp" or "torch" (`select_op`)."""
+    num_views, height, width = flow.shape[:3]
+    op = select_op("epipolar_parallax", backend, flow, intrinsics, rel)
+    if op is not None:
+        return op(flow, intrinsics, torch.linalg.inv(intrinsics), rel, NEAR_Z)
+    k_inv, a = _rays(intrinsics, rel, height, width)
+    grid = pixel_grid(height, width, device=flow.device, dtype=torch.float32)
+    target = torch.cat([grid + flow, torch.ones_like(flow[..., :1])], -1)
+    x = torch.einsum("vij,vhwj->vhwi", k_inv, target)  # normalised coordinates of the end point
+    t = rel[:, None, None, :3, 3]
+    # lambda * (a_xy - x_xy a_z) = x_xy t_z - t_xy  (projection of lambda * a + t onto x)
+    coef = a[..., :2] - x[..., :2] * a[..., 2:3]
+    rhs = x[..., :2] * t[..., 2:3] - t[..., :2]
+    z = (coef * rhs).sum(-1) / coef.square().sum(-1).clamp_min(1e-12)
+    point = z[..., None] * a + t
+    proj = torch.einsum("vij,vhwj->vhwi", intrinsics, point)
+    proj = proj[..., :2] / proj[..., 2:3].clamp_min(1e-6)
+    off_line = (proj - target[..., :2]).norm(dim=-1)
+    # Parallax: how far along the line the point is from its image at infinite depth. The
+    # triangulated depth's relative error is about the flow's error over it (pixels).
+    at_infinity = torch.einsum("vij,vhwj->vhwi", intrinsics, a)
+    at_infinity = at_infinity[..., :2] / at_infinity[..., 2:3].clamp_min(1e-6)
+    parallax = (proj - at_infinity).norm(dim=-1)
+    inside = (target[..., 0] >= 0) & (target[..., 0] <= width - 1) & (target[..., 1] >= 0) & (target[..., 1] <= height - 1)
+    valid = (point[..., 2] > NEAR_Z) & (a[..., 2] > 0) & inside & torch.isfinite(z)
+    return z, off_line, parallax, valid
+
+
+def _epipolar_direction(flow: Tensor, intrinsics: Tensor, rel: Tensor) -> Tensor:
+    """``[V, H, W, 2]``: from the image of each pixel's ray at infinite depth towards the image of
+    its triangulated point (`epipolar_geometry`), the direction of parallax."""
+    height, width = flow.shape[1:3]
+    z = epipolar_geometry(flow, intrinsics, rel, backend="torch")[0]
+    _, a = _rays(intrinsics, rel, height, width)
+    point = z[..., None] * a + rel[:, None, None, :3, 3]
+    proj = torch.einsum("vij,vhwj->vhwi", intrinsics, point)
+    at_infinity = torch.einsum("vij,vhwj->vhwi", intrinsics, a)
+    return proj[..., :2] / proj[..., 2:3].clamp_min(1e-6) - at_infinity[..., :2] / at_infinity[..., 2:3].clamp_min(1e-6)
 
 
 def _texture_along(images: Tensor, direction: Tensor, scale: float) -> Tensor:

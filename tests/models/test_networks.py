@@ -480,6 +480,31 @@ def test_compiled_dense_lift_matches_the_torch_path(compiled_kernels, monkeypatc
     assert not fast[~fast_mask].any()  # static pixels do not move
 
 
+def test_compiled_epipolar_geometry_matches_the_torch_path(compiled_kernels):
+    """`epipolar_geometry`'s compiled op and torch path agree: flows around the rigid flow of a
+    turning ego, some pixels pushed off the image or behind the camera."""
+    from drivingscene.models.pipeline import epipolar_geometry
+
+    pair = make_pair(num_views=3, height=24, width=32)
+    yaw = math.radians(8.0)
+    pair.ego_to_world[1, :2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    batch = pair_to_tensors(pair)
+    g = torch.Generator().manual_seed(11)
+    depth = 2.0 + 40.0 * torch.rand(2, 3, 24, 32, generator=g)
+    rigid, _ = rigid_flows_and_behind(depth, batch)
+    flow = rigid + 3.0 * torch.randn(rigid.shape, generator=g)
+    c2l = batch.cam_to_local.float()
+    for k in (0, 1):
+        rel = torch.linalg.inv(c2l[1 - k]) @ c2l[k]
+        fast = epipolar_geometry(flow[k], batch.intrinsics.float(), rel, backend="cpp")
+        slow = epipolar_geometry(flow[k], batch.intrinsics.float(), rel, backend="torch")
+        assert 0.3 < slow[3].float().mean() < 1.0  # valid and invalid pixels both occur
+        assert (fast[3] == slow[3]).float().mean() > 0.999
+        both = fast[3] & slow[3]
+        for a, b in zip(fast[:3], slow[:3]):
+            torch.testing.assert_close(a[both], b[both], rtol=1e-3, atol=1e-3)
+
+
 def test_small_dynamic_regions_are_dropped():
     from drivingscene.models.pipeline import drop_small_regions
 
@@ -541,6 +566,11 @@ def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
     for strict in (dict(epipolar_min_parallax=1e3), dict(epipolar_min_texture=1e3)):
         kept, kept_flow, same = explain_by_parallax(wrong, flow, tested, batch, replace(config, **strict))
         assert torch.equal(same, explained) and torch.equal(kept, wrong) and torch.equal(kept_flow.rigid, rigid)
+    # Pixels marked fixed (matched at inference) stay static at their own depth.
+    fixed = torch.zeros_like(tested)
+    fixed[0] = True
+    held, _, same = explain_by_parallax(wrong, flow, tested, batch, config, fixed=fixed)
+    assert torch.equal(same, explained) and torch.equal(held[0], wrong[0]) and torch.equal(held[1], depth[1])
     # The Gaussians follow the new depth: scales by the same ratio.
     from drivingscene.models.gaussian_head import PixelGaussians
     from drivingscene.models.pipeline import StaticPrediction
