@@ -30,11 +30,20 @@ def rigid_flow(
     Each source pixel is lifted with its depth, moved into the destination camera and projected
     with the destination intrinsics. Returns flow ``[..., H, W, 2]`` in pixels and the
     destination z-depth ``[..., H, W]`` (<= 0 where the point falls behind the destination camera).
+    Float32 CPU maps ``[B, H, W]`` without gradients go through one compiled pass (the same
+    arithmetic; ``render/csrc/flow.cpp``).
     """
     height, width = depth.shape[-2:]
-    points = unproject(depth, intrinsics).flatten(-3, -2)  # [..., HW, 3]
     src_to_dst = invert_rigid(dst_cam_to_world) @ src_cam_to_world
-    uv, z = project(transform_points(src_to_dst, points), intrinsics if dst_intrinsics is None else dst_intrinsics)
+    dst_k = intrinsics if dst_intrinsics is None else dst_intrinsics
+    if depth.dim() == 3 and intrinsics.shape == dst_k.shape == (len(depth), 3, 3) and src_to_dst.shape == (len(depth), 4, 4):
+        from drivingscene.render.cpp import select_op
+
+        op = select_op("rigid_flow_dense", "auto", depth, intrinsics, src_to_dst, dst_k)
+        if op is not None:
+            return op(depth, intrinsics, src_to_dst, dst_k)
+    points = unproject(depth, intrinsics).flatten(-3, -2)  # [..., HW, 3]
+    uv, z = project(transform_points(src_to_dst, points), dst_k)
     grid = pixel_grid(height, width, dtype=depth.dtype, device=depth.device)
     flow = uv.unflatten(-2, (height, width)) - grid
     return flow, z.unflatten(-1, (height, width))

@@ -68,6 +68,30 @@ def test_rigid_flow_matches_per_pixel_reference():
     assert z.shape == (3, 9, 13)
 
 
+def test_compiled_rigid_flow_matches_the_torch_path(compiled_kernels, monkeypatch):
+    """Float32 ``[B, H, W]`` maps without gradients take the compiled pass: the same flow and
+    destination depth as the torch path (points behind the destination included)."""
+    import drivingscene.render.cpp as cpp
+
+    intrinsics, cam_to_ego = make_rig(num_views=3, height=24, width=40)
+    ego_to_world = np.tile(np.eye(4), (2, 1, 1))
+    ego_to_world[1, :3, :3] = [[np.cos(0.1), -np.sin(0.1), 0], [np.sin(0.1), np.cos(0.1), 0], [0, 0, 1]]
+    ego_to_world[1, :3, 3] = [3.0, 0.4, 0.05]
+    c2w = cams_to_world(torch.from_numpy(cam_to_ego).float(), torch.from_numpy(ego_to_world).float())
+    depth = torch.from_numpy(np.random.default_rng(1).uniform(0.5, 60, (3, 24, 40))).float()
+    k = torch.from_numpy(intrinsics).float()
+    calls = []
+    select = cpp.select_op
+    monkeypatch.setattr(cpp, "select_op", lambda name, *a: calls.append(name) or select(name, *a))
+    fast = rigid_flow(depth, k, c2w[0], c2w[1])
+    assert calls == ["rigid_flow_dense"]
+    monkeypatch.setattr(cpp, "select_op", lambda *a: None)
+    slow = rigid_flow(depth, k, c2w[0], c2w[1])
+    assert (slow[1] < 0.5).any() and (slow[1] > 0.5).any()
+    for a, b in zip(fast, slow):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-4)
+
+
 def test_rigid_flow_is_zero_without_motion():
     intrinsics, cam_to_ego = make_rig(num_views=2)
     pose = cams_to_world(torch.from_numpy(cam_to_ego), torch.eye(4))

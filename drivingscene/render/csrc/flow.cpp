@@ -34,6 +34,12 @@
 // distance of proj from p + f (off the epipolar line), its distance from K a (the point at infinite
 // depth: the parallax), and valid: z a + t in front (z > near_z), a_z > 0, p + f inside
 // [0, W - 1] x [0, H - 1] and z finite. One pass per pixel instead of ~25 full-image tensor operations.
+//
+// rigid_flow_dense: the flow of a static world (drivingscene.geometry.flow.rigid_flow): each pixel
+// lifted with its z-depth (geometry.camera.unproject), moved by src_to_dst (se3.transform_points:
+// t + x r0 + y r1 + z r2, in that order) and projected with the destination intrinsics
+// (camera.project, z clamped at 1e-6); the same float32 operations in the same order as the torch
+// path, one pass per pixel.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
@@ -368,6 +374,62 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> epipolar_parallax(con
   return {depth, off_line, parallax, valid};
 }
 
+std::tuple<at::Tensor, at::Tensor> rigid_flow_dense(const at::Tensor& depth_in, const at::Tensor& intrinsics_in,
+                                                    const at::Tensor& src_to_dst_in, const at::Tensor& dst_intrinsics_in) {
+  TORCH_CHECK(depth_in.dim() == 3, "rigid_flow_dense: expected depth [B, H, W]");
+  const int64_t views = depth_in.size(0), height = depth_in.size(1), width = depth_in.size(2);
+  TORCH_CHECK(intrinsics_in.dim() == 3 && intrinsics_in.size(0) == views && dst_intrinsics_in.sizes() == intrinsics_in.sizes(),
+              "rigid_flow_dense: expected intrinsics [B, 3, 3]");
+  TORCH_CHECK(src_to_dst_in.dim() == 3 && src_to_dst_in.size(0) == views && src_to_dst_in.size(1) == 4 &&
+                  src_to_dst_in.size(2) == 4,
+              "rigid_flow_dense: expected transforms [B, 4, 4]");
+  const at::Tensor depth = depth_in.to(at::kFloat).contiguous();
+  const at::Tensor intrinsics = intrinsics_in.to(at::kFloat).contiguous();
+  const at::Tensor dst_intrinsics = dst_intrinsics_in.to(at::kFloat).contiguous();
+  const at::Tensor transform = src_to_dst_in.to(at::kFloat).contiguous();
+  at::Tensor flow = at::empty({views, height, width, 2}, depth.options());
+  at::Tensor z_out = at::empty({views, height, width}, depth.options());
+  const float* d = depth.data_ptr<float>();
+  const float* ks = intrinsics.data_ptr<float>();
+  const float* kd = dst_intrinsics.data_ptr<float>();
+  const float* tr = transform.data_ptr<float>();
+  float* fo = flow.data_ptr<float>();
+  float* zo = z_out.data_ptr<float>();
+  at::parallel_for(0, views * height, 16, [&](int64_t begin, int64_t end) {
+    for (int64_t vr = begin; vr < end; ++vr) {
+      const int64_t v = vr / height, row = vr % height;
+      const float* k = ks + 9 * v;
+      const float* kt = kd + 9 * v;
+      const float* m = tr + 16 * v;
+      const float fy = k[4], cy = k[5], fx = k[0], cx = k[2], skew = k[1];
+      const float vv = static_cast<float>(row);
+      const float y = (vv - cy) / fy;
+      for (int64_t col = 0; col < width; ++col) {
+        const int64_t i = vr * width + col;
+        const float uu = static_cast<float>(col);
+        const float x = (uu - cx - skew * y) / fx;
+        const float depth_i = d[i];
+        const float p0 = x * depth_i, p1 = y * depth_i, p2 = depth_i;
+        float q[3];
+        for (int r = 0; r < 3; ++r) {
+          float acc = m[4 * r + 3] + p0 * m[4 * r];
+          acc = acc + p1 * m[4 * r + 1];
+          acc = acc + p2 * m[4 * r + 2];
+          q[r] = acc;
+        }
+        const float zc = std::max(q[2], 1e-6f);
+        const float xn = q[0] / zc, yn = q[1] / zc;
+        const float u = kt[0] * xn + kt[1] * yn + kt[2];
+        const float w = kt[4] * yn + kt[5];
+        fo[2 * i] = u - uu;
+        fo[2 * i + 1] = w - vv;
+        zo[i] = q[2];
+      }
+    }
+  });
+  return {flow, z_out};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
@@ -381,4 +443,6 @@ TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
   m.def("epipolar_parallax(Tensor flow, Tensor intrinsics, Tensor inverse, Tensor relative, float near_z) "
         "-> (Tensor, Tensor, Tensor, Tensor)",
         &epipolar_parallax);
+  m.def("rigid_flow_dense(Tensor depth, Tensor intrinsics, Tensor src_to_dst, Tensor dst_intrinsics) -> (Tensor, Tensor)",
+        &rigid_flow_dense);
 }
