@@ -58,6 +58,7 @@ class Variant:
     passes: int | None = None  # MatchedDepthConfig.passes
     mscale: float | None = None  # MatchedDepthConfig.scale
     pdepth: str | None = None  # LiftConfig.epipolar_depth
+    ptex: float | None = None  # LiftConfig.epipolar_min_texture
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -82,6 +83,8 @@ class Variant:
             lift = replace(lift, epipolar_static=self.parallax)
         if self.pdepth is not None:
             lift = replace(lift, epipolar_depth=self.pdepth)
+        if self.ptex is not None:
+            lift = replace(lift, epipolar_min_texture=self.ptex)
         search = base.search if self.search else None
         if search is not None and self.bonus is not None:
             search = replace(search, static_bonus=self.bonus)
@@ -102,7 +105,7 @@ def _nanmean(values: list[float]) -> float:
 
 
 def parse_variant(text: str) -> Variant:
-    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, head, match,
+    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, bonus, region."""
     from drivingscene.gaussians.core import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
@@ -123,6 +126,8 @@ def parse_variant(text: str) -> Variant:
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
             values["match"] = value
+        elif key == "ptex" and _is_number(value) and float(value) >= 0:
+            values["ptex"] = float(value)
         elif key == "pdepth" and value in EPIPOLAR_DEPTHS:
             values["pdepth"] = value
         elif key == "guide" and value in GUIDES:
@@ -140,7 +145,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
             )
     return Variant(**values)

@@ -76,8 +76,14 @@ def forward_backward_consistency(
 ) -> Tensor:
     """Pixels whose forward flow is undone by the backward flow (UnFlow's test), ``[B, H, W]`` bool.
 
-    |f + b(p + f)|^2 < alpha (|f|^2 + |b(p + f)|^2) + beta, and p + f inside the image.
+    |f + b(p + f)|^2 < alpha (|f|^2 + |b(p + f)|^2) + beta, and p + f inside the image. Float32
+    CPU flows without gradients go through one compiled pass (``render/csrc/flow.cpp``).
     """
+    from drivingscene.render.cpp import select_op
+
+    op = select_op("fb_consistent", "auto", flow_fw, flow_bw) if flow_fw.dim() == 4 else None
+    if op is not None:
+        return op(flow_fw, flow_bw, alpha, beta)
     bw_at_fw, inside = backward_warp(flow_bw.permute(0, 3, 1, 2), flow_fw)
     return _consistent(flow_fw, bw_at_fw.permute(0, 2, 3, 1), alpha, beta) & inside
 

@@ -67,6 +67,7 @@ from drivingscene.models.depth import DepthConfig
 from drivingscene.models.pipeline import (
     FlowPrediction,
     LiftConfig,
+    epipolar_geometry,
     explain_by_parallax,
     lift_scene_flow,
     rigid_flows,
@@ -221,11 +222,14 @@ def fill_depth(
     return depth.reshape(determined.shape), reached.reshape(determined.shape)
 
 
-def _triangulate(total: Tensor, rigid: Tensor, world: Tensor, batch: PairTensors, lift: LiftConfig) -> tuple[Tensor, Tensor]:
+def _triangulate(
+    total: Tensor, rigid: Tensor, world: Tensor, batch: PairTensors, lift: LiftConfig, *, with_parallax: bool = False
+) -> tuple[Tensor, Tensor] | tuple[Tensor, Tensor, Tensor]:
     """Triangulated depth ``[2, V, H, W]`` (0 where not determined) and the explained mask:
     `explain_by_parallax` with every world pixel whose flow is forward/backward consistent as a
     candidate, starting from depth 0 so that the determined pixels are exactly those it gives a
-    depth. ``rigid``: the guide's rigid flow."""
+    depth. ``rigid``: the guide's rigid flow. ``with_parallax``: also each pixel's parallax
+    (pixels, `epipolar_geometry`)."""
     # `explain_by_parallax` reads only the flows: no warped images
     flow = FlowPrediction(rigid=rigid, residuals=[total - rigid], warped_sources=rigid.new_empty(0))
     # Occluded pixels and those that leave the view have no match: DIS gives them a flow anyway
@@ -233,7 +237,13 @@ def _triangulate(total: Tensor, rigid: Tensor, world: Tensor, batch: PairTensors
     consistent = torch.stack([forward_backward_consistency(total[k], total[1 - k]) for k in (0, 1)])
     zeros = torch.zeros(rigid.shape[:-1], dtype=torch.float32)
     depth, _, explained = explain_by_parallax(zeros, flow, world & consistent, batch, lift)
-    return depth, explained
+    if not with_parallax:
+        return depth, explained
+    c2l = batch.cam_to_local.float()
+    parallax = torch.stack(
+        [epipolar_geometry(total[k].float(), batch.intrinsics.float(), torch.linalg.inv(c2l[1 - k]) @ c2l[k])[2] for k in (0, 1)]
+    )
+    return depth, explained, parallax
 
 
 def _depth_and_sky(

@@ -49,7 +49,10 @@ DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
 @dataclass(frozen=True)
 class InferenceOptions:
     use_residual: bool = True  # False: static-only ablation (rigid flow, no dynamic Gaussians)
-    lift: LiftConfig = LiftConfig()
+    # Explained moving pixels (parallax before motion) take a depth triangulated from R's and the
+    # search's flow only where matching did not already triangulate one and the image has texture
+    # along the epipolar line (docs/choices-matching.md, run 4).
+    lift: LiftConfig = LiftConfig(epipolar_depth="unmatched", epipolar_min_texture=0.02)
     # R's flow refined by a photometric search along the rigid flow (models/pipeline.py); None: R alone
     search: MotionSearchConfig | None = MotionSearchConfig()
     # bf16 autocast for D and P (R runs in float32: faster there, see training-notes). None: where the
@@ -158,7 +161,8 @@ def reconstruct(
     matched = None  # pixels whose depth the matching triangulated
     if options.match is not None:
         t0 = time.perf_counter()
-        depth, matched, _ = match_depth(depth, sky, pair, batch, options.match)
+        depth, matched, match_timings = match_depth(depth, sky, pair, batch, options.match)
+        timings["match_views"] = match_timings.get("match_fallback_views", 0.0)
         static = with_depth(static, depth)
         _sync(device)
         timings["match_s"] = time.perf_counter() - t0

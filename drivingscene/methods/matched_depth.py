@@ -45,7 +45,7 @@ from drivingscene.geometry.flow import backward_warp
 from drivingscene.methods.classical import DIS_PRESETS, _triangulate, dis_flows
 from drivingscene.models.pipeline import LiftConfig, rigid_flows
 
-GUIDES = ("depth", "prior", "both", "best")
+GUIDES = ("depth", "prior", "both", "best", "fallback")
 LEVELS = ("none", "image", "rig")
 
 
@@ -62,8 +62,24 @@ class MatchedDepthConfig:
     # flow is forward/backward consistent and on the epipolar line: matching guided by D alone
     # can confirm D's error; two unrelated guides rarely echo the same wrong depth. "best": both
     # guides, and where both triangulate a pixel the match whose 5x5 patches differ less.
-    guide: str = "depth"
+    # "fallback": D's guide first; in an image where D's shape is unreliable, the prior's where D's
+    # does not triangulate a pixel. The shape's error is the median absolute deviation of
+    # log(triangulated / D), scale removed (`shape_dispersion`), from ``fallback_dispersion`` on:
+    # first over D's own matches, which picks the cameras whose prior-guided matching is run at
+    # all (on images like the training data, few or none: the time is spent where it is needed),
+    # then over the pixels where both guides triangulate the same depth (within ``agree``), which
+    # neither guide's error explains (unreliable also where fewer than ``fallback_min_pixels``
+    # agree).
+    guide: str = "fallback"
     prior_depth: float = 20.0
+    # DIS preset of the prior-guided matching (None: ``preset``).
+    prior_preset: str | None = None
+    fallback_dispersion: float = 0.1
+    fallback_min_pixels: int = 50
+    # ... measured where the triangulated depth is well determined: at least this many pixels of
+    # parallax at the matching size (a pixel of flow error is then at most 1/8 of the depth; near the determination
+    # threshold the triangulation's own noise would pass for D's error).
+    fallback_parallax: float = 8.0
     agree: float = 0.1
     # Matching at this fraction of the image size (the images area-resized; the correction comes
     # back upsampled, and no pixel takes its triangulated depth as it is): 0.5 costs about a
@@ -92,6 +108,8 @@ class MatchedDepthConfig:
     lift: LiftConfig = field(default_factory=LiftConfig)
 
     def __post_init__(self):
+        if self.prior_preset is not None and self.prior_preset not in DIS_PRESETS:
+            raise ValueError(f"MatchedDepthConfig.prior_preset: expected one of {sorted(DIS_PRESETS)}, found {self.prior_preset!r}")
         if self.preset not in DIS_PRESETS:
             raise ValueError(f"MatchedDepthConfig.preset: expected one of {sorted(DIS_PRESETS)}, found {self.preset!r}")
         if self.guide not in GUIDES:
@@ -166,6 +184,33 @@ def _patch_cost(image: Tensor, other: Tensor, flow: Tensor) -> Tensor:
     return box_blur(diff, (5, 5), border_type="replicate")[:, 0]
 
 
+def _select_views(batch: PairTensors, views: list[int]) -> PairTensors:
+    """The keyframes' tensors of ``batch`` for the cameras ``views`` only (no evaluation frames or ground truth)."""
+    return PairTensors(
+        images=batch.images[:, views],
+        intrinsics=batch.intrinsics[views],
+        cam_to_ego=batch.cam_to_ego[views],
+        cam_to_local=batch.cam_to_local[:, views],
+        local_to_world=batch.local_to_world,
+        valid_mask=None if batch.valid_mask is None else batch.valid_mask[views],
+    )
+
+
+def _agree(z: Tensor, other: Tensor, tolerance: float) -> Tensor:
+    """Where two triangulated depths agree within ``tolerance`` (relative, in log depth)."""
+    return (z.clamp_min(1e-3) / other.clamp_min(1e-3)).log().abs() <= np.log1p(tolerance)
+
+
+def shape_dispersion(d: Tensor, z: Tensor, where: Tensor, min_pixels: int) -> Tensor:
+    """``[2, V]``: per image, the median absolute deviation of log(z / d) over the pixels ``where``
+    (the scale removed: how far D's *shape* is from the triangulated one); NaN with fewer than
+    ``min_pixels`` pixels."""
+    log_ratio = torch.where(where, (z.clamp_min(1e-3) / d.clamp_min(1e-3)).log(), float("nan")).flatten(2)
+    median = log_ratio.nanmedian(-1, keepdim=True).values
+    out = (log_ratio - median).abs().nanmedian(-1).values
+    return torch.where(where.flatten(2).sum(-1) >= min_pixels, out, float("nan"))
+
+
 @torch.no_grad()
 def match_depth(
     depth: Tensor,  # [2, V, H, W] z-depth (metres), any device
@@ -179,7 +224,7 @@ def match_depth(
     device, dtype = depth.device, depth.dtype
     d = depth.detach().float().cpu()
     keep = (~excluded).cpu()
-    timings = dict.fromkeys(("match_flow_s", "match_triangulate_s", "match_correct_s"), 0.0)
+    timings = dict.fromkeys(("match_flow_s", "match_triangulate_s", "match_correct_s", "match_fallback_views"), 0.0)
     if config.scale == 1.0:
         cpu = batch.to("cpu") if device.type != "cpu" else batch
         out, determined = _match(d, keep, pair, cpu, config, timings)
@@ -207,35 +252,73 @@ def _match(
     out = d
     grey = cpu.images.float().mean(2)  # [2, V, H, W]
 
-    def triangulated_with(guide_depth: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def triangulated_with(
+        guide_depth: Tensor, preset: str, views: list[int] | None = None
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        """Triangulated depth, determined mask, (``guide="best"``) patch costs and (``guide="fallback"``)
+        the well-determined mask; with ``views``, only those cameras are matched (the others
+        determine nothing)."""
         t0 = time.perf_counter()
-        guide = rigid_flows(guide_depth, cpu).float()
-        total = torch.from_numpy(dis_flows(pair.images, config.preset, guide.numpy()))
+        sub, images, world, depth_sub = cpu, pair.images, keep, d
+        if views is not None:
+            sub = _select_views(cpu, views)
+            images, world, depth_sub, guide_depth = pair.images[:, views], keep[:, views], d[:, views], guide_depth[:, views]
+        guide = rigid_flows(guide_depth, sub).float()
+        total = torch.from_numpy(dis_flows(images, preset, guide.numpy()))
         t1 = time.perf_counter()
-        z, _ = _triangulate(total, guide, keep, cpu, config.lift)
+        well = None
+        if config.guide == "fallback":
+            z, _, parallax = _triangulate(total, guide, world, sub, config.lift, with_parallax=True)
+            well = (z > 0) & (parallax >= config.fallback_parallax)
+        else:
+            z, _ = _triangulate(total, guide, world, sub, config.lift)
         cost = None
         if config.guide == "best":
             cost = torch.stack([_patch_cost(grey[k], grey[1 - k], total[k]) for k in (0, 1)])
+        determined = (z > 0) & world & (depth_sub > 0)
+        if views is not None:
+            index = torch.tensor(views)
+            z = torch.zeros_like(d).index_copy_(1, index, z)
+            determined = torch.zeros_like(keep).index_copy_(1, index, determined)
+            well = None if well is None else torch.zeros_like(keep).index_copy_(1, index, well)
         timings["match_flow_s"] += t1 - t0
         timings["match_triangulate_s"] += time.perf_counter() - t1
-        return z, (z > 0) & keep & (d > 0), cost
+        return z, determined, cost, well
+
+    def prior_guide() -> Tensor:
+        road = torch.from_numpy(road_plane_depth(pair, far=config.lift.epipolar_far))
+        return torch.where(road >= config.lift.epipolar_far, torch.full_like(road, config.prior_depth), road)
 
     prior = None
-    if config.guide != "depth":
-        road = torch.from_numpy(road_plane_depth(pair, far=config.lift.epipolar_far))
-        prior = triangulated_with(torch.where(road >= config.lift.epipolar_far, torch.full_like(road, config.prior_depth), road))
+    if config.guide in ("prior", "both", "best"):
+        prior = triangulated_with(prior_guide(), config.prior_preset or config.preset)
     for _ in range(config.passes):
         if config.guide == "prior":
-            triangulated, determined, _ = prior
+            triangulated, determined, _, _ = prior
         else:
-            triangulated, determined, cost = triangulated_with(out)
+            triangulated, determined, cost, well = triangulated_with(out, config.preset)
         if config.guide == "both":
-            z_prior, determined_prior, _ = prior
+            z_prior, determined_prior, _, _ = prior
             agree = (triangulated.clamp_min(1e-3) / z_prior.clamp_min(1e-3)).log().abs() <= np.log1p(config.agree)
             determined = determined & determined_prior & agree
             triangulated = torch.where(determined, (triangulated * z_prior).sqrt(), torch.zeros_like(triangulated))
+        elif config.guide == "fallback":
+            # the prior's matching only for the cameras where D's own matches already scatter
+            suspect = shape_dispersion(d, triangulated, well, config.fallback_min_pixels) >= config.fallback_dispersion
+            views = [v for v in range(d.shape[1]) if bool(suspect[:, v].any())]
+            timings["match_fallback_views"] = float(len(views))
+            if views:
+                if prior is None:
+                    prior = triangulated_with(prior_guide(), config.prior_preset or config.preset, views)
+                z_prior, determined_prior, _, _ = prior
+                agree = well & determined_prior & _agree(triangulated, z_prior, config.agree)
+                dispersion = shape_dispersion(d, triangulated, agree, config.fallback_min_pixels)
+                unreliable = dispersion.isnan() | (dispersion >= config.fallback_dispersion)
+                extra = determined_prior & ~determined & unreliable[..., None, None]
+                triangulated = torch.where(extra, z_prior, triangulated)
+                determined = determined | extra
         elif config.guide == "best":
-            z_prior, determined_prior, cost_prior = prior
+            z_prior, determined_prior, cost_prior, _ = prior
             take_prior = determined_prior & (~determined | (cost_prior < cost))
             triangulated = torch.where(take_prior, z_prior, triangulated)
             determined = determined | determined_prior

@@ -50,10 +50,10 @@ def test_a_wrong_scale_is_corrected_towards_the_ground_truth(synth_pair):
     assert determined[torch.from_numpy(world)].float().mean() > 0.1
     assert after < 0.5 * before, (before, after)  # 0.6 before
     assert torch.equal(depth[sky], wrong[sky])  # sky is neither matched nor corrected
-    assert set(timings) == {"match_flow_s", "match_triangulate_s", "match_correct_s"}
+    assert set(timings) == {"match_flow_s", "match_triangulate_s", "match_correct_s", "match_fallback_views"}
 
 
-@pytest.mark.parametrize("guide", ["prior", "both", "best"])
+@pytest.mark.parametrize("guide", ["prior", "both", "best", "depth"])
 def test_guides_that_know_nothing_of_d_correct_it_too(synth_pair, guide):
     batch, gt, sky = _inputs(synth_pair)
     world = gt > 0
@@ -61,6 +61,52 @@ def test_guides_that_know_nothing_of_d_correct_it_too(synth_pair, guide):
     depth, determined, _ = match_depth(wrong, sky, synth_pair, batch, MatchedDepthConfig(guide=guide))
     assert determined.any()
     assert _abs_rel(depth, gt, world) < 0.5 * _abs_rel(wrong, gt, world)
+
+
+def test_the_fallback_matches_again_where_d_has_the_wrong_shape(synth_pair, monkeypatch):
+    """D's shape wrong in camera 4, as on real frames (what lies higher in the image placed nearer,
+    up to 3x at the top row), right elsewhere, and a stand-in for DIS that finds the true flow
+    except where D's guide misleads it: in the upper half of camera 4 it returns D's guide (the
+    echo of guided DIS in flat regions). D's matches in camera 4's lower half disagree with D's
+    shape, so camera 4 alone is matched again with the road-plane guide, takes the triangulations
+    D's guide could not give and gets nearer the truth; the other cameras are as with D's guide
+    alone. With the test off (an infinite threshold) the fallback is guide="depth" exactly."""
+    import drivingscene.methods.matched_depth as matched_depth
+    from drivingscene.models.pipeline import rigid_flows
+
+    batch, gt, sky = _inputs(synth_pair)
+    world = gt > 0
+    truth = rigid_flows(torch.from_numpy(np.where(world, gt, 80.0).astype(np.float32)), batch).numpy()
+    matched_views = []
+
+    def misled_matcher(images, preset, guide):
+        matched_views.append(images.shape[1])
+        if images.shape[1] == 1:  # camera 4 again, with the road-plane guide
+            return truth[:, 4:5].copy()
+        flow = truth.copy()
+        half = gt.shape[-2] // 2
+        flow[:, 4, :half] = guide[:, 4, :half]  # D's guide: the echo in camera 4's upper half
+        return flow
+
+    monkeypatch.setattr(matched_depth, "dis_flows", misled_matcher)
+    factor = np.ones_like(gt)
+    rows = np.linspace(1.0, 0.0, gt.shape[-2], dtype=np.float32)[:, None]
+    factor[:, 4] = np.exp(-np.log(3.0) * rows)  # camera 4 only
+    shaped = torch.from_numpy(np.where(world, gt * factor, 50.0).astype(np.float32))
+    depth_only = match_depth(shaped, sky, synth_pair, batch, MatchedDepthConfig(guide="depth"))
+    off = match_depth(shaped, sky, synth_pair, batch, MatchedDepthConfig(guide="fallback", fallback_dispersion=float("inf")))
+    assert off[2]["match_fallback_views"] == 0
+    assert torch.equal(off[0], depth_only[0]) and torch.equal(off[1], depth_only[1])
+
+    matched_views.clear()
+    fallback = match_depth(shaped, sky, synth_pair, batch, MatchedDepthConfig(guide="fallback"))
+    assert matched_views == [6, 1] and fallback[2]["match_fallback_views"] == 1
+    cam4 = np.zeros_like(world)
+    cam4[:, 4] = world[:, 4]
+    assert fallback[1][:, 4].sum() > depth_only[1][:, 4].sum()  # more of camera 4 triangulated
+    assert _abs_rel(fallback[0], gt, cam4) < 0.8 * _abs_rel(depth_only[0], gt, cam4)
+    others = [0, 1, 2, 3, 5]
+    assert torch.equal(fallback[0][:, others], depth_only[0][:, others])
 
 
 def test_matching_at_half_size_corrects_too(synth_pair):
@@ -102,5 +148,7 @@ def test_config_is_checked():
         MatchedDepthConfig(scale=1.5)
     with pytest.raises(ValueError, match="guide"):
         MatchedDepthConfig(guide="lidar")
+    with pytest.raises(ValueError, match="prior_preset"):
+        MatchedDepthConfig(prior_preset="slow")
     with pytest.raises(ValueError, match="min_support"):
         MatchedDepthConfig(min_support=0.2, full_support=0.1)

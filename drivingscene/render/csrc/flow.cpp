@@ -40,6 +40,10 @@
 // t + x r0 + y r1 + z r2, in that order) and projected with the destination intrinsics
 // (camera.project, z clamped at 1e-6); the same float32 operations in the same order as the torch
 // path, one pass per pixel.
+//
+// fb_consistent: forward/backward consistency (geometry.flow.forward_backward_consistency), the test
+// of lift_dense above on its own: b sampled bilinearly at q = p + f(p) (border-clamped),
+// |f + b(q)|^2 < alpha (|f|^2 + |b(q)|^2) + beta and q inside [-0.5, W - 0.5] x [-0.5, H - 0.5].
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
@@ -430,6 +434,42 @@ std::tuple<at::Tensor, at::Tensor> rigid_flow_dense(const at::Tensor& depth_in, 
   return {flow, z_out};
 }
 
+at::Tensor fb_consistent(const at::Tensor& flow_in, const at::Tensor& flow_back_in, double alpha, double beta) {
+  TORCH_CHECK(flow_in.dim() == 4 && flow_in.size(3) == 2 && flow_back_in.sizes() == flow_in.sizes(),
+              "fb_consistent: expected both flows [B, H, W, 2]");
+  const int64_t views = flow_in.size(0), height = flow_in.size(1), width = flow_in.size(2);
+  const at::Tensor flow = flow_in.to(at::kFloat).contiguous();
+  const at::Tensor flow_back = flow_back_in.to(at::kFloat).contiguous();
+  at::Tensor out = at::empty({views, height, width}, flow.options().dtype(at::kBool));
+  const float* fw = flow.data_ptr<float>();
+  const float* bw = flow_back.data_ptr<float>();
+  bool* ok = out.data_ptr<bool>();
+  const int64_t pixels = height * width;
+  const float a = static_cast<float>(alpha), b = static_cast<float>(beta);
+  at::parallel_for(0, views * height, 16, [&](int64_t begin, int64_t end) {
+    for (int64_t vr = begin; vr < end; ++vr) {
+      const int64_t v = vr / height, row = vr % height;
+      const float* back = bw + v * pixels * 2;
+      for (int64_t col = 0; col < width; ++col) {
+        const int64_t i = vr * width + col;
+        const float f0 = fw[2 * i], f1 = fw[2 * i + 1];
+        const float u = static_cast<float>(col) + f0, w = static_cast<float>(row) + f1;
+        if (!inside_image(u, w, height, width)) {
+          ok[i] = false;
+          continue;
+        }
+        const BilinearTap tap = bilinear_tap(u, w, height, width);
+        const float* s = back + 2 * (tap.y0 * width + tap.x0);
+        const float bq[2] = {bilinear(s, 2 * tap.right, 2 * width * tap.below, tap.wx, tap.wy),
+                             bilinear(s + 1, 2 * tap.right, 2 * width * tap.below, tap.wx, tap.wy)};
+        const float e0 = f0 + bq[0], e1 = f1 + bq[1];
+        ok[i] = e0 * e0 + e1 * e1 < a * ((f0 * f0 + f1 * f1) + (bq[0] * bq[0] + bq[1] * bq[1])) + b;
+      }
+    }
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
@@ -445,4 +485,5 @@ TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
         &epipolar_parallax);
   m.def("rigid_flow_dense(Tensor depth, Tensor intrinsics, Tensor src_to_dst, Tensor dst_intrinsics) -> (Tensor, Tensor)",
         &rigid_flow_dense);
+  m.def("fb_consistent(Tensor flow, Tensor flow_back, float alpha, float beta) -> Tensor", &fb_consistent);
 }
