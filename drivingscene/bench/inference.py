@@ -20,7 +20,16 @@ SIZES = ("96x176", "176x320", "352x640")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sizes", nargs="+", default=list(SIZES), metavar="HxW")
+    p.add_argument("--sizes", nargs="+", default=list(SIZES), metavar="HxW", help="procedural pairs generated at these sizes")
+    p.add_argument(
+        "--scenes",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="SCENE",
+        help="also time these scene files as they are (e.g. a real pair from `drivingscene import`: the matching's "
+        "fallback runs where D's shape is off, so real frames may take longer than procedural ones)",
+    )
     p.add_argument("--runs", type=int, default=5, help="timed runs per size (after 2 warm-up runs)")
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
     p.add_argument("--threads", type=int, default=2)
@@ -96,14 +105,21 @@ def measure(
     without: tuple[str, ...] = (),
     weights: Path | None = None,
     device: str = "cpu",
+    scenes: list[Path] = (),
 ) -> list[dict]:
-    """One row per size. The timed runs go round the sizes in turn, so that a shared machine's
-    slow spells fall on every size alike, after each size's warm-up; each size's peak memory comes
-    from a fresh process (`peak_memory_mib`, before any timing)."""
+    """One row per size (a generated procedural pair) and per scene file. The timed runs go round
+    the pairs in turn, so that a shared machine's slow spells fall on every pair alike, after each
+    pair's warm-up; each pair's peak memory comes from a fresh process (`peak_memory_mib`, before
+    any timing)."""
+    from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.methods.feedforward import reconstruct
 
     options = _options(amp, threads, without)
     pairs = {size: _pair(size) for size in sizes}
+    for path in scenes:
+        pair = load_frame_pair(path)
+        pairs[f"{path.name} ({pair.num_views} × {pair.image_size[0]}x{pair.image_size[1]})"] = pair
+    sizes = list(pairs)
     peak = {size: peak_memory_mib(pairs[size], weights, device, amp, threads, without) for size in sizes}
     totals, parts, count = {s: [] for s in sizes}, {s: [] for s in sizes}, {}
     for size in sizes:
@@ -121,6 +137,7 @@ def measure(
         part = {k: statistics.median(p[k] for p in parts[size]) for k in parts[size][0]}
         part.setdefault("search_s", 0.0)
         part.setdefault("match_s", 0.0)
+        part.setdefault("match_views", 0.0)
         rows.append(
             dict(
                 size=size,
@@ -152,12 +169,13 @@ def run(args: argparse.Namespace) -> int:
 
     amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
     without = tuple(step for step, off in (("search", args.no_search), ("match", args.no_match)) if off)
-    rows = measure(model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device)
+    rows = measure(model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes)
     from drivingscene.render.cpp import load_extension
 
     kernels = "on" if device.type == "cpu" and load_extension() is not None else "off: torch paths"
     lines = [
-        f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)} --runs {args.runs}"
+        f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)}"
+        f"{' --scenes ' + ' '.join(str(p) for p in args.scenes) if args.scenes else ''} --runs {args.runs}"
         f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}"
         f"{' --no-match' if args.no_match else ''}"
         f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}`"
@@ -167,13 +185,14 @@ def run(args: argparse.Namespace) -> int:
         "peak RSS: one reconstruction in a fresh process, above its memory with the model and the pair loaded "
         "/ that process's whole peak.",
         "",
-        "| size (H×W) | total s (median) | best s | networks D+P s | matching s | flow (rigid + R + search + lift) s "
-        "| of which search s | assembly + sky s | Gaussians | peak RSS: reconstruction / process |",
+        "| pair (H×W) | total s (median) | best s | networks D+P s | matching s (cameras matched again) "
+        "| flow (rigid + R + search + lift) s | of which search s | assembly + sky s | Gaussians | peak RSS: reconstruction / process |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['size']} | {r['median']:.3f} | {r['best']:.3f} | {r['static_s']:.3f} | {r['match_s']:.3f} | {r['flow_s']:.3f} "
+            f"| {r['size']} | {r['median']:.3f} | {r['best']:.3f} | {r['static_s']:.3f} | {r['match_s']:.3f} ({r['match_views']:.0f}) "
+            f"| {r['flow_s']:.3f} "
             f"| {r['search_s']:.3f} | "
             f"{r['assembly_s']:.3f} | {r['gaussians'] / 1e3:.0f}k | {r['peak_mib'][0]:.0f} / {r['peak_mib'][1]:.0f} MiB |"
         )

@@ -65,14 +65,14 @@ from drivingscene.geometry.se3 import rotate_vectors
 from drivingscene.methods.oracle import fit_sky_from_pixels, refine_colors, world_cameras
 from drivingscene.models.depth import DepthConfig
 from drivingscene.models.pipeline import (
-    FlowPrediction,
     LiftConfig,
     epipolar_geometry,
-    explain_by_parallax,
+    epipolar_tests,
     lift_scene_flow,
     rigid_flows,
     rigid_flows_and_behind,
     sky_mask,
+    texture_along,
 )
 
 DIS_PRESETS = {
@@ -226,24 +226,26 @@ def _triangulate(
     total: Tensor, rigid: Tensor, world: Tensor, batch: PairTensors, lift: LiftConfig, *, with_parallax: bool = False
 ) -> tuple[Tensor, Tensor] | tuple[Tensor, Tensor, Tensor]:
     """Triangulated depth ``[2, V, H, W]`` (0 where not determined) and the explained mask:
-    `explain_by_parallax` with every world pixel whose flow is forward/backward consistent as a
-    candidate, starting from depth 0 so that the determined pixels are exactly those it gives a
-    depth. ``rigid``: the guide's rigid flow. ``with_parallax``: also each pixel's parallax
-    (pixels, `epipolar_geometry`)."""
-    # `explain_by_parallax` reads only the flows: no warped images
-    flow = FlowPrediction(rigid=rigid, residuals=[total - rigid], warped_sources=rigid.new_empty(0))
+    `explain_by_parallax`'s test with every world pixel whose flow is forward/backward consistent
+    as a candidate, the determined pixels at their triangulated depth. ``rigid``: the guide's
+    rigid flow (unused by the test: kept for the callers' symmetry). ``with_parallax``: also each
+    pixel's parallax (pixels, `epipolar_geometry`)."""
     # Occluded pixels and those that leave the view have no match: DIS gives them a flow anyway
     # (often the guide's, which lies on the epipolar line), which the other direction contradicts.
-    consistent = torch.stack([forward_backward_consistency(total[k], total[1 - k]) for k in (0, 1)])
-    zeros = torch.zeros(rigid.shape[:-1], dtype=torch.float32)
-    depth, _, explained = explain_by_parallax(zeros, flow, world & consistent, batch, lift)
-    if not with_parallax:
-        return depth, explained
+    candidates = world & torch.stack([forward_backward_consistency(total[k], total[1 - k]) for k in (0, 1)])
     c2l = batch.cam_to_local.float()
-    parallax = torch.stack(
-        [epipolar_geometry(total[k].float(), batch.intrinsics.float(), torch.linalg.inv(c2l[1 - k]) @ c2l[k])[2] for k in (0, 1)]
-    )
-    return depth, explained, parallax
+    depths, explained_all, parallaxes = [], [], []
+    for k in (0, 1):
+        rel = torch.linalg.inv(c2l[1 - k]) @ c2l[k]
+        z, off_line, parallax, valid = epipolar_geometry(total[k].float(), batch.intrinsics.float(), rel)
+        explained, determined = epipolar_tests(z, off_line, parallax, valid, candidates[k], lift)
+        if lift.epipolar_min_texture > 0 and determined.any():
+            determined &= texture_along(batch.images[k].float(), parallax, 1.0) >= lift.epipolar_min_texture
+        depths.append(torch.where(determined, z, torch.zeros_like(z)))
+        explained_all.append(explained)
+        parallaxes.append(parallax.norm(dim=-1))
+    depth, explained = torch.stack(depths), torch.stack(explained_all)
+    return (depth, explained, torch.stack(parallaxes)) if with_parallax else (depth, explained)
 
 
 def _depth_and_sky(

@@ -135,14 +135,9 @@ def explain_by_parallax(
         o = 1 - k
         rel = torch.linalg.inv(c2l[o]) @ c2l[k]  # [V, 4, 4] camera at k -> the same camera at o
         z, off_line, parallax, valid = epipolar_geometry(total[k].float(), batch.intrinsics.float(), rel)
-        ok = valid & (z >= config.epipolar_near) & (z <= config.epipolar_far)
-        explained = candidates[k] & ok & (off_line <= config.epipolar_px * scale)
-        # The depth is only taken where it is well determined; elsewhere the pixel is static at the
-        # network's depth (which then moves it by less than the little parallax there is).
-        determined = explained & (parallax >= config.epipolar_min_parallax * scale)
-        if config.epipolar_min_texture > 0:
-            direction = _epipolar_direction(total[k].float(), batch.intrinsics.float(), rel)
-            determined &= _texture_along(batch.images[k].float(), direction, scale) >= config.epipolar_min_texture
+        explained, determined = epipolar_tests(z, off_line, parallax, valid, candidates[k], config, scale)
+        if config.epipolar_min_texture > 0 and determined.any():
+            determined &= texture_along(batch.images[k].float(), parallax, scale) >= config.epipolar_min_texture
         if fixed is not None:
             determined &= ~fixed[k]
         depths.append(torch.where(determined, z.to(depth.dtype), depth[k]))
@@ -151,6 +146,21 @@ def explain_by_parallax(
     explained, determined = torch.stack(explained_all), torch.stack(determined_all)
     new_rigid = torch.where(determined[..., None], total, rigid)
     return torch.stack(depths), replace(flow, rigid=new_rigid, searched=total), explained
+
+
+def epipolar_tests(
+    z: Tensor, off_line: Tensor, parallax: Tensor, valid: Tensor, candidates: Tensor, config: LiftConfig, scale: float = 1.0
+) -> tuple[Tensor, Tensor]:
+    """`explain_by_parallax`'s tests on `epipolar_geometry`'s output: explained (a candidate,
+    valid, triangulated within [``epipolar_near``, ``epipolar_far``] and within ``epipolar_px``
+    of its epipolar line) and determined (explained with at least ``epipolar_min_parallax``;
+    without the texture test). ``scale``: image pixels per pixel of the thresholds."""
+    ok = valid & (z >= config.epipolar_near) & (z <= config.epipolar_far)
+    explained = candidates & ok & (off_line <= config.epipolar_px * scale)
+    # The depth is only taken where it is well determined; elsewhere the pixel is static at the
+    # network's depth (which then moves it by less than the little parallax there is).
+    determined = explained & (parallax.norm(dim=-1) >= config.epipolar_min_parallax * scale)
+    return explained, determined
 
 
 def _rays(intrinsics: Tensor, rel: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
@@ -169,11 +179,12 @@ def epipolar_geometry(
     rel: Tensor,  # [V, 4, 4] each camera at this keyframe -> the same camera at the other
     backend: str = "auto",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Each pixel's flow end point against its epipolar line (float32, ``[V, H, W]`` each): the
-    depth ``z`` along the pixel's ray whose image in the other camera is nearest the end point
+    """Each pixel's flow end point against its epipolar line (float32): the depth ``z``
+    ``[V, H, W]`` along the pixel's ray whose image in the other camera is nearest the end point
     (least squares over both image axes), that image's distance from the end point (off the
-    line, pixels), its distance from the image of the ray's point at infinite depth (the
-    parallax, pixels), and ``valid``: the point in front of the other camera (z-depth there
+    line, pixels, ``[V, H, W]``), its offset from the image of the ray's point at infinite depth
+    (the parallax, pixels, ``[V, H, W, 2]``: along the line, away from infinity), and ``valid``
+    ``[V, H, W]``: the point in front of the other camera (z-depth there
     above ``NEAR_Z``), the ray pointing forward there, the end point inside the image and ``z``
     finite. The compiled op (``render/csrc/flow.cpp``) computes the same in one pass per pixel
     on the CPU; ``backend``: "auto", "cpp" or "torch" (`select_op`)."""
@@ -198,35 +209,32 @@ def epipolar_geometry(
     # triangulated depth's relative error is about the flow's error over it (pixels).
     at_infinity = torch.einsum("vij,vhwj->vhwi", intrinsics, a)
     at_infinity = at_infinity[..., :2] / at_infinity[..., 2:3].clamp_min(1e-6)
-    parallax = (proj - at_infinity).norm(dim=-1)
+    parallax = proj - at_infinity
     inside = (target[..., 0] >= 0) & (target[..., 0] <= width - 1) & (target[..., 1] >= 0) & (target[..., 1] <= height - 1)
     valid = (point[..., 2] > NEAR_Z) & (a[..., 2] > 0) & inside & torch.isfinite(z)
     return z, off_line, parallax, valid
 
 
-def _epipolar_direction(flow: Tensor, intrinsics: Tensor, rel: Tensor) -> Tensor:
-    """``[V, H, W, 2]``: from the image of each pixel's ray at infinite depth towards the image of
-    its triangulated point (`epipolar_geometry`), the direction of parallax."""
-    height, width = flow.shape[1:3]
-    z = epipolar_geometry(flow, intrinsics, rel, backend="torch")[0]
-    _, a = _rays(intrinsics, rel, height, width)
-    point = z[..., None] * a + rel[:, None, None, :3, 3]
-    proj = torch.einsum("vij,vhwj->vhwi", intrinsics, point)
-    at_infinity = torch.einsum("vij,vhwj->vhwi", intrinsics, a)
-    return proj[..., :2] / proj[..., 2:3].clamp_min(1e-6) - at_infinity[..., :2] / at_infinity[..., 2:3].clamp_min(1e-6)
-
-
-def _texture_along(images: Tensor, direction: Tensor, scale: float) -> Tensor:
+def texture_along(images: Tensor, direction: Tensor, scale: float) -> Tensor:
     """``[V, H, W]`` mean |luma derivative along ``direction`` ``[V, H, W, 2]``| over a 5x5
-    window at the networks' input size (``scale`` image pixels per network pixel), per network pixel."""
-    from kornia.filters import box_blur, spatial_gradient
+    window at the networks' input size (``scale`` image pixels per network pixel), per network
+    pixel. Central differences and the window's mean with replicated borders (what kornia's
+    ``spatial_gradient(mode="diff")`` and ``box_blur`` compute, a few times faster)."""
+    import cv2
 
-    gray = luma(images)  # [V, 1, H, W]
-    grad = spatial_gradient(gray, mode="diff", order=1)[:, 0] * scale  # [V, 2, H, W] (d/du, d/dv) per net pixel
-    unit = F.normalize(direction, dim=-1).permute(0, 3, 1, 2)
-    along = (grad * unit).sum(1, keepdim=True).abs()
+    gray = F.pad(luma(images), (1, 1, 1, 1), mode="replicate")  # [V, 1, H + 2, W + 2]
+    du = 0.5 * (gray[:, 0, 1:-1, 2:] - gray[:, 0, 1:-1, :-2])
+    dv = 0.5 * (gray[:, 0, 2:, 1:-1] - gray[:, 0, :-2, 1:-1])
+    norm = direction.norm(dim=-1).clamp_min(1e-12)
+    along = ((du * direction[..., 0] + dv * direction[..., 1]) / norm).abs() * scale
     size = max(1, int(round(5 * scale))) | 1
-    return box_blur(along, (size, size), border_type="replicate")[:, 0]
+    if along.device.type != "cpu" or along.dtype != torch.float32:
+        pad = size // 2
+        return F.avg_pool2d(F.pad(along[:, None], (pad, pad, pad, pad), mode="replicate"), size, stride=1)[:, 0]
+    out = along.numpy().copy()
+    for i in range(len(out)):  # OpenCV's box filter: running sums, a fraction of avg_pool2d's time
+        out[i] = cv2.blur(out[i], (size, size), borderType=cv2.BORDER_REPLICATE)
+    return torch.from_numpy(out)
 
 
 def with_depth(static: StaticPrediction, depth: Tensor) -> StaticPrediction:

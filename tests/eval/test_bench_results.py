@@ -147,12 +147,25 @@ def test_inference_benchmark_reports_the_search_and_matching_shares(tiny_weights
     assert main(args + ([flag] if flag else [])) == 0
     row = out.read_text().splitlines()[-1].split(" | ")
     assert row[0] == "| 48x88"
-    assert (float(row[4]) > 0) == (flag != "--no-match")  # "matching s"
+    assert (float(row[4].split()[0]) > 0) == (flag != "--no-match")  # "matching s (cameras matched again)"
     assert (float(row[6]) > 0) == (flag != "--no-search")  # "of which search s"
     assert float(row[9].split()[0]) > 0  # peak RSS of a fresh process's reconstruction (MiB)
     for name in ("--no-search", "--no-match"):
         assert (name in out.read_text()) == (flag == name)
     assert "compiled CPU kernels on" in out.read_text() or "compiled CPU kernels off" in out.read_text()
+
+
+def test_inference_benchmark_times_scene_files_too(tiny_weights, tmp_path):
+    from drivingscene.data.frame_pair import save_frame_pair
+    from tests.factories import make_pair
+
+    scene = save_frame_pair(make_pair(num_views=2, height=24, width=40), tmp_path / "mine.npz")
+    out = tmp_path / "inference.md"
+    args = ["bench", "inference", "--sizes", "48x88", "--scenes", str(scene), "--runs", "1", "--weights", str(tiny_weights)]
+    assert main(args + ["--out", str(out)]) == 0
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert [r.split(" | ")[0] for r in rows] == ["| 48x88", "| mine.npz (2 × 24x40)"]
+    assert f"--scenes {scene}" in out.read_text()
 
 
 def test_peak_memory_of_a_spawned_process_does_not_inherit_the_parents():

@@ -505,6 +505,23 @@ def test_compiled_epipolar_geometry_matches_the_torch_path(compiled_kernels):
             torch.testing.assert_close(a[both], b[both], rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.parametrize("scale", [1.0, 1.8])
+def test_texture_along_the_line_is_what_kornia_computes(scale):
+    """`texture_along` (central differences, OpenCV's box filter) against kornia's gradient and box blur."""
+    from kornia.filters import box_blur, spatial_gradient
+
+    from drivingscene.geometry.flow_search import luma
+    from drivingscene.models.pipeline import texture_along
+
+    g = torch.Generator().manual_seed(2)
+    images, direction = torch.rand(3, 3, 30, 40, generator=g), torch.randn(3, 30, 40, 2, generator=g)
+    grad = spatial_gradient(luma(images), mode="diff", order=1)[:, 0] * scale
+    along = (grad * F.normalize(direction, dim=-1).permute(0, 3, 1, 2)).sum(1, keepdim=True).abs()
+    size = max(1, int(round(5 * scale))) | 1
+    expected = box_blur(along, (size, size), border_type="replicate")[:, 0]
+    torch.testing.assert_close(texture_along(images, direction, scale), expected, rtol=1e-5, atol=1e-6)
+
+
 def test_small_dynamic_regions_are_dropped():
     from drivingscene.models.pipeline import drop_small_regions
 

@@ -31,8 +31,8 @@
 // keyframe (drivingscene.models.pipeline.epipolar_geometry, the torch path): the ray a = R K^-1 p in
 // the other camera's axes, the end point x = K^-1 (p + f), the depth z along the ray whose image is
 // nearest x in the least-squares sense over both image axes, its image proj = K (z a + t), the
-// distance of proj from p + f (off the epipolar line), its distance from K a (the point at infinite
-// depth: the parallax), and valid: z a + t in front (z > near_z), a_z > 0, p + f inside
+// distance of proj from p + f (off the epipolar line), its offset from K a (the point at infinite
+// depth: the parallax, a vector), and valid: z a + t in front (z > near_z), a_z > 0, p + f inside
 // [0, W - 1] x [0, H - 1] and z finite. One pass per pixel instead of ~25 full-image tensor operations.
 //
 // rigid_flow_dense: the flow of a static world (drivingscene.geometry.flow.rigid_flow): each pixel
@@ -328,7 +328,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> epipolar_parallax(con
   const auto options = flow.options();
   at::Tensor depth = at::empty({views, height, width}, options);
   at::Tensor off_line = at::empty({views, height, width}, options);
-  at::Tensor parallax = at::empty({views, height, width}, options);
+  at::Tensor parallax = at::empty({views, height, width, 2}, options);
   at::Tensor valid = at::empty({views, height, width}, options.dtype(at::kBool));
   const float* fl = flow.data_ptr<float>();
   const float* kk = intrinsics.data_ptr<float>();
@@ -369,7 +369,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> epipolar_parallax(con
         const float pu = proj[0] / pz, pv = proj[1] / pz, iu = inf[0] / iz, iv = inf[1] / iz;
         zo[i] = z;
         lo[i] = std::sqrt((pu - tu) * (pu - tu) + (pv - tv) * (pv - tv));
-        po[i] = std::sqrt((pu - iu) * (pu - iu) + (pv - iv) * (pv - iv));
+        po[2 * i] = pu - iu;
+        po[2 * i + 1] = pv - iv;
         const bool inside = tu >= 0.0f && tu <= max_u && tv >= 0.0f && tv <= max_v;
         vo[i] = p[2] > nz && a[2] > 0.0f && inside && std::isfinite(z);
       }
