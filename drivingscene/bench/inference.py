@@ -37,7 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_amp_arguments(p)  # default: bf16 autocast where the CPU/GPU does bf16 natively, else float32
     p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
-    p.add_argument("--no-match", action="store_true", help="D's depth as it is (no matching of the keyframes at inference)")
+    from drivingscene.cli.recon import add_match_arguments
+
+    add_match_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
 
@@ -54,16 +56,17 @@ def _pair(size: str):
     return generate_pair(SynthConfig(height=height, width=width), 200000)
 
 
-def _options(amp: bool, threads: int, without: tuple[str, ...] = ()):
-    """Default inference options, less the steps named in ``without`` ("search", "match")."""
+def _options(amp: bool, threads: int, without: tuple[str, ...] = (), match: str = "fallback"):
+    """Default inference options with the ``--match`` mode, less the steps named in ``without`` ("search")."""
+    from drivingscene.cli.recon import match_config
     from drivingscene.methods.feedforward import InferenceOptions
 
-    options = InferenceOptions(amp=amp, threads=threads)
+    options = InferenceOptions(amp=amp, threads=threads, match=match_config(match))
     return replace(options, **{step: None for step in without})
 
 
 def _peak_in_this_process(
-    weights: Path | None, device: str, pair_path: str, amp: bool, threads: int, without: tuple[str, ...]
+    weights: Path | None, device: str, pair_path: str, amp: bool, threads: int, without: tuple[str, ...], match: str
 ) -> tuple[float, float]:
     """MiB the process's resident memory peaks above where it stood with the model and the pair
     loaded, over one reconstruction, and the process's whole peak (run in a fresh process by
@@ -77,13 +80,13 @@ def _peak_in_this_process(
     model = load_model(weights, device=resolve_device(device))
     pair = load_frame_pair(pair_path)
     base = current_rss_bytes()
-    reconstruct(model, pair, _options(amp, threads, without))
+    reconstruct(model, pair, _options(amp, threads, without, match))
     peak = peak_rss_bytes()
     return (peak - base) / 2**20, peak / 2**20
 
 
 def peak_memory_mib(
-    pair, weights: Path | None, device: str, amp: bool, threads: int, without: tuple[str, ...] = ()
+    pair, weights: Path | None, device: str, amp: bool, threads: int, without: tuple[str, ...] = (), match: str = "fallback"
 ) -> tuple[float, float]:
     """Peak resident memory (MiB) of one reconstruction of ``pair`` above the loaded model and
     pair, and of the whole process, in a fresh process (spawned, so it inherits none of this
@@ -93,7 +96,7 @@ def peak_memory_mib(
     with tempfile.TemporaryDirectory() as tmp:
         path = str(save_frame_pair(pair, Path(tmp) / "pair.npz", compress=False))
         with multiprocessing.get_context("spawn").Pool(1) as pool:
-            return pool.apply(_peak_in_this_process, (weights, device, path, amp, threads, without))
+            return pool.apply(_peak_in_this_process, (weights, device, path, amp, threads, without, match))
 
 
 def measure(
@@ -106,6 +109,7 @@ def measure(
     weights: Path | None = None,
     device: str = "cpu",
     scenes: list[Path] = (),
+    match: str = "fallback",
 ) -> list[dict]:
     """One row per size (a generated procedural pair) and per scene file. The timed runs go round
     the pairs in turn, so that a shared machine's slow spells fall on every pair alike, after each
@@ -114,13 +118,13 @@ def measure(
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.methods.feedforward import reconstruct
 
-    options = _options(amp, threads, without)
+    options = _options(amp, threads, without, match)
     pairs = {size: _pair(size) for size in sizes}
     for path in scenes:
         pair = load_frame_pair(path)
         pairs[f"{path.name} ({pair.num_views} × {pair.image_size[0]}x{pair.image_size[1]})"] = pair
     sizes = list(pairs)
-    peak = {size: peak_memory_mib(pairs[size], weights, device, amp, threads, without) for size in sizes}
+    peak = {size: peak_memory_mib(pairs[size], weights, device, amp, threads, without, match) for size in sizes}
     totals, parts, count = {s: [] for s in sizes}, {s: [] for s in sizes}, {}
     for size in sizes:
         for _ in range(WARMUP_RUNS):  # oneDNN builds its kernels for each new shape on the first calls
@@ -168,8 +172,8 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.precision import cpu_flags_summary, describe_precision, resolve_amp
 
     amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
-    without = tuple(step for step, off in (("search", args.no_search), ("match", args.no_match)) if off)
-    rows = measure(model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes)
+    without = ("search",) if args.no_search else ()
+    rows = measure(model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes, args.match)
     from drivingscene.render.cpp import load_extension
 
     kernels = "on" if device.type == "cpu" and load_extension() is not None else "off: torch paths"
@@ -177,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)}"
         f"{' --scenes ' + ' '.join(str(p) for p in args.scenes) if args.scenes else ''} --runs {args.runs}"
         f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}"
-        f"{' --no-match' if args.no_match else ''}"
+        f"{'' if args.match == 'fallback' else ' --match ' + args.match}"
         f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}`"
         f" on {machine_description(cpu_flags_summary())}"
         f"{_gpu_name(device)}; precision: {describe_precision(device, args.amp)}; compiled CPU kernels {kernels}; "

@@ -64,6 +64,30 @@ def refine_config(args: argparse.Namespace):
     )
 
 
+MATCH_MODES = ("fallback", "depth", "off")
+
+
+def add_match_arguments(p: argparse.ArgumentParser) -> None:
+    """``--match fallback|depth|off`` (and ``--no-match``, the same as ``--match off``)."""
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--match",
+        choices=MATCH_MODES,
+        default="fallback",
+        help="how D's depth is corrected by matching the keyframes with classical flow (docs/depth.md): fallback "
+        "(default: guided by D, and where D's shape is off again by the road plane), depth (guided by D only: "
+        "faster on real frames), off (D's depth as it is: fastest)",
+    )
+    group.add_argument("--no-match", dest="match", action="store_const", const="off", help="the same as --match off")
+
+
+def match_config(mode: str):
+    """The `MatchedDepthConfig` of a ``--match`` mode (None: off)."""
+    from drivingscene.methods.matched_depth import MatchedDepthConfig
+
+    return {"fallback": MatchedDepthConfig(), "depth": MatchedDepthConfig(guide="depth"), "off": None}[mode]
+
+
 def add_amp_arguments(p: argparse.ArgumentParser) -> None:
     """``--amp`` / ``--no-amp`` into ``args.amp``: True, False, or None (default: decided per
     machine, drivingscene/precision.py)."""
@@ -93,12 +117,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="every pixel R and the search move stays dynamic, also where a static surface at another depth "
         "explains its flow (docs/depth.md, parallax before motion)",
     )
-    p.add_argument(
-        "--no-match",
-        action="store_true",
-        help="D's depth as it is, not corrected by matching the keyframes with classical flow "
-        "(docs/depth.md, depth from matching at inference; ~0.15 s faster at 176x320)",
-    )
+    add_match_arguments(p)
     p.add_argument("--threads", type=positive_int, default=None)
     add_amp_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
@@ -210,8 +229,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         options = replace(options, search=None)
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
-    if args.no_match:
-        options = replace(options, match=None)
+    options = replace(options, match=match_config(args.match))
     recon = reconstruct(model, pair, options)
     if config is not None:
         recon = run_refinement(model, pair, recon, config)

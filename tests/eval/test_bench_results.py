@@ -140,19 +140,20 @@ def test_search_settings_parse_into_the_config_and_bad_ones_fail_in_one_line(tmp
         assert expected in err and err.count("\n") == 1
 
 
-@pytest.mark.parametrize("flag", [None, "--no-search", "--no-match"])
+@pytest.mark.parametrize("flag", [None, "--no-search", "--no-match", "--match depth"])
 def test_inference_benchmark_reports_the_search_and_matching_shares(tiny_weights, tmp_path, flag):
     out = tmp_path / "inference.md"
     args = ["bench", "inference", "--sizes", "48x88", "--runs", "1", "--weights", str(tiny_weights), "--out", str(out)]
-    assert main(args + ([flag] if flag else [])) == 0
-    row = out.read_text().splitlines()[-1].split(" | ")
+    assert main(args + (flag.split() if flag else [])) == 0
+    text = out.read_text()
+    row = text.splitlines()[-1].split(" | ")
     assert row[0] == "| 48x88"
     assert (float(row[4].split()[0]) > 0) == (flag != "--no-match")  # "matching s (cameras matched again)"
     assert (float(row[6]) > 0) == (flag != "--no-search")  # "of which search s"
     assert float(row[9].split()[0]) > 0  # peak RSS of a fresh process's reconstruction (MiB)
-    for name in ("--no-search", "--no-match"):
-        assert (name in out.read_text()) == (flag == name)
-    assert "compiled CPU kernels on" in out.read_text() or "compiled CPU kernels off" in out.read_text()
+    assert ("--no-search" in text) == (flag == "--no-search")
+    assert ("--match off" in text) == (flag == "--no-match") and ("--match depth" in text) == (flag == "--match depth")
+    assert "compiled CPU kernels on" in text or "compiled CPU kernels off" in text
 
 
 def test_inference_benchmark_times_scene_files_too(tiny_weights, tmp_path):
