@@ -164,6 +164,7 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
     from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
     from drivingscene.methods.classical import ClassicalConfig, classical_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+    from drivingscene.methods.matched_depth import MatchedDepthConfig
     from drivingscene.methods.refine import RefineConfig, refine
     from drivingscene.methods.scratch import refine_from_scratch
     from drivingscene.models.pipeline import MotionSearchConfig
@@ -174,8 +175,11 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
             out.append(Method(FULL, "native", FULL, lambda p: reconstruct(model, p)))
         else:
             out.append(Method(FULL, f"input x{scale:g}", FULL, lambda p, s=scale: at_full_size(reconstruct(model, resized_pair(p, s)), p)))
-    # D's depth as it is (no classical matching at inference): the same model, faster
+    # D's depth as it is (no classical matching at inference), and matching guided by D alone (no
+    # road-plane fallback): the same model, faster
     out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
+    depth_guided = InferenceOptions(match=MatchedDepthConfig(guide="depth"))
+    out.append(Method(FULL, "matching guided by D only", FULL, lambda p: reconstruct(model, p, depth_guided)))
     out.append(Method(STATIC, "native", STATIC, lambda p: reconstruct(model, p, InferenceOptions(use_residual=False))))
     if not real:
         out.append(Method(R_ALONE, "native", R_ALONE, lambda p: reconstruct(model, p, InferenceOptions(search=None))))

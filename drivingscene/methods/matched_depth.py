@@ -14,6 +14,16 @@ streets only; a classical matcher does not need to learn what real texture looks
                                                                 log ratio, coarse to fine
     depth'          = z where determined, depth * c elsewhere
 
+Guided DIS echoes its guide where the image cannot say otherwise, so matching guided by D alone
+confirms D's errors there. The default guide, "fallback", checks D's *shape* against what the
+matching triangulates (`shape_dispersion`: the spread of log(z / depth) once the scale is
+removed, over well-determined pixels): in a camera where D's own matches already scatter, the
+keyframes are matched again guided by a prior that knows nothing of D (the road plane, 20 m
+above the horizon), and in an image where the two guides' agreeing triangulations still disagree
+with D's shape, the prior-guided triangulations fill in where D's guide determined nothing. On
+images like the training data this costs little (few cameras are matched again); on real frames
+it is where the accuracy comes from.
+
 The correction is a smooth field, so D keeps the shape of what it sees where nothing matches
 (sky, flat surfaces, straight ahead, moving objects: their flow is off the epipolar line) and
 takes the scale of its matched neighbours; where no pixel within a few windows is determined the
@@ -22,7 +32,7 @@ unchanged. Sky (as D decides it) and pixels outside ``valid_mask`` are neither m
 corrected.
 
 Chosen on validation pairs (``data/val176``, ``data/val176rand``; `drivingscene bench choices`,
-docs/choices.md), never on the test pairs or the real scene.
+docs/choices-matching.md), never on the test pairs or the real scene.
 """
 
 from __future__ import annotations

@@ -66,6 +66,7 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     methods += ["diagnostic: DrivingScene depth + GT flow", "diagnostic: oracle without scene flow"]
     methods += ["diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"]
     methods += ["DrivingScene, R alone (no search)", "diagnostic: the search without R"]
+    methods += ["DrivingScene, D's depth unmatched (no matching at inference)"]
     methods += ["baseline: copy the nearest keyframe", "baseline: blend the two keyframes"]
     for heading in ("all pixels", "dynamic pixels", "Depth at the keyframes", "end-point error", "ST-LPIPS"):
         assert heading in text
@@ -74,7 +75,7 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     assert "Full model vs static-only on dynamic pixels" in text and "lowers the dynamic-pixel flow error" in text
     assert "AbsRel, moving objects" in text
     assert "R alone (no search) vs static-only on dynamic pixels" in text and "R's residual alone lowers" in text
-    assert len(scores) == 12 and all(len(rows) == 1 for rows in scores.values())
+    assert len(scores) == 13 and all(len(rows) == 1 for rows in scores.values())
     # a tiny random model loses to blending the keyframes: said in bold; the oracle does not
     assert "**DrivingScene (two-stage) — loses to a trivial baseline**" in text
     assert "**oracle (GT depth + scene flow) — loses" not in text
