@@ -222,14 +222,13 @@ def fill_depth(
     return depth.reshape(determined.shape), reached.reshape(determined.shape)
 
 
-def _triangulate(
-    total: Tensor, rigid: Tensor, world: Tensor, batch: PairTensors, lift: LiftConfig, *, with_parallax: bool = False
+def triangulate(
+    total: Tensor, world: Tensor, batch: PairTensors, lift: LiftConfig, *, with_parallax: bool = False
 ) -> tuple[Tensor, Tensor] | tuple[Tensor, Tensor, Tensor]:
     """Triangulated depth ``[2, V, H, W]`` (0 where not determined) and the explained mask:
     `explain_by_parallax`'s test with every world pixel whose flow is forward/backward consistent
-    as a candidate, the determined pixels at their triangulated depth. ``rigid``: the guide's
-    rigid flow (unused by the test: kept for the callers' symmetry). ``with_parallax``: also each
-    pixel's parallax (pixels, `epipolar_geometry`)."""
+    as a candidate, the determined pixels at their triangulated depth. ``with_parallax``: also
+    each pixel's parallax (pixels, `epipolar_geometry`)."""
     # Occluded pixels and those that leave the view have no match: DIS gives them a flow anyway
     # (often the guide's, which lies on the epipolar line), which the other direction contradicts.
     candidates = world & torch.stack([forward_backward_consistency(total[k], total[1 - k]) for k in (0, 1)])
@@ -281,7 +280,7 @@ def _estimate_depth(
         rigid = rigid_flows(guide, batch)
         total = torch.from_numpy(dis_flows(pair.images, config.preset, rigid.numpy()))
         t1 = time.perf_counter()
-        triangulated, explained = _triangulate(total, rigid, world, batch, lift)
+        triangulated, explained = triangulate(total, world, batch, lift)
         t2 = time.perf_counter()
         depth, sky, determined = _depth_and_sky(triangulated, road, batch, world, config)
         guide = torch.where(sky, torch.full_like(depth, config.far), depth)

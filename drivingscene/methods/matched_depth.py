@@ -9,7 +9,7 @@ streets only; a classical matcher does not need to learn what real texture looks
                                                                 (`classical.dis_flows`)
     z, determined   = triangulate(total)                        forward/backward-consistent pixels on
                                                                 their epipolar line with enough
-                                                                parallax (`classical._triangulate`)
+                                                                parallax (`classical.triangulate`)
     log c           = smooth(log z - log depth | determined)    normalised Gaussian convolution of the
                                                                 log ratio, coarse to fine
     depth'          = z where determined, depth * c elsewhere
@@ -52,7 +52,7 @@ from drivingscene.data.resize import resized_pair
 from drivingscene.data.tensors import PairTensors, pair_to_tensors
 from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.geometry.flow import backward_warp
-from drivingscene.methods.classical import DIS_PRESETS, _triangulate, dis_flows
+from drivingscene.methods.classical import DIS_PRESETS, dis_flows, triangulate
 from drivingscene.models.pipeline import LiftConfig, rigid_flows
 
 GUIDES = ("depth", "prior", "both", "best", "fallback")
@@ -278,10 +278,10 @@ def _match(
         t1 = time.perf_counter()
         well = None
         if config.guide == "fallback":
-            z, _, parallax = _triangulate(total, guide, world, sub, config.lift, with_parallax=True)
+            z, _, parallax = triangulate(total, world, sub, config.lift, with_parallax=True)
             well = (z > 0) & (parallax >= config.fallback_parallax)
         else:
-            z, _ = _triangulate(total, guide, world, sub, config.lift)
+            z, _ = triangulate(total, world, sub, config.lift)
         cost = None
         if config.guide == "best":
             cost = torch.stack([_patch_cost(grey[k], grey[1 - k], total[k]) for k in (0, 1)])
