@@ -99,6 +99,11 @@ def _is_number(text: str) -> bool:
     return True
 
 
+def _cell(value: float) -> str:
+    """A table cell: two decimals, or "n/a" where the pairs have no such figure (a real scene's moving pixels)."""
+    return "n/a" if np.isnan(value) else f"{value:.2f}"
+
+
 def _nanmean(values: list[float]) -> float:
     finite = [v for v in values if not np.isnan(v)]
     return float(np.mean(finite)) if finite else float("nan")
@@ -198,8 +203,9 @@ def run(args: argparse.Namespace) -> int:
                 f"| {100 * mean['dynamic']:.1f} % | {mean.get('abs_rel', np.nan):.3f} | {np.median([s['seconds'] for s in scores]):.2f} |"
             )
             print(f"{folder}: {rows[-1]}", flush=True)
+        motion = "no ground-truth motion" if np.isnan(moving) else f"moving pixels in the ground truth: {100 * moving:.1f} %"
         sections += [
-            f"### {folder} ({len(pairs)} pairs; moving pixels in the ground truth: {100 * moving:.1f} %)",
+            f"### {folder} ({len(pairs)} {'pair' if len(pairs) == 1 else 'pairs'}; {motion})",
             "",
             "| variant | input views PSNR | intermediate PSNR | intermediate PSNR, moving | dynamic Gaussians | depth AbsRel | s / pair |",
             "|---|---|---|---|---|---|---|",
