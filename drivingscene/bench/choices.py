@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
             keys = dict.fromkeys(k for s in scores for k in s)  # a pair without eval frames has no psnr
             mean = {k: _nanmean([s.get(k, np.nan) for s in scores]) for k in keys}
             rows.append(
-                f"| {variant.name} | {mean['inputs']:.2f} | {mean.get('psnr', np.nan):.2f} | {mean.get('psnr_dyn', np.nan):.2f} "
+                f"| {variant.name} | {mean['inputs']:.2f} | {mean.get('psnr', np.nan):.2f} | {_cell(mean.get('psnr_dyn', np.nan))} "
                 f"| {100 * mean['dynamic']:.1f} % | {mean.get('abs_rel', np.nan):.3f} | {np.median([s['seconds'] for s in scores]):.2f} |"
             )
             print(f"{folder}: {rows[-1]}", flush=True)
