@@ -58,10 +58,10 @@ real-data: setup
 # method at its settings on generated procedural test pairs and on the real DDAD pair (import it
 # first: `make real-data`), stability sweeps, parsimony, ablations. About 30-45 minutes on 2 cores.
 # The single-stage ablation needs a joint run and its two-stage pair (docs/benchmark-notes.md).
-ABLATION_RUNS := $(wildcard runs/dynamic-match/model.safetensors)
-BENCH_ABLATION ?= $(if $(ABLATION_RUNS),--two-stage-weights runs/dynamic-match/model.safetensors \
-	$(if $(wildcard runs/joint-match2/model.safetensors),--joint-weights runs/joint-match2/model.safetensors,) \
-	$(if $(wildcard runs/dynamic-nowarp/model.safetensors),--no-warp-weights runs/dynamic-nowarp/model.safetensors,),)
+ABLATION_RUNS := $(wildcard runs/dynamic-match2/model.safetensors)
+BENCH_ABLATION ?= $(if $(ABLATION_RUNS),--two-stage-weights runs/dynamic-match2/model.safetensors \
+	$(if $(wildcard runs/joint-match3/model.safetensors),--joint-weights runs/joint-match3/model.safetensors,) \
+	$(if $(wildcard runs/dynamic-nowarp2/model.safetensors),--no-warp-weights runs/dynamic-nowarp2/model.safetensors,),)
 benchmark: setup
 	$(VENV)/bin/drivingscene bench report --scenes $(REAL_OUT)/ddad02_0-2.npz --names "DDAD scene_02, 0->2 (1 held out)" \
 		$(BENCH_ABLATION) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images
