@@ -105,6 +105,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="a model whose stage 2 was trained without L_warp (same start and steps as --two-stage-weights), for the ablation",
     )
+    p.add_argument(
+        "--width-weights",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="WEIGHTS",
+        help="models at different network widths trained with one schedule (parsimony: width against quality and speed)",
+    )
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
     p.add_argument("--out", type=Path, default=None, help="markdown report (e.g. docs/benchmark.md)")
     p.add_argument("--json", type=Path, default=None, help="the report as JSON (e.g. docs/benchmark.json)")
@@ -276,6 +284,29 @@ def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tup
     points = [_point(m, rows[i], seconds[i]) for i, m in enumerate(methods)]
     mark_fronts(points)
     return points, {"rows": {f"{m.name} | {m.setting}": rows[i] for i, m in enumerate(methods)}, "recons": recons}
+
+
+def network_widths(pairs: list, paths: list[Path], perceptual) -> list[dict]:
+    """Each model of ``paths`` (``--width-weights``: the same networks at other widths, trained with
+    one schedule, so that only the width differs) scored on ``pairs`` like the shipped model: its
+    D encoder's width, parameter count, seconds per pair and in-between PSNR, depth AbsRel and
+    moving-pixel flow error (schema: ``WIDTH``), narrowest first."""
+    from drivingscene.methods.feedforward import load_model, reconstruct
+
+    out = []
+    for path in paths:
+        model = load_model(path)
+        method = Method(f"{FULL}, {path}", "native", FULL, lambda p, m=model: reconstruct(m, p))
+        (point,), _ = score_set(pairs, [method], perceptual, f"width model {path}")
+        out.append(
+            {
+                "width": model.config.depth.width,
+                "parameters": sum(t.numel() for t in model.parameters()),
+                **{k: point[k] for k in ("psnr", "psnr_dyn", "abs_rel", "epe_dyn", "seconds")},
+                "weights": str(path),
+            }
+        )
+    return sorted(out, key=lambda w: w["width"])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -456,6 +487,8 @@ def build_report(args) -> dict:
         h, w = real_pairs[0].image_size
         sets["real"] = {"description": ", ".join(names), "pairs": len(real_pairs), "size": f"{w}x{h}", "points": real_points}
     par = parsimony(extra["recons"], pairs, profile.budget_fractions)
+    if args.width_weights:
+        par["widths"] = network_widths(pairs, args.width_weights, perceptual)
     points += budget_points(points, par)
     mark_fronts(points)
     axes = []
@@ -467,6 +500,7 @@ def build_report(args) -> dict:
     flags = (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights), ("--no-warp-weights", args.no_warp_weights))
     for flag, value in flags:
         command += f" {flag} {value}" if value is not None else ""
+    command += " --width-weights " + " ".join(map(str, args.width_weights)) if args.width_weights else ""
     if args.scenes:
         command += " --scenes " + " ".join(str(s) for s in args.scenes)
         command += " --names " + " ".join(f'"{n}"' for n in args.names) if args.names else ""
@@ -493,16 +527,7 @@ def add_ablation_models(report: dict, args) -> None:
     from drivingscene.methods.feedforward import load_model
 
     saved = report["sets"].get("procedural")
-    if saved is None:
-        raise InputError(f"{args.from_json}: sets: expected a procedural set to add the ablation models to, found none")
-    if args.data is None and "generated" not in saved["description"]:
-        raise InputError(f"{args.from_json}: its procedural pairs were read from a folder: pass the same --data")
-    profile = PROFILES["quick" if report.get("quick") else "full"]
-    args = argparse.Namespace(**{**vars(args), "count": saved["pairs"]})
-    pairs, _ = procedural_pairs(args, profile)
-    width, height = (int(x) for x in saved["size"].split("x"))
-    if pairs[0].image_size != (height, width):
-        raise InputError(f"{args.from_json}: size: expected the saved pairs' {saved['size']}, found {pairs[0].image_size[::-1]}")
+    pairs, profile = _saved_pairs(report, args, "the ablation models")
     model = load_model(args.weights)
     names = (SINGLE, TWO_STAGE, NO_WARP)
     methods = [m for m in _methods(model, args, profile, real=False) if m.name in names]
@@ -515,6 +540,34 @@ def add_ablation_models(report: dict, args) -> None:
                                                ("--no-warp-weights", args.no_warp_weights)) if v is not None)
     report["command"] += f" && drivingscene bench report --from-json {args.from_json} {flags}"
     report["machine"] += f" (the second command, which added {', '.join(m.name for m in methods)}: {machine_description()})"
+
+
+def _saved_pairs(report: dict, args, what: str) -> tuple[list, Profile]:
+    """The procedural pairs a saved report was scored on (the same seeds, regenerated, or the same
+    ``--data``), and its profile."""
+    saved = report["sets"].get("procedural")
+    if saved is None:
+        raise InputError(f"{args.from_json}: sets: expected a procedural set to add {what} to, found none")
+    if args.data is None and "generated" not in saved["description"]:
+        raise InputError(f"{args.from_json}: its procedural pairs were read from a folder: pass the same --data")
+    profile = PROFILES["quick" if report.get("quick") else "full"]
+    pairs, _ = procedural_pairs(argparse.Namespace(**{**vars(args), "count": saved["pairs"]}), profile)
+    width, height = (int(x) for x in saved["size"].split("x"))
+    if pairs[0].image_size != (height, width):
+        raise InputError(f"{args.from_json}: size: expected the saved pairs' {saved['size']}, found {pairs[0].image_size[::-1]}")
+    return pairs, profile
+
+
+def add_width_models(report: dict, args) -> None:
+    """Score the ``--width-weights`` models on the saved report's procedural pairs and put them in
+    its parsimony part (replacing earlier widths); the report says when, where and how."""
+    from drivingscene.eval.lpips import load_perceptual
+
+    pairs, profile = _saved_pairs(report, args, "the width models")
+    perceptual = load_perceptual("auto") if profile.perceptual else None
+    report["parsimony"]["widths"] = finite_or_none(network_widths(pairs, args.width_weights, perceptual))
+    report["command"] += f" && drivingscene bench report --from-json {args.from_json} --width-weights " + " ".join(map(str, args.width_weights))
+    report["machine"] += f" (the command that added the network widths: {machine_description()})"
 
 
 def load_report(path: Path) -> dict:
@@ -550,6 +603,8 @@ def run(args: argparse.Namespace) -> int:
         report = load_report(args.from_json)
         if any(w is not None for w in (args.joint_weights, args.no_warp_weights)):
             add_ablation_models(report, args)
+        if args.width_weights:
+            add_width_models(report, args)
         # derived from the saved points, so that their wording follows the code that renders them
         report["ablations"] = finite_or_none(ablations(report["sets"].get("procedural", {}).get("points", [])))
     else:

@@ -97,6 +97,19 @@ def markdown(report: dict, charts: dict[str, Path], out: Path | None) -> str:
         lines.append(f"Smallest budget within 0.1 dB of the per-pixel Gaussians: **{par['chosen']}**.\n")
         if not par["widths"]:
             lines.append("Network width against quality and speed: not measured in this run (needs a second trained width).\n")
+    if par["widths"]:
+        lines.append("### Network width against quality and speed\n")
+        lines.append(
+            "The same networks at each width, trained with one schedule (so that only the width differs; "
+            "not the shipped model's), scored on the procedural pairs above.\n"
+        )
+        rows = [
+            [str(w["width"]), _f(None if w.get("parameters") is None else w["parameters"] / 1e6, "{:.2f}M"), _f(w["seconds"], "{:.3g}"), _f(w["psnr"], "{:.2f}"),
+             _f(w.get("psnr_dyn"), "{:.2f}"), _f(w["abs_rel"], "{:.3f}"), _f(w.get("epe_dyn"), "{:.2f}"), f"`{w['weights']}`"]
+            for w in par["widths"]
+        ]
+        header = ["D encoder width", "parameters", "s / pair", "PSNR", "PSNR moving", "AbsRel", "flow error moving (px)", "weights"]
+        lines.append(_table(header, rows))
     lines.append("## The paper's ablations\n")
     rows = [
         [a["name"], _f(a["paper_db"], "{:+.2f}"), _f(a["ours_db"], "{:+.2f}"), {True: "yes", False: "**no**", None: "–"}[a["reproduces"]], a["note"]]

@@ -32,7 +32,8 @@ swept from its easiest setting::
 
 BUDGET: one Gaussian budget level ``{"level": str, "gaussians": float, "psnr": float, "budget_s": float, "seconds": float}``
 (seconds to apply the budget; to render and score the in-between frames);
-WIDTH: ``{"width": int, "psnr": float, "abs_rel": float, "seconds": float, "weights": str}``;
+WIDTH: one model of ``--width-weights`` ``{"width": int, "parameters": int, "psnr": float, "psnr_dyn": float,
+"abs_rel": float, "epe_dyn": float, "seconds": float, "weights": str}`` (width: D's encoder channels);
 ABLATION: ``{"name": str, "paper_db": float | None, "ours_db": float, "reproduces": bool | None, "note": str}``.
 """
 

@@ -128,6 +128,7 @@ def test_bench_report_adds_ablation_models_to_a_saved_report(tiny_weights, tmp_p
     assert main(args) == 0
     before = json.loads(js.read_text())
     add = ["bench", "report", "--from-json", str(js), "--joint-weights", str(tiny_weights), "--no-warp-weights", str(tiny_weights)]
+    add += ["--width-weights", str(tiny_weights)]
     assert main([*add, "--two-stage-weights", str(tiny_weights), "--json", str(js), "--out", str(tmp_path / "b.md")]) == 0
     after = json.loads(js.read_text())
     methods = {p["method"] for p in after["sets"]["procedural"]["points"]}
@@ -138,3 +139,26 @@ def test_bench_report_adds_ablation_models_to_a_saved_report(tiny_weights, tmp_p
     assert rows["two-stage − single-stage"]["ours_db"] == pytest.approx(0.0, abs=1e-6)
     assert rows["with L_warp − without"]["ours_db"] == pytest.approx(0.0, abs=1e-6)
     assert "--from-json" in after["command"] and "--from-json" in (tmp_path / "b.md").read_text()
+    (width,) = after["parsimony"]["widths"]  # the width models, scored on the same regenerated pairs
+    assert width["width"] == 8 and width["psnr"] is not None and "--width-weights" in after["command"]
+    assert "### Network width against quality and speed" in (tmp_path / "b.md").read_text()
+
+
+def test_network_widths_are_scored_and_reported(synth_pair, tiny_weights, tmp_path):  # noqa: F811
+    from drivingscene.bench.report import network_widths
+    from drivingscene.bench.report_charts import write_charts
+    from drivingscene.bench.report_markdown import markdown
+    from drivingscene.bench.report_schema import example_report
+
+    (width,) = network_widths([synth_pair], [tiny_weights], None)
+    assert width["width"] == 8 and width["weights"] == str(tiny_weights) and width["parameters"] > 1000
+    for key in ("psnr", "abs_rel", "epe_dyn", "seconds"):
+        assert math.isfinite(width[key]) and width[key] > 0, key
+    report = example_report()
+    wider = dict(width, width=16, parameters=4 * width["parameters"], psnr=width["psnr"] + 1.0, weights="wide.safetensors")
+    report["parsimony"]["widths"] = finite_or_none([width, wider])
+    page = markdown(report, write_charts(report, tmp_path), tmp_path / "b.md")
+    assert "### Network width against quality and speed" in page and "not measured in this run" not in page
+    row = next(line for line in page.splitlines() if line.startswith("| 8 |"))
+    assert f"`{tiny_weights}`" in row and f"{width['psnr']:.2f}" in row
+    assert (tmp_path / "benchmark_parsimony.png").exists()
