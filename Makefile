@@ -62,6 +62,9 @@ ABLATION_RUNS := $(wildcard runs/dynamic-match2/model.safetensors)
 BENCH_ABLATION ?= $(if $(ABLATION_RUNS),--two-stage-weights runs/dynamic-match2/model.safetensors \
 	$(if $(wildcard runs/joint-match3/model.safetensors),--joint-weights runs/joint-match3/model.safetensors,) \
 	$(if $(wildcard runs/dynamic-nowarp2/model.safetensors),--no-warp-weights runs/dynamic-nowarp2/model.safetensors,),)
+# Network width against quality and speed: the two width runs of docs/training-notes.md, when present.
+WIDTH_RUNS := $(wildcard runs/width16/model.safetensors runs/width32/model.safetensors)
+BENCH_WIDTHS ?= $(if $(WIDTH_RUNS),--width-weights $(WIDTH_RUNS),)
 benchmark: setup
 	$(VENV)/bin/drivingscene bench report --scenes $(REAL_OUT)/ddad02_0-2.npz --names "DDAD scene_02, 0->2 (1 held out)" \
-		$(BENCH_ABLATION) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images
+		$(BENCH_ABLATION) $(BENCH_WIDTHS) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images
