@@ -487,14 +487,25 @@ def _width_panel(ax, widths: list[dict]) -> None:
     ax.set_xscale("log", base=2)
     ax.set_xticks(xs, [str(int(x)) for x in xs])
     ax.minorticks_off()
+    if xs:  # room for the labels of the outer points (ticks fixed the limits: set them)
+        ax.set_xlim(min(xs) / 1.5, max(xs) * 1.5)
     ax.set_xlabel("network width (channels, log scale)")
     ax.set_ylabel("in-between PSNR (dB)", color=_colour(0))
     ax.set_title("Network width")
     ax.grid(alpha=0.3)
+    finite = [v for v in psnrs if math.isfinite(v)]
+    if finite:  # at least 2 dB of axis: a few hundredths of a dB must not look like a slope
+        middle, half = (max(finite) + min(finite)) / 2, max(1.0, 0.6 * (max(finite) - min(finite)))
+        ax.set_ylim(middle - half, middle + half)
+    for x, y, w in zip(xs, psnrs, widths):
+        if math.isfinite(y) and _finite(w.get("parameters")):
+            ax.annotate(f"{w['parameters'] / 1e6:.1f}M parameters", (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
     twin = ax.twinx()
     label = "seconds per pair by network width (right axis)"
     twin.plot(xs, seconds, marker="s", color=_colour(1), linestyle="--", linewidth=1.5, label=label)
     twin.set_ylabel("seconds per pair", color=_colour(1))
+    if any(math.isfinite(v) for v in seconds):  # from zero: the share of the time the width decides
+        twin.set_ylim(0, 1.25 * max(v for v in seconds if math.isfinite(v)))
 
 
 def parsimony_chart(report: dict, path: str | os.PathLike) -> Path:
