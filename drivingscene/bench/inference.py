@@ -58,10 +58,10 @@ def _pair(size: str):
 
 def _options(amp: bool, threads: int, without: tuple[str, ...] = (), match: str = "fallback"):
     """Default inference options with the ``--match`` mode, less the steps named in ``without`` ("search")."""
-    from drivingscene.cli.recon import match_config
     from drivingscene.methods.feedforward import InferenceOptions
+    from drivingscene.methods.matched_depth import match_mode
 
-    options = InferenceOptions(amp=amp, threads=threads, match=match_config(match))
+    options = InferenceOptions(amp=amp, threads=threads, match=match_mode(match))
     return replace(options, **{step: None for step in without})
 
 

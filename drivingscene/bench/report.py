@@ -172,7 +172,7 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
     from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
     from drivingscene.methods.classical import ClassicalConfig, classical_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
-    from drivingscene.methods.matched_depth import MatchedDepthConfig
+    from drivingscene.methods.matched_depth import match_mode
     from drivingscene.methods.refine import RefineConfig, refine
     from drivingscene.methods.scratch import refine_from_scratch
     from drivingscene.models.pipeline import MotionSearchConfig
@@ -186,7 +186,7 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
     # D's depth as it is (no classical matching at inference), and matching guided by D alone (no
     # road-plane fallback): the same model, faster
     out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
-    depth_guided = InferenceOptions(match=MatchedDepthConfig(guide="depth"))
+    depth_guided = InferenceOptions(match=match_mode("depth"))
     out.append(Method(FULL, "matching guided by D only", FULL, lambda p: reconstruct(model, p, depth_guided)))
     out.append(Method(STATIC, "native", STATIC, lambda p: reconstruct(model, p, InferenceOptions(use_residual=False))))
     if not real:
@@ -500,7 +500,7 @@ def build_report(args) -> dict:
     flags = (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights), ("--no-warp-weights", args.no_warp_weights))
     for flag, value in flags:
         command += f" {flag} {value}" if value is not None else ""
-    command += " --width-weights " + " ".join(map(str, args.width_weights)) if args.width_weights else ""
+    command += _width_flag(args.width_weights) if args.width_weights else ""
     if args.scenes:
         command += " --scenes " + " ".join(str(s) for s in args.scenes)
         command += " --names " + " ".join(f'"{n}"' for n in args.names) if args.names else ""
@@ -558,6 +558,11 @@ def _saved_pairs(report: dict, args, what: str) -> tuple[list, Profile]:
     return pairs, profile
 
 
+def _width_flag(paths: list[Path]) -> str:
+    """``--width-weights`` as the report records it in its command."""
+    return " --width-weights " + " ".join(map(str, paths))
+
+
 def add_width_models(report: dict, args) -> None:
     """Score the ``--width-weights`` models on the saved report's procedural pairs and put them in
     its parsimony part (replacing earlier widths); the report says when, where and how."""
@@ -566,7 +571,7 @@ def add_width_models(report: dict, args) -> None:
     pairs, profile = _saved_pairs(report, args, "the width models")
     perceptual = load_perceptual("auto") if profile.perceptual else None
     report["parsimony"]["widths"] = finite_or_none(network_widths(pairs, args.width_weights, perceptual))
-    report["command"] += f" && drivingscene bench report --from-json {args.from_json} --width-weights " + " ".join(map(str, args.width_weights))
+    report["command"] += f" && drivingscene bench report --from-json {args.from_json}" + _width_flag(args.width_weights)
     report["machine"] += f" (the command that added the network widths: {machine_description()})"
 
 

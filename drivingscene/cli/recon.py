@@ -64,7 +64,7 @@ def refine_config(args: argparse.Namespace):
     )
 
 
-MATCH_MODES = ("fallback", "depth", "off")
+MATCH_MODES = ("fallback", "depth", "off")  # `matched_depth.match_mode` gives each its config
 
 
 def add_match_arguments(p: argparse.ArgumentParser) -> None:
@@ -79,13 +79,6 @@ def add_match_arguments(p: argparse.ArgumentParser) -> None:
         "faster on real frames), off (D's depth as it is: fastest)",
     )
     group.add_argument("--no-match", dest="match", action="store_const", const="off", help="the same as --match off")
-
-
-def match_config(mode: str):
-    """The `MatchedDepthConfig` of a ``--match`` mode (None: off)."""
-    from drivingscene.methods.matched_depth import MatchedDepthConfig
-
-    return {"fallback": MatchedDepthConfig(), "depth": MatchedDepthConfig(guide="depth"), "off": None}[mode]
 
 
 def add_amp_arguments(p: argparse.ArgumentParser) -> None:
@@ -214,6 +207,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.gaussians.recon import save_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct, resolve_device
+    from drivingscene.methods.matched_depth import match_mode
 
     check_output(args.out, args.force, "-o")
     config = refine_config(args)
@@ -229,7 +223,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         options = replace(options, search=None)
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
-    options = replace(options, match=match_config(args.match))
+    options = replace(options, match=match_mode(args.match))
     recon = reconstruct(model, pair, options)
     if config is not None:
         recon = run_refinement(model, pair, recon, config)

@@ -139,6 +139,16 @@ class MatchedDepthConfig:
             )
 
 
+def match_mode(mode: str) -> MatchedDepthConfig | None:
+    """The config of a ``--match`` mode (`drivingscene reconstruct`; the CLI lists the modes
+    without importing torch): ``fallback`` the defaults, ``depth`` guided by D only (no road-plane
+    fallback), ``off`` None (D's depth as it is)."""
+    modes = {"fallback": MatchedDepthConfig(), "depth": MatchedDepthConfig(guide="depth"), "off": None}
+    if mode not in modes:
+        raise ValueError(f"match mode: expected one of {', '.join(modes)}, found {mode!r}")
+    return modes[mode]
+
+
 def smooth_log_correction(
     log_ratio: np.ndarray,  # [N, H, W] float32, anything where not determined
     determined: np.ndarray,  # [N, H, W] bool

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from drivingscene.data.tensors import pair_to_tensors
-from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth, smooth_log_correction
+from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth, match_mode, smooth_log_correction
 
 
 def _abs_rel(pred: torch.Tensor, gt: np.ndarray, mask: np.ndarray) -> float:
@@ -152,3 +152,13 @@ def test_config_is_checked():
         MatchedDepthConfig(prior_preset="slow")
     with pytest.raises(ValueError, match="min_support"):
         MatchedDepthConfig(min_support=0.2, full_support=0.1)
+
+
+def test_every_match_mode_of_the_cli_has_a_config():
+    from drivingscene.cli.recon import MATCH_MODES
+
+    assert match_mode("fallback") == MatchedDepthConfig() and match_mode("fallback").guide == "fallback"
+    assert match_mode("depth").guide == "depth" and match_mode("off") is None
+    assert set(MATCH_MODES) == {"fallback", "depth", "off"}
+    with pytest.raises(ValueError, match="match mode: expected one of fallback, depth, off, found 'nope'"):
+        match_mode("nope")
