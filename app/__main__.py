@@ -18,8 +18,9 @@ import logging
 import sys
 from pathlib import Path
 
-from app.loader import DEMO_SCENE, METHODS
-from app.renderer import MODES
+from drivingscene_view.loader import DEMO_SCENE, METHODS
+from drivingscene_view.renderer import MODES
+
 from drivingscene.cli.common import OneLineParser, run_reporting_errors, unit_interval
 from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND
 
@@ -100,14 +101,14 @@ def main(argv: list[str] | None = None) -> int:
 
     def dispatch() -> int:
         if args.bench:
-            from app.bench import run_bench
+            from drivingscene_view.bench import run_bench
 
             return run_bench(args)
         if args.headless:
-            from app.headless import run_headless
+            from drivingscene_view.headless import run_headless
 
             return run_headless(args)
-        from app.window import run_window
+        from drivingscene_view.window import run_window
 
         return run_window(args)
 

@@ -21,9 +21,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from drivingscene_view.camera import CameraController
+from drivingscene_view.renderer import RenderOptions
 
-from app.camera import CameraController
-from app.renderer import RenderOptions
 from drivingscene.errors import InputError
 
 WIDTH, HEIGHT = 1280, 720
@@ -74,9 +74,9 @@ def _cameras(doc, frames: int):
 def fill_rate(ctx) -> float:
     """Fragments per second of the splat shaders where vertex work is negligible (48 screen-filling splats)."""
     import torch
+    from drivingscene_view.state import SceneDoc
+    from drivingscene_view.viewport import Viewport
 
-    from app.state import SceneDoc
-    from app.viewport import Viewport
     from drivingscene.gaussians.core import Gaussians
     from drivingscene.gaussians.recon import Reconstruction
 
@@ -124,7 +124,7 @@ def measure_moving(viewport, doc, cams, ctx) -> dict:
 
 
 def measure_rest(viewport, doc, cams, ctx) -> dict:
-    from app.sorter import depth_order
+    from drivingscene_view.sorter import depth_order
 
     opts = RenderOptions()
     out = {"draw": [], "sort": [], "upload": [], "fragments": []}
@@ -162,9 +162,10 @@ def measure_baseline(viewport, doc, cams, ctx) -> dict:
 
 def run_bench(args) -> int:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # the fragment query goes through PyOpenGL
-    from app.headless import load_for_cli
-    from app.state import SceneDoc
-    from app.viewport import Viewport
+    from drivingscene_view.headless import load_for_cli
+    from drivingscene_view.state import SceneDoc
+    from drivingscene_view.viewport import Viewport
+
     from drivingscene.gl import create_offscreen_context
 
     out = Path(args.bench)

@@ -12,11 +12,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-
-from app.splats import SplatArrays, insert_mask, insert_rows
+from drivingscene_view.splats import SplatArrays, insert_mask, insert_rows
 
 if TYPE_CHECKING:
-    from app.state import SceneDoc
+    from drivingscene_view.state import SceneDoc
 
 
 class Edit(Protocol):

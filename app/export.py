@@ -11,11 +11,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from drivingscene_view.camera import ViewCamera, rig_camera
+from drivingscene_view.renderer import RenderOptions
+from drivingscene_view.state import SceneDoc
+from drivingscene_view.viewport import Viewport
 
-from app.camera import ViewCamera, rig_camera
-from app.renderer import RenderOptions
-from app.state import SceneDoc
-from app.viewport import Viewport
 from drivingscene.errors import InputError
 from drivingscene.viz import save_png
 

@@ -12,11 +12,12 @@ import logging
 import sys
 from pathlib import Path
 
-from app.camera import CameraController
-from app.export import export_ply, export_rig_views, export_view
-from app.loader import Loaded, MissingWeightsError, open_path, reconstruct_pair
-from app.renderer import RenderOptions
-from app.state import SceneDoc
+from drivingscene_view.camera import CameraController
+from drivingscene_view.export import export_ply, export_rig_views, export_view
+from drivingscene_view.loader import Loaded, MissingWeightsError, open_path, reconstruct_pair
+from drivingscene_view.renderer import RenderOptions
+from drivingscene_view.state import SceneDoc
+
 from drivingscene.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,8 @@ def planned_outputs(out: Path, times: list[float], cameras: list[str], ply: bool
 
 
 def run_headless(args) -> int:
-    from app.viewport import Viewport
+    from drivingscene_view.viewport import Viewport
+
     from drivingscene.gl import create_offscreen_context
 
     loaded = load_for_cli(args.path, args.method, args.weights)

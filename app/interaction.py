@@ -8,9 +8,8 @@ select in screen space, sphere select around a clicked point; shift adds, ctrl s
 from __future__ import annotations
 
 import numpy as np
-
-from app.selection import brush_mask, pick, rect_mask, sphere_mask
-from app.viewer import Viewer
+from drivingscene_view.selection import brush_mask, pick, rect_mask, sphere_mask
+from drivingscene_view.viewer import Viewer
 
 LEFT, MIDDLE, RIGHT = 1, 2, 4  # pyglet's button bits
 SHIFT, CTRL = 1, 2  # pyglet's modifier bits

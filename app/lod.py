@@ -16,8 +16,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+from drivingscene_view.splats import SplatArrays
 
-from app.splats import SplatArrays
 from drivingscene.gaussians.budget import merge_groups, merge_keys
 
 TARGET_FRACTIONS = (1 / 6, 1 / 30)  # of the scene's Gaussians, per level

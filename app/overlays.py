@@ -7,8 +7,8 @@ drawn with ``shaders/lines.glsl`` using the same pinhole projection as the splat
 from __future__ import annotations
 
 import numpy as np
+from drivingscene_view.camera import ViewCamera, ego_pose
 
-from app.camera import ViewCamera, ego_pose
 from drivingscene.gl import load_program
 
 FRUSTUM_COLOR = (0.35, 0.85, 1.0, 0.9)

@@ -9,8 +9,8 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
+from drivingscene_view.loader import LoadJob
 
-from app.loader import LoadJob
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.gaussians.recon import Reconstruction
 

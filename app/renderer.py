@@ -20,10 +20,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from drivingscene_view.camera import ViewCamera
+from drivingscene_view.sorter import layer_ids
+from drivingscene_view.splats import SplatArrays, covariances
 
-from app.camera import ViewCamera
-from app.sorter import layer_ids
-from app.splats import SplatArrays, covariances
 from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND, LAYERED_BLENDS
 from drivingscene.gl import load_program
 

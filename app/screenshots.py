@@ -1,5 +1,5 @@
-"""Make the documentation screenshots: ``python -m app.screenshots OUT_DIR SCENE`` (needs a display,
-e.g. ``xvfb-run -s "-screen 0 1600x900x24" python -m app.screenshots docs/images assets/demo_scene.npz``).
+"""Make the documentation screenshots: ``python -m drivingscene_view.screenshots OUT_DIR SCENE`` (needs a display,
+e.g. ``xvfb-run -s "-screen 0 1600x900x24" python -m drivingscene_view.screenshots docs/images assets/demo_scene.npz``).
 
 Writes viewer_main.png (RGB view, flow panel), viewer_benchmark.png (View > Benchmark over it, when
 docs/benchmark.json exists), viewer_depth.png (depth mode, depth panel),
@@ -14,8 +14,9 @@ import sys
 import time
 from pathlib import Path
 
-from app.panels.cameras import StripState
-from app.window import ViewerWindow
+from drivingscene_view.panels.cameras import StripState
+from drivingscene_view.window import ViewerWindow
+
 from drivingscene.viz import save_png
 
 
@@ -99,7 +100,7 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
 def benchmark_shot(win: ViewerWindow, out: Path) -> None:
     """The Benchmark panel opened over the view, reading the viewer's report (docs/benchmark.json unless
     the window was given another); skipped with a note when the report is not there."""
-    from app.panels import benchmark
+    from drivingscene_view.panels import benchmark
 
     v = win.viewer
     path = benchmark.report_path(v)
@@ -117,7 +118,7 @@ def _click_refine(win: ViewerWindow) -> None:
     import shutil
     import subprocess
 
-    from app.refine_job import start_refine
+    from drivingscene_view.refine_job import start_refine
 
     rect = win.viewer.ui_rects.get("refine_button")
     if rect is None or shutil.which("xdotool") is None:

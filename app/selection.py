@@ -7,8 +7,7 @@ camera), occluded or not, like SuperSplat; the sphere selects by world distance 
 from __future__ import annotations
 
 import numpy as np
-
-from app.camera import ViewCamera
+from drivingscene_view.camera import ViewCamera
 
 NEAR = 0.01
 

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from drivingscene_view.edits import CompoundEdit, DeleteEdit, Edit, FlowEdit, HideEdit, History, ReplaceEdit, SelectEdit
+from drivingscene_view.splats import SplatArrays
 
-from app.edits import CompoundEdit, DeleteEdit, Edit, FlowEdit, HideEdit, History, ReplaceEdit, SelectEdit
-from app.splats import SplatArrays
 from drivingscene.gaussians.core import DEFAULT_BLEND, Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 

@@ -7,11 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from drivingscene_view.panels import benchmark, cameras, edit, export, filedialog, menu, scene, stats, timeline, view
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
-
-from app.panels import benchmark, cameras, edit, export, filedialog, menu, scene, stats, timeline, view
-from app.viewer import Viewer
 
 LEFT_W = 340
 STRIP_H = 196

@@ -11,15 +11,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from drivingscene_view.camera import Y_DOWN_UP, Z_UP, CameraController, ViewCamera, fit_rect, invert_rigid
+from drivingscene_view.loader import Loaded, LoadJob, MissingWeightsError, open_path, reconstruct_pair
+from drivingscene_view.overlays import LineRenderer, scene_overlays
+from drivingscene_view.refine_job import RefineState, poll_refine
+from drivingscene_view.renderer import RenderOptions
+from drivingscene_view.state import SceneDoc, Status, ViewState
+from drivingscene_view.textures import TextureCache
+from drivingscene_view.viewport import Viewport
 
-from app.camera import Y_DOWN_UP, Z_UP, CameraController, ViewCamera, fit_rect, invert_rigid
-from app.loader import Loaded, LoadJob, MissingWeightsError, open_path, reconstruct_pair
-from app.overlays import LineRenderer, scene_overlays
-from app.refine_job import RefineState, poll_refine
-from app.renderer import RenderOptions
-from app.state import SceneDoc, Status, ViewState
-from app.textures import TextureCache
-from app.viewport import Viewport
 from drivingscene.errors import DrivingSceneError
 
 PROG = "drivingscene-view"

@@ -17,13 +17,13 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+from drivingscene_view.camera import ViewCamera
+from drivingscene_view.lod import LodLevel, build_levels, level_state
+from drivingscene_view.renderer import GpuSplats, RenderOptions, SplatRenderer, Target
+from drivingscene_view.sorter import SortInput, SortRequest, SortWorker, depth_order, make_sort_input
+from drivingscene_view.splats import SplatArrays
+from drivingscene_view.state import SceneDoc
 
-from app.camera import ViewCamera
-from app.lod import LodLevel, build_levels, level_state
-from app.renderer import GpuSplats, RenderOptions, SplatRenderer, Target
-from app.sorter import SortInput, SortRequest, SortWorker, depth_order, make_sort_input
-from app.splats import SplatArrays
-from app.state import SceneDoc
 from drivingscene.gaussians.core import LAYERED_BLENDS
 from drivingscene.render.scene import source_axes
 

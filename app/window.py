@@ -14,9 +14,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from app import interaction, ui
-from app.viewer import Viewer
+from drivingscene_view import interaction, ui
+from drivingscene_view.viewer import Viewer
 
 KEY_NAMES = {
     "SPACE": "space",
@@ -103,11 +102,11 @@ class ViewerWindow:
         name = KEY_NAMES.get(name, name.lower().lstrip("_"))
         ctrl = bool(modifiers & pyglet.window.key.MOD_CTRL)
         if ctrl and name == "o":
-            from app.panels import filedialog
+            from drivingscene_view.panels import filedialog
 
             filedialog.open_dialog(self.viewer, "open")
         elif ctrl and name == "s" and self.viewer.doc is not None:
-            from app.panels import filedialog
+            from drivingscene_view.panels import filedialog
 
             filedialog.open_dialog(self.viewer, "save")
         else:

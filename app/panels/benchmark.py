@@ -12,11 +12,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from drivingscene_view.benchmark import SETS, BenchmarkReport, Chart, default_report_path, load_report
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui, implot
 
-from app.benchmark import SETS, BenchmarkReport, Chart, default_report_path, load_report
-from app.viewer import Viewer
 from drivingscene.bench.report_schema import ACCURACY
 from drivingscene.errors import DrivingSceneError
 

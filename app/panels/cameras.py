@@ -7,10 +7,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from drivingscene_view.textures import texture_ref
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import imgui
 
-from app.textures import texture_ref
-from app.viewer import Viewer
 from drivingscene.viz import depth_to_rgb, flow_legend, flow_to_rgb
 
 KINDS = {
@@ -165,7 +165,7 @@ def _legend(viewer: Viewer, kind: str) -> None:
         imgui.image(texture_ref(tex), imgui.ImVec2(96, 96))
         imgui.text(f"rim = {flow_scale(viewer, kind):.1f} px")
     elif kind == "depth":
-        from app.renderer import depth_lut
+        from drivingscene_view.renderer import depth_lut
 
         tex = viewer.textures.get("lut:depth", lambda: depth_lut()[None].repeat(8, 0))
         imgui.text_disabled("depth (1/z scale)")

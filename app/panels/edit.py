@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
+from drivingscene_view import interaction
+from drivingscene_view.panels import filedialog
+from drivingscene_view.state import SELECT_MODES
+from drivingscene_view.viewer import TOOLS, Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
-
-from app import interaction
-from app.panels import filedialog
-from app.state import SELECT_MODES
-from app.viewer import TOOLS, Viewer
 
 TOOL_LABELS = {
     "navigate": f"{fa.ICON_FA_HAND} nav",

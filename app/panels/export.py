@@ -6,12 +6,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from drivingscene_view import export
+from drivingscene_view.camera import rig_camera
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
-
-from app import export
-from app.camera import rig_camera
-from app.viewer import Viewer
 
 PLY_KINDS = list(export.PLY_KINDS)
 

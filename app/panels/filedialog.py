@@ -6,10 +6,9 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
-
-from app.viewer import Viewer
 
 OPEN_SUFFIXES = (".npz", ".ply")
 TITLES = {"open": "Open scene, reconstruction or PLY", "save": "Save edited reconstruction"}
@@ -98,7 +97,7 @@ def _accept(viewer: Viewer, st: DialogState) -> None:
     if mode == "open":
         viewer.open(path)
         return
-    from app.export import save_edited
+    from drivingscene_view.export import save_edited
 
     out = viewer.run_action("save", lambda: save_edited(viewer.doc, path))
     if out is not None:

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+from drivingscene_view import interaction
+from drivingscene_view.panels import benchmark, filedialog
+from drivingscene_view.renderer import MODES
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import imgui
-
-from app import interaction
-from app.panels import benchmark, filedialog
-from app.renderer import MODES
-from app.viewer import Viewer
 
 MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "dynamic": "Dynamic highlighted", "flow": "Flow magnitude"}
 CONTROLS = (
@@ -59,7 +58,8 @@ def draw(viewer: Viewer) -> int:
 
 
 def _file_menu(viewer: Viewer) -> None:
-    from app.loader import DEMO_SCENE
+    from drivingscene_view.loader import DEMO_SCENE
+
     from drivingscene.resources import asset_path
 
     if imgui.menu_item_simple("Open...", "Ctrl+O"):
@@ -77,7 +77,7 @@ def _file_menu(viewer: Viewer) -> None:
 
 
 def _export_items(viewer: Viewer) -> None:
-    from app.panels import export
+    from drivingscene_view.panels import export
 
     doc = viewer.doc
     busy = viewer.task is not None

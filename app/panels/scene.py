@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+from drivingscene_view.panels import filedialog
+from drivingscene_view.refine_job import start_refine
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
-
-from app.panels import filedialog
-from app.refine_job import start_refine
-from app.viewer import Viewer
 
 
 def draw(viewer: Viewer) -> None:

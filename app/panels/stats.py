@@ -4,9 +4,8 @@ sort and upload times, and the preview level."""
 from __future__ import annotations
 
 import numpy as np
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import imgui
-
-from app.viewer import Viewer
 
 
 def _row(key: str, value: str) -> None:

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
-
-from app.viewer import Viewer
 
 SPEEDS = (0.1, 0.25, 0.5, 1.0, 2.0)
 

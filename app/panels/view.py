@@ -3,12 +3,12 @@ overlays; and the colour legend drawn in the corner of the 3D view."""
 
 from __future__ import annotations
 
+from drivingscene_view.renderer import MODES, depth_lut, flow_lut
+from drivingscene_view.textures import texture_ref
+from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
 
-from app.renderer import MODES, depth_lut, flow_lut
-from app.textures import texture_ref
-from app.viewer import Viewer
 from drivingscene.gaussians.core import BLEND_MODES
 
 MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "dynamic": "Dynamic", "flow": "Flow |m|"}

@@ -11,9 +11,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from drivingscene_view.__main__ import build_parser, check_args
+from drivingscene_view.benchmark import default_report_path, load_report
 
-from app.__main__ import build_parser, check_args
-from app.benchmark import default_report_path, load_report
 from drivingscene.bench.report_schema import ACCURACY, FORMAT, VERSION, example_report, pareto_front
 from drivingscene.errors import InputError
 from drivingscene.resources import repo_root
@@ -174,7 +174,7 @@ def _viewer(path):
 
 
 def test_panel_draws_every_set_and_accuracy(tmp_path, imgui_frame):
-    from app.panels import benchmark
+    from drivingscene_view.panels import benchmark
 
     report = example_report()
     report["sets"]["real"] = dict(report["sets"]["procedural"], description="real")
@@ -204,7 +204,7 @@ def test_panel_draws_every_set_and_accuracy(tmp_path, imgui_frame):
 
 
 def test_panel_shows_a_wrong_file_as_one_line(tmp_path, imgui_frame):
-    from app.panels import benchmark
+    from drivingscene_view.panels import benchmark
 
     viewer = _viewer(tmp_path / "missing.json")
     benchmark.toggle(viewer)

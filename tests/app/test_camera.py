@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from drivingscene_view.camera import CameraController, NavCamera, ViewCamera, intrinsics_from_fov, invert_rigid, scale_intrinsics
 
-from app.camera import CameraController, NavCamera, ViewCamera, intrinsics_from_fov, invert_rigid, scale_intrinsics
 from drivingscene.geometry import project
 from tests.app.scenes import street_recon
 

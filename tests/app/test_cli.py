@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import cv2
 import pytest
+from drivingscene_view.__main__ import main
 
-from app.__main__ import main
 from drivingscene.data import save_frame_pair
 from drivingscene.export.ply import read_ply
 from drivingscene.gaussians.recon import save_reconstruction

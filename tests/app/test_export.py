@@ -6,13 +6,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from drivingscene_view import export
+from drivingscene_view.camera import CameraController
+from drivingscene_view.renderer import RenderOptions
+from drivingscene_view.state import SceneDoc
+from drivingscene_view.viewport import Viewport
 from plyfile import PlyData
 
-from app import export
-from app.camera import CameraController
-from app.renderer import RenderOptions
-from app.state import SceneDoc
-from app.viewport import Viewport
 from drivingscene.export.ply import read_ply
 from drivingscene.gaussians.recon import load_reconstruction
 from tests.app.scenes import street_recon

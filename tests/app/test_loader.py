@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 import torch
+from drivingscene_view.loader import LoadJob, MissingWeightsError, open_path
 from safetensors.torch import save_file
 
-from app.loader import LoadJob, MissingWeightsError, open_path
 from drivingscene.data import save_frame_pair
 from drivingscene.errors import InputError
 from drivingscene.export.ply import write_ply

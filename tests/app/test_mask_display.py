@@ -7,8 +7,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from drivingscene_view.panels.cameras import MASK_TINT, map_rgb, value_text
 
-from app.panels.cameras import MASK_TINT, map_rgb, value_text
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 from tests.factories import make_pair

@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 import pytest
+from drivingscene_view.refine_job import RefineJob, RefineState, poll_refine, start_refine
+from drivingscene_view.state import SceneDoc
 
-from app.refine_job import RefineJob, RefineState, poll_refine, start_refine
-from app.state import SceneDoc
 from drivingscene.methods.oracle import oracle_reconstruction
 from tests.factories import make_pair
 

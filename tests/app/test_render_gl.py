@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from drivingscene_view.camera import rig_camera
+from drivingscene_view.renderer import GpuSplats, RenderOptions, SplatRenderer
+from drivingscene_view.sorter import SortRequest, depth_order, layer_ids, make_sort_input
+from drivingscene_view.splats import SplatArrays
 
-from app.camera import rig_camera
-from app.renderer import GpuSplats, RenderOptions, SplatRenderer
-from app.sorter import SortRequest, depth_order, layer_ids, make_sort_input
-from app.splats import SplatArrays
 from drivingscene.render.scene import render_gaussians
 from tests.app.scenes import random_gaussians
 

@@ -7,11 +7,11 @@ from dataclasses import fields
 
 import numpy as np
 import pytest
+from drivingscene_view.edits import History, SelectEdit
+from drivingscene_view.lod import build_levels, level_state
+from drivingscene_view.splats import SplatArrays
+from drivingscene_view.state import SceneDoc
 
-from app.edits import History, SelectEdit
-from app.lod import build_levels, level_state
-from app.splats import SplatArrays
-from app.state import SceneDoc
 from drivingscene.gaussians.recon import load_reconstruction, save_reconstruction
 from tests.app.scenes import street_recon
 

@@ -24,7 +24,7 @@ def _xdo(*args: str) -> None:
 
 class Session:
     def __init__(self, out: Path):
-        from app.window import ViewerWindow
+        from drivingscene_view.window import ViewerWindow
 
         self.out = out
         self.win = ViewerWindow(1280, 720, weights=out / "missing.safetensors", lod=False)
