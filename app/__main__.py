@@ -21,8 +21,8 @@ from pathlib import Path
 from drivingscene_view.loader import DEMO_SCENE, METHODS
 from drivingscene_view.renderer import MODES
 
-from drivingscene.cli.common import OneLineParser, run_reporting_errors, unit_interval
-from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND
+from drivingscene.arguments import OneLineParser, run_reporting_errors, unit_interval
+from drivingscene.gaussians.timing import BLEND_MODES, DEFAULT_BLEND
 
 PROG = "drivingscene-view"
 

@@ -1,5 +1,6 @@
-"""Opening files: a scene.npz (reconstructed by the model or the oracle), a saved recon.npz, or a
-standard 3DGS .ply from another tool, in a background thread with progress reports.
+"""Opening files in a background thread with progress reports: what a file is and how it is read
+is ``drivingscene.sources`` (a scene.npz, a saved recon.npz or a 3DGS .ply from another tool);
+here a scene is reconstructed by the model or the oracle.
 
 Which reconstruction a scene.npz gets (``method``): "model" runs ``methods.feedforward`` (its weights
 must exist), "oracle" builds Gaussians from the scene's ground truth, "auto" is the model when its
@@ -16,11 +17,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.errors import DrivingSceneError, InputError
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.sources import open_source
 
 log = logging.getLogger(__name__)
 
@@ -47,32 +47,6 @@ class Loaded:
 
 def _no_progress(fraction: float | None, message: str) -> None:
     pass
-
-
-def ply_reconstruction(gaussians) -> Reconstruction:
-    """Wrap Gaussians read from a PLY (no rig) as a reconstruction with no cameras and unit time."""
-    return Reconstruction(
-        gaussians=gaussians,
-        intrinsics=np.zeros((0, 3, 3), np.float32),
-        cam_to_ego=np.zeros((0, 4, 4), np.float32),
-        ego_to_world=np.tile(np.eye(4), (2, 1, 1)),
-        timestamps=np.array([0.0, 1.0]),
-        camera_names=(),
-        image_size=(0, 0),
-        meta={"method": "ply"},
-    )
-
-
-def _ply_up_axis(path: Path) -> str:
-    """ "z" for our own PLYs (z-up world), "-y" for others (COLMAP/OpenCV worlds are y-down)."""
-    with open(path, "rb") as f:
-        for _ in range(10000):
-            line = f.readline()
-            if not line or line.startswith(b"end_header"):
-                break
-            if line.startswith(b"comment") and b"DrivingScene" in line:
-                return "z"
-    return "-y"
 
 
 def reconstruct_pair(pair: FramePair, source: Path | None, method: str, weights: Path | None, progress: Progress) -> Loaded:
@@ -104,33 +78,15 @@ def reconstruct_pair(pair: FramePair, source: Path | None, method: str, weights:
 
 
 def open_path(path: Path, method: str = "auto", weights: Path | None = None, progress: Progress = _no_progress) -> Loaded:
-    """Read ``path`` (.npz scene or reconstruction, .ply) into a reconstruction. Raises ``DrivingSceneError``."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if path.is_dir():
-        raise InputError(f"{path}: is a directory; expected a scene.npz, recon.npz or .ply file")
+    """Read ``path`` (.npz scene or reconstruction, .ply; ``drivingscene.sources``) into a
+    reconstruction, reconstructing a scene with ``method``. Raises ``DrivingSceneError``."""
     start = time.perf_counter()
-    progress(None, f"reading {path.name}")
-    if path.suffix.lower() == ".ply":
-        from drivingscene.export.ply import read_ply
-
-        recon = ply_reconstruction(read_ply(path))
-        return Loaded(
-            recon, path, {"kind": "ply", "method": "ply", "seconds": time.perf_counter() - start, "up": _ply_up_axis(path)}
-        )
-    if path.suffix.lower() != ".npz":
-        raise InputError(f"{path}: expected a .npz (scene or reconstruction) or a .ply file, found '{path.suffix}'")
-    from drivingscene.data.npz import load_npz
-    from drivingscene.gaussians.recon import is_reconstruction_file, recon_from_arrays
-
-    arrays = load_npz(path)
-    if is_reconstruction_file(arrays):
-        recon = recon_from_arrays(arrays, str(path))
-        info = {"kind": "recon", "method": recon.meta.get("method", "?"), "seconds": time.perf_counter() - start, "up": "z"}
-        return Loaded(recon, path, info)
-    pair = FramePair.from_arrays(arrays, str(path))
-    return reconstruct_pair(pair, path, method, weights, progress)
+    progress(None, f"reading {Path(path).name}")
+    source = open_source(path)
+    if source.kind == "scene":
+        return reconstruct_pair(source.pair, source.path, method, weights, progress)
+    info = {"kind": source.kind, "method": source.recon.meta.get("method", "?"), "seconds": time.perf_counter() - start}
+    return Loaded(source.recon, source.path, info | {"up": source.up})
 
 
 class LoadJob:

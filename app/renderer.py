@@ -4,8 +4,9 @@ One pass per view: the sky (``shaders/sky.glsl``) fills the target, then the spl
 (``shaders/splat.glsl``) are blended back to front over it with ``(SRC_ALPHA, ONE_MINUS_SRC_ALPHA)``
 for colour and ``(ONE, ONE_MINUS_SRC_ALPHA)`` for alpha, so the target ends as
 ``sum_i w_i c_i + T sky`` with alpha ``sum_i w_i`` — exactly ``render_gaussians``. Positions at time t
-are computed in the vertex shader from (mean, flow, keyframe): scrubbing time uploads nothing but the
-new order. ``present`` draws a target into the window (colour-mapping depth).
+are computed in the vertex shader from (mean, flow, keyframe) by ``shaders/time_rule.glsl``, the GLSL
+of ``drivingscene.gaussians.timing`` (blend codes injected from ``shader_blend_defines``): scrubbing
+time uploads nothing but the new order. ``present`` draws a target into the window (colour-mapping depth).
 
 The layered blends ("layers": one layer per keyframe, "cameras": one per keyframe and source camera;
 ``drivingscene.render.scene``) draw each layer's splats over transparent black into a target of its
@@ -24,7 +25,7 @@ from drivingscene_view.camera import ViewCamera
 from drivingscene_view.sorter import layer_ids
 from drivingscene_view.splats import SplatArrays, covariances
 
-from drivingscene.gaussians.core import BLEND_MODES, DEFAULT_BLEND, LAYERED_BLENDS
+from drivingscene.gaussians.timing import DEFAULT_BLEND, LAYERED_BLENDS, shader_blend_code, shader_blend_defines
 from drivingscene.gl import load_program
 
 TEX_W = 4096
@@ -202,7 +203,7 @@ class SplatRenderer:
     def __init__(self, ctx, color_dtype: str = "f2"):
         self.ctx = ctx
         self.color_dtype = color_dtype
-        self.splat_prog = load_program(ctx, "splat", {"TEX_W": TEX_W, "INDEXED": 1})
+        self.splat_prog = load_program(ctx, "splat", {"TEX_W": TEX_W, "INDEXED": 1, **shader_blend_defines()})
         self.sky_prog = load_program(ctx, "sky")
         self.present_prog = load_program(ctx, "present")
         self.compose_prog = load_program(ctx, "compose")
@@ -408,11 +409,9 @@ class SplatRenderer:
         prog["u_count"].value = splats.count
         prog["u_sh_k"].value = splats.sh_k
         prog["u_t"].value = float(t)
-        if layer >= 0:
-            blend = "layers"  # one keyframe's splats (shader: u_blend 3 with u_layer)
-        else:  # a layered blend draws its layers' ranges (or, in depth mode, everything) at full opacity
-            blend = "all" if opts.blend in LAYERED_BLENDS else opts.blend
-        prog["u_blend"].value = BLEND_MODES.index(blend)
+        # layer >= 0: one keyframe's splats; a layered blend draws its layers' ranges (or, in depth
+        # mode, everything) at full opacity
+        prog["u_blend"].value = shader_blend_code(opts.blend, layer)
         prog["u_layer"].value = max(layer, 0)
         prog["u_mode"].value = MODES.index(opts.mode)
         prog["u_flow_max"].value = max(opts.flow_max, 1e-6)

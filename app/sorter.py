@@ -2,8 +2,9 @@
 
 ``depth_order`` culls (hidden, invisible at this time, behind the near plane, outside the frustum
 with a conservative margin) and sorts the survivors front to back by camera z of their positions at
-time t. Keys are 16-bit log-depth buckets sorted with numpy's stable radix sort (16-bit integer keys
-take the radix path); log buckets are relatively uniform: with 0.5-200 m in view one bucket is
+time t (positions and opacity weights at t: ``drivingscene.gaussians.timing``, the rule the shader
+runs too). Keys are 16-bit log-depth buckets sorted with numpy's stable radix sort (16-bit integer
+keys take the radix path); log buckets are relatively uniform: with 0.5-200 m in view one bucket is
 0.009 % of the depth (0.09 mm at 1 m, 1.8 cm at 200 m). Ties keep index order, like the reference
 rasterizer's stable sort. ``float`` keys (float64 argsort) give the exact reference order.
 For the layered blends the order is grouped by layer ("layers": keyframe; "cameras": keyframe, then
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivingscene.gaussians.core import LAYERED_BLENDS
+from drivingscene.gaussians.timing import FULL_OPACITY_BLENDS, time_steps, time_weights
 
 KEY_KINDS = ("u16", "float")
 MIN_ALPHA = 1.0 / 255.0
@@ -89,7 +90,7 @@ def _camera_points(data: SortInput, req: SortRequest) -> np.ndarray:
     """Camera coordinates ``[3, N]`` of the splats at time t."""
     rot = req.world_to_cam[:3, :3].astype(np.float32)
     trans = req.world_to_cam[:3, 3].astype(np.float32)
-    step = np.where(data.keyframes == 0, np.float32(req.t), np.float32(1.0 - req.t))
+    step = time_steps(data.keyframes, req.t)
     p = rot @ data.flows
     p *= step
     p += rot @ data.means
@@ -102,12 +103,8 @@ def depth_order(data: SortInput, req: SortRequest) -> np.ndarray:
     p_cam = _camera_points(data, req)
     z = p_cam[2]
     keep = (z >= req.near) & (z <= req.far) & ~data.hidden
-    if req.blend not in FULL_OPACITY_BLENDS:
-        k1 = data.keyframes == 1
-        weight = (
-            np.where(k1, req.t, 1.0 - req.t) if req.blend == "fade" else np.where(k1, float(req.t >= 0.5), float(req.t < 0.5))
-        )
-        keep &= data.opacities * weight >= MIN_ALPHA
+    if req.blend not in FULL_OPACITY_BLENDS:  # (those weigh 1)
+        keep &= data.opacities * time_weights(data.keyframes, req.t, req.blend) >= MIN_ALPHA
     # The frustum test on every splat (culled ones get a harmless z) beats gathering the kept ones first.
     keep &= _frustum_keep(np.where(keep, p_cam, np.float32(1.0)), data.max_scales, req)
     index = np.flatnonzero(keep).astype(np.uint32)
@@ -126,9 +123,6 @@ def depth_order(data: SortInput, req: SortRequest) -> np.ndarray:
     elif req.blend == "cameras":
         order = order[np.argsort(layer_ids(data.keyframes[order], data.cameras[order]), kind="stable")]
     return order
-
-
-FULL_OPACITY_BLENDS = ("all", *LAYERED_BLENDS)  # every splat drawn at its opacity (layers: each in its own pass)
 
 
 def layer_ids(keyframes: np.ndarray, cameras: np.ndarray) -> np.ndarray:

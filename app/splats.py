@@ -13,6 +13,7 @@ from functools import cached_property
 import numpy as np
 import torch
 
+from drivingscene.gaussians import timing
 from drivingscene.gaussians.core import Gaussians
 
 
@@ -79,18 +80,12 @@ class SplatArrays:
         return np.abs(self.flows).max(axis=1) > 0 if len(self) else np.zeros(0, bool)
 
     def means_at(self, t: float) -> np.ndarray:
-        """``[N, 3]`` positions at normalised time t (``Gaussians.means_at``)."""
-        step = np.where(self.keyframes == 0, np.float32(t), np.float32(1.0 - t))
-        return self.means + step[:, None] * self.flows
+        """``[N, 3]`` positions at normalised time t (``drivingscene.gaussians.timing.means_at``)."""
+        return timing.means_at(self.means, self.flows, self.keyframes, t)
 
     def time_weights(self, t: float, mode: str) -> np.ndarray:
-        """``[N]`` opacity multipliers of ``Gaussians.time_weights`` (modes all/fade/nearest)."""
-        k1 = self.keyframes == 1
-        if mode == "fade":
-            return np.where(k1, t, 1.0 - t).astype(np.float32)
-        if mode == "nearest":
-            return np.where(k1, float(t >= 0.5), float(t < 0.5)).astype(np.float32)
-        return np.ones(len(self), np.float32)
+        """``[N]`` float32 opacity multipliers at time t in blend ``mode`` (``timing.time_weights``)."""
+        return timing.time_weights(self.keyframes, t, mode)
 
     def take(self, mask_or_index: np.ndarray) -> SplatArrays:
         return SplatArrays(**{f.name: getattr(self, f.name)[mask_or_index] for f in fields(self)})

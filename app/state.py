@@ -16,8 +16,9 @@ import torch
 from drivingscene_view.edits import CompoundEdit, DeleteEdit, Edit, FlowEdit, HideEdit, History, ReplaceEdit, SelectEdit
 from drivingscene_view.splats import SplatArrays
 
-from drivingscene.gaussians.core import DEFAULT_BLEND, Gaussians
+from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.gaussians.timing import DEFAULT_BLEND
 
 SELECT_MODES = ("replace", "add", "subtract")
 

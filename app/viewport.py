@@ -24,7 +24,7 @@ from drivingscene_view.sorter import SortInput, SortRequest, SortWorker, depth_o
 from drivingscene_view.splats import SplatArrays
 from drivingscene_view.state import SceneDoc
 
-from drivingscene.gaussians.core import LAYERED_BLENDS
+from drivingscene.gaussians.timing import LAYERED_BLENDS
 from drivingscene.render.scene import source_axes
 
 SCALES = (1.0, 0.85, 0.7, 0.6, 0.5, 0.42, 0.35, 0.3)

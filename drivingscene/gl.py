@@ -2,12 +2,15 @@
 
 Shaders live in ``shaders/<name>.glsl``, one program per file: ``#version`` first, then
 ``#if defined VERTEX_SHADER ... #elif defined FRAGMENT_SHADER ... #endif``. ``load_program``
-injects the stage define (and any extra defines) after the ``#version`` line.
+injects the stage define (and any extra defines) after the ``#version`` line, and replaces each
+``#include "<other>.glsl"`` line by that file (functions shared by several programs, no ``#version``);
+compile errors in the k-th file included report its lines as source string k.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 
 from drivingscene.errors import DrivingSceneError
 from drivingscene.resources import shader_path
@@ -19,6 +22,24 @@ STAGES = {
     "geometry_shader": "GEOMETRY_SHADER",
     "fragment_shader": "FRAGMENT_SHADER",
 }
+INCLUDE = re.compile(r'^#include "(\w+)\.glsl"[ \t]*$', re.MULTILINE)
+
+
+def _expand_includes(name: str, text: str, first_line: int, source: int, included: list[str]) -> str:
+    """``text``, the lines of ``shaders/<name>.glsl`` from ``first_line`` on (GLSL source string
+    ``source``), with its includes expanded; ``included`` collects the files included so far."""
+    out, start = [], 0
+    for m in INCLUDE.finditer(text):
+        other = m.group(1)
+        if other == name or other in included:
+            raise DrivingSceneError(f"{shader_path(name)}: {other}.glsl included twice (or by itself)")
+        included.append(other)
+        number = len(included)
+        body = _expand_includes(other, shader_path(other).read_text(), 1, number, included)
+        line = first_line + text.count("\n", 0, m.start())  # of the #include
+        out += [text[start : m.start()], f"#line 1 {number}\n", body, f"\n#line {line + 1} {source}"]
+        start = m.end()
+    return "".join(out) + text[start:]
 
 
 def shader_sources(name: str, defines: dict[str, object] | None = None) -> dict[str, str]:
@@ -28,6 +49,7 @@ def shader_sources(name: str, defines: dict[str, object] | None = None) -> dict[
     if not first.startswith("#version"):
         raise DrivingSceneError(f"{shader_path(name)}: expected '#version' on the first line")
     extra = "".join(f"#define {k} {v}\n" for k, v in (defines or {}).items())
+    body = _expand_includes(name, body, 2, 0, [])
     out = {}
     for kwarg, macro in STAGES.items():
         if f"defined {macro}" in body:

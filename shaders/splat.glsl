@@ -4,7 +4,7 @@
 // J W Σ Wᵀ Jᵀ + eps2d I with J clamped off-image as 3DGS, alpha = min(0.99, o exp(-½ dᵀΣ2D⁻¹d)), cut at
 // the 3-sigma ellipse and alpha < 1/255, colour max(SH(d) + 0.5, 0) with d from the camera centre.
 // Pixel (u, v) has its centre at integer coordinates (OpenCV); image row 0 is the top of the viewport.
-// Defines: TEX_W (width of the data textures).
+// Defines: TEX_W (width of the data textures), BLEND_<NAME> (drivingscene.gaussians.timing.shader_blend_defines).
 
 #if defined VERTEX_SHADER
 
@@ -25,8 +25,8 @@ uniform vec4 u_intr;          // fx, fy, cx, cy (pixels)
 uniform float u_skew;
 uniform vec2 u_size;          // W, H (pixels)
 uniform float u_t;            // normalised time
-uniform int u_blend;          // 0 all, 1 fade, 2 nearest (Gaussians.time_weights), 3 one keyframe's layer
-uniform int u_layer;          // the keyframe drawn when u_blend is 3 ("layers": renderer.py composes two)
+uniform int u_blend;          // BLEND_<NAME>: time_weight in time_rule.glsl (timing.shader_blend_code)
+uniform int u_layer;          // the keyframe drawn when u_blend is BLEND_LAYER (renderer.py composes the layers)
 uniform int u_mode;           // 0 rgb, 1 depth, 2 dynamic highlight, 3 flow magnitude
 uniform float u_flow_max;     // metres at the top of the colour map
 uniform bool u_show_selection;
@@ -71,13 +71,7 @@ vec3 eval_sh(int gid, vec3 dir) {
     return result;
 }
 
-float time_weight(float keyframe) {
-    bool k1 = keyframe > 0.5;
-    if (u_blend == 1) return k1 ? u_t : 1.0 - u_t;
-    if (u_blend == 2) return k1 ? float(u_t >= 0.5) : float(u_t < 0.5);
-    if (u_blend == 3) return float(int(k1) == u_layer);
-    return 1.0;
-}
+#include "time_rule.glsl"
 
 vec3 splat_color(int gid, vec3 mean, float z, float flow_mag, bool selected) {
     vec3 rgb;
@@ -110,9 +104,9 @@ void main() {
     uint flags = texelFetch(u_flags, texel(gid), 0).r;
     vec4 pos = texelFetch(u_pos, texel(gid), 0);
     vec4 motion = texelFetch(u_motion, texel(gid), 0);
-    float opacity = motion.w * time_weight(pos.w);
+    float opacity = motion.w * time_weight(pos.w, u_t, u_blend, u_layer);
     if ((flags & 1u) != 0u || opacity < 1.0 / 255.0) { cull(); return; }
-    vec3 mean = pos.xyz + (pos.w < 0.5 ? u_t : 1.0 - u_t) * motion.xyz;
+    vec3 mean = mean_at(pos.xyz, pos.w, motion.xyz, u_t);
     vec3 p = (u_view * vec4(mean, 1.0)).xyz;
     if (p.z < u_near || p.z > u_far) { cull(); return; }
 

@@ -43,11 +43,11 @@ def one_thread():
 def compiled_kernels():
     """The optional compiled CPU kernels (built once per session, ~15 s the first time); skips,
     with the reason, where they cannot be built (no C++ compiler or ninja)."""
-    from drivingscene.render import cpp
+    from drivingscene import kernels
 
-    if cpp.load_extension() is None:
+    if not kernels.load_extension():
         pytest.skip("C++ kernels unavailable (no C++ compiler/ninja or build failed; see the logged warning)")
-    return cpp
+    return kernels
 
 
 @pytest.fixture(params=["torch", "cpp"])

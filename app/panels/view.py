@@ -9,7 +9,7 @@ from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
 
-from drivingscene.gaussians.core import BLEND_MODES
+from drivingscene.gaussians.timing import BLEND_MODES
 
 MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "dynamic": "Dynamic", "flow": "Flow |m|"}
 

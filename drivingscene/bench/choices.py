@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from drivingscene.bench import write_report
-from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
-from drivingscene.gaussians.core import DEFAULT_BLEND
+from drivingscene.gaussians.timing import DEFAULT_BLEND
+from drivingscene.machine import machine_description
 
 DEFAULT_VARIANTS = [
     "blend=all,parallax=off",  # the defaults before docs/choices.md
@@ -112,7 +112,7 @@ def _nanmean(values: list[float]) -> float:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, bonus, region."""
-    from drivingscene.gaussians.core import BLEND_MODES
+    from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
     from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
 

@@ -14,7 +14,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from drivingscene.bench.machine import current_rss_bytes, machine_description, peak_rss_bytes
+from drivingscene.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
 SIZES = ("96x176", "176x320", "352x640")
 
@@ -33,11 +33,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=int, default=5, help="timed runs per size (after 2 warm-up runs)")
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
     p.add_argument("--threads", type=int, default=2)
-    from drivingscene.cli.recon import add_amp_arguments
+    from drivingscene.arguments import add_amp_arguments
 
     add_amp_arguments(p)  # default: bf16 autocast where the CPU/GPU does bf16 natively, else float32
     p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
-    from drivingscene.cli.recon import add_match_arguments
+    from drivingscene.arguments import add_match_arguments
 
     add_match_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
@@ -48,7 +48,7 @@ WARMUP_RUNS = 2
 
 
 def _pair(size: str):
-    from drivingscene.cli.synth import parse_resolution
+    from drivingscene.arguments import parse_resolution
     from drivingscene.synth.config import SynthConfig
     from drivingscene.synth.generate import generate_pair
 
@@ -174,9 +174,9 @@ def run(args: argparse.Namespace) -> int:
     amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
     without = ("search",) if args.no_search else ()
     rows = measure(model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes, args.match)
-    from drivingscene.render.cpp import load_extension
+    from drivingscene.kernels import load_extension
 
-    kernels = "on" if device.type == "cpu" and load_extension() is not None else "off: torch paths"
+    kernels = "on" if device.type == "cpu" and load_extension() else "off: torch paths"
     lines = [
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)}"
         f"{' --scenes ' + ' '.join(str(p) for p in args.scenes) if args.scenes else ''} --runs {args.runs}"

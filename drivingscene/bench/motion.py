@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivingscene.bench.machine import machine_description
+from drivingscene.machine import machine_description
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

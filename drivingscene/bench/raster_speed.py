@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from drivingscene.bench.machine import current_rss_bytes, machine_description, peak_rss_bytes
+from drivingscene.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
 if TYPE_CHECKING:  # torch is imported inside the functions: `drivingscene --help` stays fast
     from torch import Tensor

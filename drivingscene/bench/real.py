@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from drivingscene.bench import read_notes, write_report
-from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
+from drivingscene.machine import machine_description
 
 FULL, STATIC = "DrivingScene", "DrivingScene, static-only (no residual flow)"
 COPY, BLEND = "copy the nearest keyframe", "blend the two keyframes"

@@ -22,7 +22,7 @@ BLOCK = 16  # pixels: the LiDAR checkerboard's block size
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from drivingscene.cli.recon import non_negative_int, non_negative_seconds
+    from drivingscene.arguments import non_negative_int, non_negative_seconds
 
     p.add_argument(
         "--refine",

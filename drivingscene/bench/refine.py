@@ -21,12 +21,12 @@ import numpy as np
 import torch
 
 from drivingscene.bench import write_report
-from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
+from drivingscene.machine import machine_description
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from drivingscene.cli.recon import non_negative_seconds
+    from drivingscene.arguments import non_negative_seconds
 
     p.add_argument("--data", type=Path, required=True, help="folder of pair_*.npz (e.g. data/val176r)")
     p.add_argument("--count", type=int, default=4, help="pairs to use (default 4)")

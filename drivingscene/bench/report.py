@@ -32,12 +32,12 @@ from typing import Callable
 
 import numpy as np
 
-from drivingscene.bench.machine import machine_description
 from drivingscene.bench.report_markdown import markdown
 from drivingscene.bench.report_schema import ACCURACY, FORMAT, VERSION, mark_pareto
 from drivingscene.bench.report_stability import AXES, stability  # noqa: F401  (AXES: re-exported)
 from drivingscene.data.resize import resized_pair  # noqa: F401  (re-exported)
 from drivingscene.errors import InputError
+from drivingscene.machine import machine_description
 
 FULL = "DrivingScene"
 STATIC = "DrivingScene, static-only"

@@ -26,8 +26,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from drivingscene.bench import read_notes
-from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
+from drivingscene.machine import machine_description
 
 NVS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "{lpips}", "{:.3f}")]
 FULL, STATIC = "DrivingScene (two-stage)", "static-only (no residual flow)"

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from drivingscene.bench import write_report
-from drivingscene.bench.machine import machine_description
 from drivingscene.errors import InputError
+from drivingscene.machine import machine_description
 
 # Settings compared by default: how far R refines its proposal, the window and the static bonus
 # over a narrow and the default (wide) range of scales, and coarser grids of s.

@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from drivingscene.bench.machine import machine_description
+from drivingscene.machine import machine_description
 
 DEFAULT_SIZES = ("176x320", "96x176")
 
@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def measure(size: str, runs: int, preset: str, renderer) -> dict:
     """Mean/min wall seconds without and with writing, mean CPU seconds, stage means, file size."""
-    from drivingscene.cli.synth import parse_resolution
+    from drivingscene.arguments import parse_resolution
     from drivingscene.data import save_frame_pair
     from drivingscene.synth.config import SPLITS, resolve_config
     from drivingscene.synth.generate import generate_pair

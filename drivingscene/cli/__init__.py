@@ -11,7 +11,7 @@ import logging
 import sys
 
 from drivingscene import __version__
-from drivingscene.cli.common import OneLineParser, run_reporting_errors
+from drivingscene.arguments import OneLineParser, run_reporting_errors
 
 COMMAND_MODULES = ("scene", "importers", "synth", "export", "recon", "train", "bench")
 

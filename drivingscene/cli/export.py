@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from drivingscene.cli.common import check_output, load_gaussian_source, unit_interval
+from drivingscene.arguments import check_output, unit_interval
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,15 +20,18 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivingscene.errors import InputError
     from drivingscene.export.ply import write_ply
-    from drivingscene.gaussians.recon import Reconstruction
+    from drivingscene.sources import open_source
 
     check_output(args.ply, args.force, "--ply")
-    source = load_gaussian_source(args.source)
-    if isinstance(source, Reconstruction):
-        gaussians = source.gaussians if args.include_hidden else source.visible()
-    else:
-        gaussians = source
+    source = open_source(args.source)
+    if source.kind == "scene":
+        raise InputError(
+            f"{args.source}: is a scene (images and poses), not Gaussians; expected a recon.npz or a .ply "
+            f"(reconstruct it first: drivingscene reconstruct {args.source} -o recon.npz)"
+        )
+    gaussians = source.recon.gaussians if args.include_hidden else source.recon.visible()
     path = write_ply(gaussians, args.ply, kind=args.kind, t=args.time)
     moving = int(gaussians.dynamic.sum())
     when = "" if args.time is None else f" at t={args.time:g}"

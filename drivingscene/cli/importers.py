@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from drivingscene.cli.common import check_output
+from drivingscene.arguments import check_output
 
 
 def _resolution(text: str) -> tuple[int, int]:

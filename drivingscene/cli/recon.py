@@ -7,29 +7,15 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from drivingscene.cli.common import check_output, positive_int
+from drivingscene.arguments import (
+    add_amp_arguments,
+    add_match_arguments,
+    check_output,
+    non_negative_int,
+    non_negative_seconds,
+    positive_int,
+)
 from drivingscene.errors import InputError
-
-
-def non_negative_seconds(text: str) -> float:
-    """argparse type: a finite number of seconds >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, found {text!r}") from None
-    if not 0.0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, found {text}")
-    return value
-
-
-def non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {value}")
-    return value
 
 
 def add_refine_arguments(p: argparse.ArgumentParser) -> None:
@@ -62,37 +48,6 @@ def refine_config(args: argparse.Namespace):
     return RefineConfig(
         seconds=args.refine, lidar=args.lidar, adapt_steps=args.adapt, max_steps=args.refine_steps, threads=args.threads
     )
-
-
-MATCH_MODES = ("fallback", "depth", "off")  # `matched_depth.match_mode` gives each its config
-
-
-def add_match_arguments(p: argparse.ArgumentParser) -> None:
-    """``--match fallback|depth|off`` (and ``--no-match``, the same as ``--match off``)."""
-    group = p.add_mutually_exclusive_group()
-    group.add_argument(
-        "--match",
-        choices=MATCH_MODES,
-        default="fallback",
-        help="how D's depth is corrected by matching the keyframes with classical flow (docs/depth.md): fallback "
-        "(default: guided by D, and where D's shape is off again by the road plane), depth (guided by D only: "
-        "faster on real frames), off (D's depth as it is: fastest)",
-    )
-    group.add_argument("--no-match", dest="match", action="store_const", const="off", help="the same as --match off")
-
-
-def add_amp_arguments(p: argparse.ArgumentParser) -> None:
-    """``--amp`` / ``--no-amp`` into ``args.amp``: True, False, or None (default: decided per
-    machine, drivingscene/precision.py)."""
-    amp = p.add_mutually_exclusive_group()
-    amp.add_argument(
-        "--amp",
-        dest="amp",
-        action="store_true",
-        default=None,
-        help="force bf16 autocast for the networks (default: where the CPU/GPU does bf16 natively, else float32)",
-    )
-    amp.add_argument("--no-amp", dest="amp", action="store_false", help="force float32 networks")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

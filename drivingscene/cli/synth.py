@@ -8,6 +8,7 @@ import re
 import sys
 from pathlib import Path
 
+from drivingscene.arguments import parse_resolution
 from drivingscene.errors import InputError
 
 KNOBS = {  # flag: (config field, parser, meaning)
@@ -74,13 +75,6 @@ def _number(flag: str, text: str | None, kind: str):
     if kind == "float" and not math.isfinite(value):
         raise InputError(f"{flag}: expected a finite number, found {text!r}")
     return value
-
-
-def parse_resolution(text: str) -> tuple[int, int]:
-    match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not match or int(match.group(1)) < 8 or int(match.group(2)) < 8:
-        raise InputError(f"--res: expected HxW with both sides >= 8 pixels, e.g. 96x176, found {text!r}")
-    return int(match.group(1)), int(match.group(2))
 
 
 def config_from_args(args: argparse.Namespace):

@@ -7,8 +7,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-from drivingscene.cli.common import positive_int
-from drivingscene.cli.recon import add_amp_arguments
+from drivingscene.arguments import add_amp_arguments, positive_int
 from drivingscene.errors import InputError
 from drivingscene.train.config import RENDER_VIEWS, STAGES
 
@@ -90,7 +89,7 @@ def register_ship(sub: argparse._SubParsersAction) -> None:
 
 
 def run_ship(args: argparse.Namespace) -> int:
-    from drivingscene.cli.common import check_output
+    from drivingscene.arguments import check_output
     from drivingscene.methods.feedforward import load_model
     from drivingscene.train.checkpoint import export_weights, model_from_run
 

@@ -65,6 +65,11 @@ class PairTensors:
         )
 
 
+def world_cameras(batch: PairTensors) -> Tensor:
+    """Camera-to-world ``[2, V, 4, 4]`` of both keyframes, in float64."""
+    return batch.local_to_world[None, None] @ batch.cam_to_local.double()
+
+
 def _images(array: np.ndarray) -> Tensor:
     """uint8 [..., H, W, 3] -> float [..., 3, H, W] in [0, 1]."""
     return torch.from_numpy(np.ascontiguousarray(np.moveaxis(array, -1, -3))).float() / 255.0

@@ -24,8 +24,8 @@ import torch
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.eval.lpips import PerceptualMetric
 from drivingscene.eval.metrics import depth_metrics, lpips_distance, psnr, ssim
-from drivingscene.gaussians.core import DEFAULT_BLEND
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.geometry.flow import forward_backward_consistency
 
 

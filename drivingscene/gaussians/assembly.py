@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
 from drivingscene.geometry.camera import unproject
 from drivingscene.geometry.se3 import matrix_to_quat, matvec, quat_left_matrix, transform_points
@@ -84,14 +85,12 @@ def surfel_frames(
     """Default camera-axis rotations ``[V, H, W, 4]`` and log scales ``[V, H, W, 3]`` (see module).
 
     Not differentiable in ``depth``. ``backend``: "cpp" (the compiled one-pass kernel in
-    ``render/csrc/surfels.cpp``, float32, ~10x faster), "torch", or "auto" (cpp for float32 CPU
+    `drivingscene.kernels.surfel_frames`, float32, ~10x faster), "torch", or "auto" (cpp for float32 CPU
     tensors where the extension builds, else torch). Both give the same Gaussians up to float rounding.
     """
-    from drivingscene.render.cpp import select_op
-
-    op = select_op("surfel_frames", backend, depth.detach())  # not differentiable in depth either way
-    if op is not None:
-        return op(depth.detach(), intrinsics.detach(), footprint, THICKNESS, MIN_COS)
+    # not differentiable in depth either way
+    if kernels.available(kernels.surfel_frames, backend, depth.detach()):
+        return kernels.surfel_frames(depth.detach(), intrinsics.detach(), footprint, THICKNESS, MIN_COS)
     return surfel_frames_torch(depth.detach(), intrinsics, footprint)
 
 

@@ -6,7 +6,8 @@ the other keyframe (zero for static ones). At normalised time t in [0, 1]:
     keyframe-0 Gaussians sit at  means + t * flow
     keyframe-1 Gaussians sit at  means + (1 - t) * flow
 
-so both sets can be rendered together at any t.
+so both sets can be rendered together at any t; how much each set shows is the blend mode. The rule
+is defined once, in ``drivingscene.gaussians.timing`` (``means_at`` and ``time_weights`` call it).
 
 Scales and opacities are stored as the raw parameters that 3DGS files hold (log scales, opacity
 logits), so files round-trip bit for bit; ``scales`` and ``opacities`` are their activations.
@@ -22,14 +23,8 @@ import torch
 from torch import Tensor
 
 from drivingscene.errors import InputError
+from drivingscene.gaussians import timing
 
-BLEND_MODES = ("all", "fade", "nearest", "layers", "cameras")
-LAYERED_BLENDS = ("layers", "cameras")  # rendered as separate layers, then composed
-# Each input image's Gaussians (keyframe x camera) rendered alone and the images blended by time,
-# camera direction and coverage (render/scene.py `render_camera_layers`). Chosen on the validation
-# pairs by the in-between frame (`drivingscene bench choices`, docs/choices.md): over "layers"
-# (one layer per keyframe) +1.4 dB on randomised rigs and -0.3 dB on the nuScenes rig.
-DEFAULT_BLEND = "cameras"
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * sh[:, 0] + 0.5 (3DGS convention)
 
 
@@ -159,30 +154,13 @@ class Gaussians:
         return sh0_to_rgb(self.sh[:, 0]).clamp(0, 1)
 
     def means_at(self, t: float | Tensor) -> Tensor:
-        """World positions ``[N, 3]`` at normalised time t (see module docstring)."""
-        t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
-        step = torch.where(self.keyframes == 0, t, 1 - t)
-        return self.means + step[:, None] * self.flows
+        """World positions ``[N, 3]`` at normalised time t (``timing.means_at``)."""
+        return timing.means_at(self.means, self.flows, self.keyframes, t)
 
     def time_weights(self, t: float | Tensor, mode: str = "all") -> Tensor:
-        """Opacity multipliers ``[N]`` for showing both keyframes' Gaussians at time t.
-
-        "all": both sets fully opaque (each keyframe fills what the other did not see);
-        "fade": keyframe-0 Gaussians weighted 1 - t and keyframe-1 Gaussians t (cross-fade);
-        "nearest": only the keyframe nearer in time (keyframe 0 for t < 0.5);
-        "layers": each keyframe's Gaussians rendered on their own and the two images blended
-        (``drivingscene.render.scene.render_layers``); as opacity weights, both sets opaque.
-        "cameras": the same with one layer per keyframe and camera (``render_camera_layers``).
-        """
-        t = torch.as_tensor(t, dtype=self.means.dtype, device=self.device)
-        k1 = self.keyframes == 1
-        if mode == "all" or mode in LAYERED_BLENDS:
-            return torch.ones_like(self.opacity_logits)
-        if mode == "fade":
-            return torch.where(k1, t, 1 - t).expand_as(self.opacity_logits)
-        if mode == "nearest":
-            return torch.where(k1, (t >= 0.5).to(t.dtype), (t < 0.5).to(t.dtype)).expand_as(self.opacity_logits)
-        raise InputError(f"blend mode: expected one of {', '.join(BLEND_MODES)}, found {mode!r}")
+        """Opacity multipliers ``[N]`` for showing both keyframes' Gaussians at time t in blend ``mode``
+        (``timing.time_weights``: "all", "fade", "nearest"; "layers" and "cameras" weigh 1)."""
+        return timing.time_weights(self.keyframes, t, mode, self.means.dtype)
 
     def at_time(self, t: float | Tensor) -> Gaussians:
         """The Gaussians moved to time t, as static Gaussians of keyframe 0 (for export/rendering)."""

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.gaussians.core import Gaussians
 
 SKY_DEPTH = 1e6  # metres: the sky in a depth map used for carving
@@ -70,13 +71,11 @@ def see_through_votes(
     backend: str = "auto",
 ) -> Tensor:
     """``[N]`` int: how many images see through each Gaussian (module docstring). ``backend``:
-    the compiled kernel (render/csrc/matching.cpp, one pass per Gaussian) or the torch path."""
-    from drivingscene.render.cpp import select_op
-
+    the compiled kernel (`drivingscene.kernels.see_through_votes`, one pass per Gaussian) or the
+    torch path."""
     g = gaussians
-    op = select_op("see_through_votes", backend, g.means, depths, world_to_cam)
-    if op is not None:
-        return op(
+    if kernels.available(kernels.see_through_votes, backend, g.means, depths, world_to_cam):
+        return kernels.see_through_votes(
             g.means, g.flows, g.keyframes, image_ids, world_to_cam, intrinsics, depths, times.float(),
             config.margin, config.voters == "same_time", NO_DEPTH,
         )

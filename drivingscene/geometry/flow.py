@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch.nn.functional as F
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.geometry.camera import pixel_grid, project, unproject
 from drivingscene.geometry.se3 import invert_rigid, transform_points
 
@@ -31,17 +32,14 @@ def rigid_flow(
     with the destination intrinsics. Returns flow ``[..., H, W, 2]`` in pixels and the
     destination z-depth ``[..., H, W]`` (<= 0 where the point falls behind the destination camera).
     Float32 CPU maps ``[B, H, W]`` without gradients go through one compiled pass (the same
-    arithmetic; ``render/csrc/flow.cpp``).
+    arithmetic; `drivingscene.kernels.rigid_flow_dense`).
     """
     height, width = depth.shape[-2:]
     src_to_dst = invert_rigid(dst_cam_to_world) @ src_cam_to_world
     dst_k = intrinsics if dst_intrinsics is None else dst_intrinsics
     if depth.dim() == 3 and intrinsics.shape == dst_k.shape == (len(depth), 3, 3) and src_to_dst.shape == (len(depth), 4, 4):
-        from drivingscene.render.cpp import select_op
-
-        op = select_op("rigid_flow_dense", "auto", depth, intrinsics, src_to_dst, dst_k)
-        if op is not None:
-            return op(depth, intrinsics, src_to_dst, dst_k)
+        if kernels.available(kernels.rigid_flow_dense, "auto", depth, intrinsics, src_to_dst, dst_k):
+            return kernels.rigid_flow_dense(depth, intrinsics, src_to_dst, dst_k)
     points = unproject(depth, intrinsics).flatten(-3, -2)  # [..., HW, 3]
     uv, z = project(transform_points(src_to_dst, points), dst_k)
     grid = pixel_grid(height, width, dtype=depth.dtype, device=depth.device)
@@ -77,13 +75,10 @@ def forward_backward_consistency(
     """Pixels whose forward flow is undone by the backward flow (UnFlow's test), ``[B, H, W]`` bool.
 
     |f + b(p + f)|^2 < alpha (|f|^2 + |b(p + f)|^2) + beta, and p + f inside the image. Float32
-    CPU flows without gradients go through one compiled pass (``render/csrc/flow.cpp``).
+    CPU flows without gradients go through one compiled pass (`drivingscene.kernels.fb_consistent`).
     """
-    from drivingscene.render.cpp import select_op
-
-    op = select_op("fb_consistent", "auto", flow_fw, flow_bw) if flow_fw.dim() == 4 else None
-    if op is not None:
-        return op(flow_fw, flow_bw, alpha, beta)
+    if flow_fw.dim() == 4 and kernels.available(kernels.fb_consistent, "auto", flow_fw, flow_bw):
+        return kernels.fb_consistent(flow_fw, flow_bw, alpha, beta)
     bw_at_fw, inside = backward_warp(flow_bw.permute(0, 3, 1, 2), flow_fw)
     return _consistent(flow_fw, bw_at_fw.permute(0, 2, 3, 1), alpha, beta) & inside
 

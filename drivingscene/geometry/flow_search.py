@@ -17,8 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.geometry.flow import backward_warp
-from drivingscene.render.cpp import select_op
 
 _LUMA = (0.299, 0.587, 0.114)
 _OUTSIDE_COST = 1.0  # a sample outside the other image costs as much as the largest luma difference
@@ -77,11 +77,11 @@ def search_along_rigid(
     """Index ``[B, H, W]`` (long) of the winning hypothesis per pixel: ``i < S`` is
     ``scales[i] * rigid``, ``S`` the proposal. Exact ties keep the earlier hypothesis.
 
-    ``backend``: "cpp" (the compiled one-pass kernel in ``render/csrc/flow.cpp``, ~6x
+    ``backend``: "cpp" (the compiled one-pass kernel `drivingscene.kernels.search_along_rigid`, ~6x
     faster), "torch", or "auto" (cpp for float32 CPU tensors where the extension builds, else
     torch). Both pick the same hypotheses up to float rounding (near-exact ties may differ)."""
     _check_window(window)
-    op = select_op("search_along_rigid", backend, image, other, rigid)
+    compiled = kernels.available(kernels.search_along_rigid, backend, image, other, rigid)
     static = _static_index(scales)
     if static_bonus and static < 0:
         raise ValueError("static_bonus: expected scales to contain 1 (the static hypothesis)")
@@ -91,9 +91,11 @@ def search_along_rigid(
         bonus[static] = static_bonus
     if proposal is not None:
         bonus[-1] = proposal_bonus
-    if op is not None:
+    if compiled:
         empty = rigid.new_zeros(0)
-        return op(image, other, rigid, scales.float(), empty if proposal is None else proposal, bonus, window, _OUTSIDE_COST)
+        return kernels.search_along_rigid(
+            image, other, rigid, scales.float(), empty if proposal is None else proposal, bonus, window, _OUTSIDE_COST
+        )
     batch = image.shape[0]
     best_cost = best = None
     factors = torch.cat([scales.to(rigid), rigid.new_ones(int(proposal is not None))])

@@ -55,14 +55,14 @@ import torch
 from torch import Tensor
 
 from drivingscene.data.frame_pair import FramePair
-from drivingscene.data.tensors import PairTensors, pair_to_tensors
+from drivingscene.data.tensors import PairTensors, pair_to_tensors, world_cameras
 from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.geometry.flow import forward_backward_consistency
 from drivingscene.geometry.se3 import rotate_vectors
-from drivingscene.methods.oracle import fit_sky_from_pixels, refine_colors, world_cameras
+from drivingscene.methods.oracle import refine_colors
 from drivingscene.models.depth import DepthConfig
 from drivingscene.models.pipeline import (
     LiftConfig,
@@ -74,6 +74,7 @@ from drivingscene.models.pipeline import (
     sky_mask,
     texture_along,
 )
+from drivingscene.render.sky import fit_sky_from_pixels
 
 DIS_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,

@@ -5,7 +5,7 @@ depth on real frames is off by factors of 2-5 (docs/real-data.md), tens of pixel
 So before any gradient step every pixel of every input image tries a grid of depths, uniform in
 inverse depth between ``near`` and ``far``, and keeps the one at which the other images of the
 pair agree with it best: the photometric error of L_loc (0.85 (1 - SSIM) / 2 + 0.15 L1,
-as `train.losses.photometric_error`, on luma, with the targets' window statistics computed once) averaged over a small window, the minimum over the
+as `models.losses.photometric_error`, on luma, with the targets' window statistics computed once) averaged over a small window, the minimum over the
 sources that see the point (the same camera at the other keyframe, and both keyframes of the
 neighbouring cameras), as monodepth2 takes it over its sources.
 

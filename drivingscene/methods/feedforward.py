@@ -20,12 +20,11 @@ import torch
 from safetensors.torch import load_file
 
 from drivingscene.data.frame_pair import FramePair
-from drivingscene.data.tensors import pair_to_tensors
+from drivingscene.data.tensors import pair_to_tensors, world_cameras
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
-from drivingscene.methods.oracle import fit_sky_from_pixels, world_cameras
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
 from drivingscene.models.pipeline import (
     LiftConfig,
@@ -41,6 +40,7 @@ from drivingscene.models.pipeline import (
     without_gaussian_head,
 )
 from drivingscene.precision import resolve_amp
+from drivingscene.render.sky import fit_sky_from_pixels
 from drivingscene.resources import asset_path
 
 DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from drivingscene.data.frame_pair import FramePair
-from drivingscene.data.tensors import pair_to_tensors
+from drivingscene.data.tensors import pair_to_tensors, world_cameras
 from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
@@ -19,25 +19,7 @@ from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.models.pipeline import rigid_flows
 from drivingscene.render.scene import render_gaussians
-from drivingscene.render.sky import fit_sky, pixel_directions
-
-
-def world_cameras(batch) -> torch.Tensor:
-    """Camera-to-world ``[2, V, 4, 4]`` in float64."""
-    return batch.local_to_world[None, None] @ batch.cam_to_local.double()
-
-
-def fit_sky_from_pixels(
-    images: torch.Tensor, sky: torch.Tensor, cam_to_world: torch.Tensor, intrinsics: torch.Tensor
-) -> torch.Tensor:
-    """Sky SH ``[K, 3]`` from images ``[T, V, 3, H, W]`` where ``sky`` ``[T, V, H, W]`` is true."""
-    colors = images.flatten(0, 1).permute(0, 2, 3, 1)
-    mask = sky.flatten(0, 1)
-    cams = cam_to_world.flatten(0, 1)
-    ks = intrinsics.repeat(images.shape[0], 1, 1).double()
-    # Directions at the sky pixels only (image by image), not at every pixel.
-    dirs = torch.cat([pixel_directions(cams[b], ks[b], mask[b]) for b in range(len(cams))])
-    return fit_sky(dirs.float(), colors[mask]).float()
+from drivingscene.render.sky import fit_sky_from_pixels
 
 
 def refine_colors(

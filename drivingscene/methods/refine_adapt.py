@@ -23,9 +23,9 @@ from drivingscene.data.tensors import PairTensors
 from drivingscene.geometry.flow import backward_warp, rigid_flow
 from drivingscene.methods.depth_sweep import neighbour_cameras
 from drivingscene.methods.refine_inputs import RefineInputs
+from drivingscene.models.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
 from drivingscene.models.pipeline import predict_static
 from drivingscene.precision import resolve_amp
-from drivingscene.train.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
 
 SMOOTH_WEIGHT = 0.01  # L_smooth relative to L_loc (stage 1: 0.001 / 0.1)
 

@@ -5,7 +5,7 @@ Gaussians: its own keyframe's where they are, the other keyframe's moved there b
 is what ties depth and flow across time and cameras: a Gaussian at the wrong depth, or with the
 wrong flow, lands on the wrong pixel of the other keyframe's images.
 
-Loss per rendered image, the paper's rendering loss (`train.losses.render_loss`):
+Loss per rendered image, the paper's rendering loss (`models.losses.render_loss`):
 L2 + 0.05 LPIPS over the pixels that see the world (``valid_mask``), and with LiDAR
 ``lidar_weight`` times the mean |rendered depth - LiDAR depth| / LiDAR depth where there is a
 return (a relative L1: near and far returns count alike).
@@ -27,9 +27,9 @@ from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import scale_intrinsics
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.refine_inputs import RefineInputs
+from drivingscene.models.losses import render_loss
 from drivingscene.render.scene import render_gaussians
 from drivingscene.render.sky import ray_directions, sky_colors
-from drivingscene.train.losses import render_loss
 
 MIN_PERCEPTUAL_SIZE = 32
 

@@ -20,11 +20,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from drivingscene import kernels
 from drivingscene.gaussians.assembly import FOOTPRINT, MIN_COS, THICKNESS, surfel_frames
 from drivingscene.gaussians.core import SH_C0, num_sh_coeffs, rgb_to_sh0
 from drivingscene.geometry.se3 import quat_multiply
 from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, upsample_to
-from drivingscene.render.cpp import select_op
 
 OPACITY_BIAS = 3.0
 
@@ -91,9 +91,9 @@ class GaussianHead(nn.Module):
             # raw is often a channels-last view of an NCHW tensor: per-pixel math on its strided
             # last dimension is several times slower than one contiguous copy.
             raw, images, depth, intrinsics = raw.float().contiguous(), images.float(), depth.float(), intrinsics.float()
-            op = select_op("activate_surfels", "auto", raw, images, depth)
-            if op is not None:  # the same arithmetic in one compiled pass (~2x faster), inference only
-                log_scales, quats, opacity_logits, sh = op(
+            # the same arithmetic in one compiled pass (~2x faster), inference only
+            if kernels.available(kernels.activate_surfels, "auto", raw, images, depth):
+                log_scales, quats, opacity_logits, sh = kernels.activate_surfels(
                     depth.detach(), intrinsics, raw, images, FOOTPRINT, THICKNESS, MIN_COS, OPACITY_BIAS, SH_C0
                 )
                 return PixelGaussians(log_scales=log_scales, quats=quats, opacity_logits=opacity_logits, sh=sh)

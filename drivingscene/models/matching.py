@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from drivingscene import kernels
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, upsample_to
 
@@ -157,37 +158,31 @@ def correlate_torch(
 
 
 class _CompiledCorrelation(torch.autograd.Function):
-    """`correlate_torch` through render/csrc/matching.cpp, forward and backward (the gradient with
-    respect to the features; ``uv`` and ``valid`` carry none)."""
+    """`correlate_torch` through `drivingscene.kernels.plane_sweep_correlate`, forward and backward
+    (the gradient with respect to the features; ``uv`` and ``valid`` carry none)."""
 
     @staticmethod
     def forward(ctx, features: Tensor, sources: Tensor, uv: Tensor, valid: Tensor) -> Tensor:
-        from drivingscene.render.cpp import load_op
-
         ctx.save_for_backward(features, sources, uv, valid)
-        return load_op("plane_sweep_correlate")(features, sources, uv, valid)
+        return kernels.plane_sweep_correlate(features, sources, uv, valid)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        from drivingscene.render.cpp import load_op
-
         features, sources, uv, valid = ctx.saved_tensors
-        grad_features = load_op("plane_sweep_correlate_backward")(features, sources, uv, valid, grad)
+        grad_features = kernels.plane_sweep_correlate_backward(features, sources, uv, valid, grad)
         return grad_features, None, None, None
 
 
 def correlate(features: Tensor, sources: Tensor, uv: Tensor, valid: Tensor, backend: str = "auto") -> Tensor:
-    """`correlate_torch`, through the compiled kernel (render/csrc/matching.cpp, with its own
-    backward: ~4x faster to train than the torch path) for float32 CPU tensors where it builds.
-    ``backend``: auto, cpp or torch."""
-    from drivingscene.render.cpp import BACKENDS, load_op
-
-    if backend not in BACKENDS:
+    """`correlate_torch`, through the compiled kernel (`drivingscene.kernels.plane_sweep_correlate`,
+    with its own backward: ~4x faster to train than the torch path) for float32 CPU tensors where
+    it builds. ``backend``: auto, cpp or torch."""
+    if backend not in kernels.BACKENDS:
         raise ValueError(f"correlate: backend must be auto, cpp or torch, got {backend!r}")
     usable = features.device.type == "cpu" and features.dtype == torch.float32 and uv.dtype == torch.float32
     if backend == "torch" or (backend == "auto" and not usable):
         return correlate_torch(features, sources, uv, valid)
-    if load_op("plane_sweep_correlate") is None:
+    if not kernels.load_extension():
         if backend == "cpp":
             raise RuntimeError("correlate: the compiled kernel is unavailable (see the logged warning)")
         return correlate_torch(features, sources, uv, valid)
@@ -207,16 +202,12 @@ def sweep_volume(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The sweep: costs ``[B, S, P, H, W]`` (`correlate`), the share of valid planes ``[B, S, H, W]``,
     the parallax ``[B, S, H, W]`` (`sweep_parallax`) and the validity ``[B, S, P, H, W]``. Without
-    gradients on float32 CPU tensors one compiled pass (render/csrc/matching.cpp) does all of it;
-    otherwise the steps above."""
-    from drivingscene.render.cpp import select_op
-
-    op = select_op("plane_sweep_volume", backend, features, rays)
-    if op is not None:
+    gradients on float32 CPU tensors one compiled pass (`drivingscene.kernels.plane_sweep_volume`)
+    does all of it; otherwise the steps above."""
+    if kernels.available(kernels.plane_sweep_volume, backend, features, rays):
         mask = source_valid if source_valid is not None else torch.zeros(0, dtype=torch.bool)
         sources = torch.where(present, sources, torch.full_like(sources, -1))
-        cost, share, parallax, valid = op(features, rays, a, b, sources, depths, mask, MIN_SOURCE_Z)
-        return cost, share, parallax, valid
+        return kernels.plane_sweep_volume(features, rays, a, b, sources, depths, mask, MIN_SOURCE_Z)
     with torch.no_grad():
         uv, z = sweep_coordinates(rays, a, b, depths)
         valid = sample_validity(uv, z, present, sources, source_valid)

@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.data.tensors import PairTensors
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
@@ -41,7 +42,6 @@ from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
 from drivingscene.models.matching import ViewGeometry, neighbour_views
 from drivingscene.models.model import DrivingSceneModel
-from drivingscene.render.cpp import select_op
 
 EPIPOLAR_DEPTHS = ("triangulated", "unmatched", "keep")
 
@@ -186,12 +186,11 @@ def epipolar_geometry(
     (the parallax, pixels, ``[V, H, W, 2]``: along the line, away from infinity), and ``valid``
     ``[V, H, W]``: the point in front of the other camera (z-depth there
     above ``NEAR_Z``), the ray pointing forward there, the end point inside the image and ``z``
-    finite. The compiled op (``render/csrc/flow.cpp``) computes the same in one pass per pixel
-    on the CPU; ``backend``: "auto", "cpp" or "torch" (`select_op`)."""
+    finite. The compiled op (`drivingscene.kernels.epipolar_parallax`) computes the same in one pass
+    per pixel on the CPU; ``backend``: "auto", "cpp" or "torch" (`drivingscene.kernels.available`)."""
     num_views, height, width = flow.shape[:3]
-    op = select_op("epipolar_parallax", backend, flow, intrinsics, rel)
-    if op is not None:
-        return op(flow, intrinsics, torch.linalg.inv(intrinsics), rel, NEAR_Z)
+    if kernels.available(kernels.epipolar_parallax, backend, flow, intrinsics, rel):
+        return kernels.epipolar_parallax(flow, intrinsics, torch.linalg.inv(intrinsics), rel, NEAR_Z)
     k_inv, a = _rays(intrinsics, rel, height, width)
     grid = pixel_grid(height, width, device=flow.device, dtype=torch.float32)
     target = torch.cat([grid + flow, torch.ones_like(flow[..., :1])], -1)
@@ -571,9 +570,9 @@ def lift_scene_flow(
             moving |= behind[k]
         moving &= ~sky[k]
         if not check and moving.float().mean() > DENSE_LIFT_SHARE:  # cheaper at every pixel, same result
-            op = select_op("lift_dense", "auto", depth[k], depth[o], total[k], total[o], c2l)
-            if op is not None:  # the same in one compiled pass (render/csrc/flow.cpp), inference only
-                sf, dynamic = op(
+            # the same in one compiled pass (`drivingscene.kernels.lift_dense`), inference only
+            if kernels.available(kernels.lift_dense, "auto", depth[k], depth[o], total[k], total[o], c2l):
+                sf, dynamic = kernels.lift_dense(
                     depth[k], depth[o], total[k], total[o], moving, batch.intrinsics, c2l[k], c2l[o], FB_ALPHA, FB_BETA
                 )
                 flows.append(sf)

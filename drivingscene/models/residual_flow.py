@@ -33,8 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from drivingscene import kernels
 from drivingscene.geometry.flow import backward_warp
-from drivingscene.render.cpp import select_op
 
 
 @dataclass(frozen=True)
@@ -79,10 +79,9 @@ def local_cost_volume(target: Tensor, source: Tensor, radius: int) -> Tensor:
     to ``radius`` pixels, averaged over channels.
 
     Without gradients, float32 CPU tensors go through the compiled kernel
-    (``render/csrc/flow.cpp``, 2-4x faster; the same values up to float rounding)."""
-    op = select_op("local_cost_volume", "auto", target, source)
-    if op is not None:
-        return op(target, source, radius)
+    (`drivingscene.kernels.local_cost_volume`, 2-4x faster; the same values up to float rounding)."""
+    if kernels.available(kernels.local_cost_volume, "auto", target, source):
+        return kernels.local_cost_volume(target, source, radius)
     height, width = target.shape[-2:]
     padded = F.pad(source, (radius, radius, radius, radius))
     costs = []

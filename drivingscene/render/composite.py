@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.render.splats import Splats
 
 MAX_ALPHA = 0.99
@@ -178,9 +179,10 @@ def _front_to_back(alpha: Tensor, pix: Tensor, max_layers: int) -> Tensor:
     return taken[slot]
 
 
-def find_pairs_cpp(op, inp: PairInputs, width: int, height: int, max_layers: int) -> Tensor:
-    """Compiled pair finding (same rule and result as ``find_pairs_torch``); float32 decisions."""
-    return op(
+def find_pairs_cpp(inp: PairInputs, width: int, height: int, max_layers: int) -> Tensor:
+    """Compiled pair finding (`drivingscene.kernels.find_pairs`: same rule and result as
+    ``find_pairs_torch``); float32 decisions."""
+    return kernels.find_pairs(
         inp.means2d.float().contiguous(),
         inp.conics.float().contiguous(),
         inp.opacities.float().contiguous(),

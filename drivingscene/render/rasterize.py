@@ -22,7 +22,7 @@ Gradients reach means, quats, scales, opacities, colours or SH coefficients, and
 culling, ordering and the choice of contributing Gaussians are piecewise constant (no gradient).
 
 Pipeline: ``splats.make_splats`` culls, sorts and projects (with grad) the visible (camera, Gaussian)
-pairs; a no-grad pair finder (compiled ``csrc/find_pairs.cpp`` or pure torch, identical result)
+pairs; a no-grad pair finder (compiled `drivingscene.kernels.find_pairs` or pure torch, identical result)
 picks each pixel's contributing Gaussians into a dense ``[pixels, max_layers]`` buffer; then
 ``composite.composite`` recomputes alphas and weights over that buffer, with a hand-written backward.
 
@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.errors import InputError
 
 DEFAULT_MAX_LAYERS = 32
@@ -102,9 +103,7 @@ def rasterize(
     )
     inp = pair_inputs(s, width, height)
     if chosen == "cpp":
-        from drivingscene.render.cpp import load_extension
-
-        pair_ids = find_pairs_cpp(load_extension(), inp, width, height, max_layers)
+        pair_ids = find_pairs_cpp(inp, width, height, max_layers)
     else:
         pair_ids = find_pairs_torch(inp, width, height, max_layers)
     rgb, depth, alpha = composite(pair_ids, s.means2d, s.conics, s.opacities, s.depths, s.colors, backgrounds, width, height)
@@ -127,9 +126,7 @@ def choose_backend(backend: str, means: Tensor) -> str:
             raise InputError(f"backend 'cpp' runs on CPU tensors, found device {means.device}")
         return "torch"
     if backend in ("cpp", "auto"):
-        from drivingscene.render.cpp import load_extension
-
-        if load_extension() is not None:
+        if kernels.load_extension():
             return "cpp"
         if backend == "cpp":
             raise InputError("backend 'cpp' requested but the C++ step could not be built (see the logged warning)")

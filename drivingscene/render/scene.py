@@ -7,7 +7,8 @@ import torch
 from torch import Tensor
 
 from drivingscene.errors import InputError
-from drivingscene.gaussians.core import DEFAULT_BLEND, Gaussians, sh0_to_rgb
+from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
+from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.render.rasterize import RenderOutput, rasterize
 from drivingscene.render.sky import ray_directions, sky_colors

@@ -39,6 +39,18 @@ def pixel_directions(cam_to_world: Tensor, intrinsics: Tensor, mask: Tensor) -> 
     return torch.nn.functional.normalize(rays @ cam_to_world[:3, :3].to(rays.dtype).T, dim=-1)
 
 
+def fit_sky_from_pixels(images: Tensor, sky: Tensor, cam_to_world: Tensor, intrinsics: Tensor) -> Tensor:
+    """Sky SH ``[K, 3]`` fitted to images ``[T, V, 3, H, W]`` where ``sky`` ``[T, V, H, W]`` is true,
+    seen by cameras ``[T, V, 4, 4]`` (camera to world) with intrinsics ``[V, 3, 3]``."""
+    colors = images.flatten(0, 1).permute(0, 2, 3, 1)
+    mask = sky.flatten(0, 1)
+    cams = cam_to_world.flatten(0, 1)
+    ks = intrinsics.repeat(images.shape[0], 1, 1).double()
+    # Directions at the sky pixels only (image by image), not at every pixel.
+    dirs = torch.cat([pixel_directions(cams[b], ks[b], mask[b]) for b in range(len(cams))])
+    return fit_sky(dirs.float(), colors[mask]).float()
+
+
 def sky_colors(sky_sh: Tensor, dirs: Tensor) -> Tensor:
     """Sky RGB ``[..., 3]`` for unit directions ``[..., 3]`` and coefficients ``[K, 3]``."""
     degree = round(sky_sh.shape[0] ** 0.5) - 1

@@ -32,7 +32,19 @@ from drivingscene.errors import InputError
 from drivingscene.geometry.camera import pixel_grid
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
 from drivingscene.geometry.se3 import invert_rigid
-from drivingscene.methods.oracle import fit_sky_from_pixels
+from drivingscene.models.losses import (
+    blank_masked,
+    consistency_loss,
+    half_moving_half_static,
+    render_loss,
+    reprojection_loss,
+    sampled_from,
+    search_distillation_loss,
+    smoothness_loss,
+    supervised_depth_loss,
+    supervised_flow_loss,
+    warp_loss,
+)
 from drivingscene.models.matching import neighbour_views
 from drivingscene.models.model import DrivingSceneModel
 from drivingscene.models.pipeline import (
@@ -49,20 +61,8 @@ from drivingscene.models.pipeline import (
 )
 from drivingscene.precision import resolve_amp
 from drivingscene.render.scene import render_gaussians
+from drivingscene.render.sky import fit_sky_from_pixels
 from drivingscene.train.config import TrainConfig
-from drivingscene.train.losses import (
-    blank_masked,
-    consistency_loss,
-    half_moving_half_static,
-    render_loss,
-    reprojection_loss,
-    sampled_from,
-    search_distillation_loss,
-    smoothness_loss,
-    supervised_depth_loss,
-    supervised_flow_loss,
-    warp_loss,
-)
 
 # Weight of the supervised depth of D's monocular and matching parts (each alone) beside the
 # supervised depth of their combination.

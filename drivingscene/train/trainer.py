@@ -219,7 +219,7 @@ def _truncate_log(path: Path, step: int) -> None:
 
 def _record_session(out: Path, start: int, world: int, config: TrainConfig) -> None:
     """One line per start or resume in ``OUT/sessions.jsonl``: when, from which step, on what."""
-    from drivingscene.bench.machine import cpu_model, usable_cores
+    from drivingscene.machine import cpu_model, usable_cores
 
     record = {
         "time": round(time.time(), 1),

@@ -10,7 +10,7 @@ from drivingscene.bench.choices import parse_variant
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
 from drivingscene.errors import InputError
-from drivingscene.gaussians.core import DEFAULT_BLEND
+from drivingscene.gaussians.timing import DEFAULT_BLEND
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
 
 

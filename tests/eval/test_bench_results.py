@@ -177,7 +177,7 @@ def test_peak_memory_of_a_spawned_process_does_not_inherit_the_parents():
 
     import numpy as np
 
-    from drivingscene.bench.machine import current_rss_bytes, peak_rss_bytes
+    from drivingscene.machine import current_rss_bytes, peak_rss_bytes
 
     ballast = np.ones(400 * 2**20 // 8)  # 400 MiB, touched
     with multiprocessing.get_context("spawn").Pool(1) as pool:

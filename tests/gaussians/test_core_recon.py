@@ -224,11 +224,11 @@ def test_axes_to_quat_gives_an_equivalent_gaussian_with_w_at_least_half():
 
 
 def test_compiled_surfel_frames_match_the_torch_path():
+    from drivingscene import kernels
     from drivingscene.gaussians.assembly import surfel_frames, surfel_frames_torch
     from drivingscene.geometry.se3 import quat_to_matrix as q2m
-    from drivingscene.render import cpp
 
-    if cpp.load_extension() is None:
+    if not kernels.load_extension():
         pytest.skip("C++ kernels unavailable (no compiler/ninja; see the logged warning)")
     g = torch.Generator().manual_seed(0)
     # Blocky depth with edges, slanted planes and near/far jumps, in 3 cameras with skew and offsets.

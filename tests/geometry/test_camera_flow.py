@@ -71,7 +71,7 @@ def test_rigid_flow_matches_per_pixel_reference():
 def test_compiled_rigid_flow_matches_the_torch_path(compiled_kernels, monkeypatch):
     """Float32 ``[B, H, W]`` maps without gradients take the compiled pass: the same flow and
     destination depth as the torch path (points behind the destination included)."""
-    import drivingscene.render.cpp as cpp
+    from drivingscene import kernels
 
     intrinsics, cam_to_ego = make_rig(num_views=3, height=24, width=40)
     ego_to_world = np.tile(np.eye(4), (2, 1, 1))
@@ -81,11 +81,11 @@ def test_compiled_rigid_flow_matches_the_torch_path(compiled_kernels, monkeypatc
     depth = torch.from_numpy(np.random.default_rng(1).uniform(0.5, 60, (3, 24, 40))).float()
     k = torch.from_numpy(intrinsics).float()
     calls = []
-    select = cpp.select_op
-    monkeypatch.setattr(cpp, "select_op", lambda name, *a: calls.append(name) or select(name, *a))
+    available = kernels.available
+    monkeypatch.setattr(kernels, "available", lambda op, *a: calls.append(op.__name__) or available(op, *a))
     fast = rigid_flow(depth, k, c2w[0], c2w[1])
     assert calls == ["rigid_flow_dense"]
-    monkeypatch.setattr(cpp, "select_op", lambda *a: None)
+    monkeypatch.setattr(kernels, "available", lambda *a: False)
     slow = rigid_flow(depth, k, c2w[0], c2w[1])
     assert (slow[1] < 0.5).any() and (slow[1] > 0.5).any()
     for a, b in zip(fast, slow):
@@ -95,14 +95,14 @@ def test_compiled_rigid_flow_matches_the_torch_path(compiled_kernels, monkeypatc
 def test_compiled_forward_backward_consistency_matches_the_torch_path(compiled_kernels, monkeypatch):
     """Smooth flows undone by the backward flow up to noise on some pixels, some leaving the image:
     the compiled pass and the torch path keep the same pixels."""
-    import drivingscene.render.cpp as cpp
+    from drivingscene import kernels
 
     g = torch.Generator().manual_seed(3)
     fw = torch.zeros(3, 20, 30, 2)
     fw[..., 0], fw[..., 1] = 4.0, -1.5
     bw = -fw + 3.0 * torch.randn(fw.shape, generator=g) * (torch.rand(3, 20, 30, 1, generator=g) < 0.3)
     fast = forward_backward_consistency(fw, bw)
-    monkeypatch.setattr(cpp, "select_op", lambda *a: None)
+    monkeypatch.setattr(kernels, "available", lambda *a: False)
     slow = forward_backward_consistency(fw, bw)
     assert 0.3 < slow.float().mean() < 0.9 and not slow[:, :, -4:].any()  # both outcomes; leaving the image fails
     assert torch.equal(fast, slow)

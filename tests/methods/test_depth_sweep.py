@@ -19,7 +19,7 @@ from drivingscene.methods.depth_sweep import (
     source_indices,
 )
 from drivingscene.methods.refine_inputs import refine_inputs
-from drivingscene.train.losses import photometric_error
+from drivingscene.models.losses import photometric_error
 from tests.factories import make_rig
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py

@@ -155,7 +155,7 @@ def test_config_is_checked():
 
 
 def test_every_match_mode_of_the_cli_has_a_config():
-    from drivingscene.cli.recon import MATCH_MODES
+    from drivingscene.arguments import MATCH_MODES
 
     assert match_mode("fallback") == MatchedDepthConfig() and match_mode("fallback").guide == "fallback"
     assert match_mode("depth").guide == "depth" and match_mode("off") is None

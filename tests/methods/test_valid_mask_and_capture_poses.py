@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from drivingscene.data.tensors import pair_to_tensors
-from drivingscene.gaussians.core import DEFAULT_BLEND
 from drivingscene.gaussians.recon import load_reconstruction, save_reconstruction
+from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
 from drivingscene.methods.oracle import oracle_reconstruction

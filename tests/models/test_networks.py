@@ -449,7 +449,7 @@ def test_search_keeps_the_flow_that_explains_the_images_at_full_size():
 def test_compiled_dense_lift_matches_the_torch_path(compiled_kernels, monkeypatch):
     """Nearly every pixel a candidate (the dense branch): smooth flows that the backward flow undoes
     with noise added, so that some pixels fail the forward/backward check, and some depths 0 (invalid)."""
-    import drivingscene.models.pipeline as pipeline
+    from drivingscene import kernels
 
     batch = pair_to_tensors(make_pair(num_views=2, height=24, width=32))
     g = torch.Generator().manual_seed(7)
@@ -462,16 +462,16 @@ def test_compiled_dense_lift_matches_the_torch_path(compiled_kernels, monkeypatc
     sky[:, :, :3] = True
     chosen = []
 
-    def spy(name, *args):
-        op = select_op(name, *args)
-        chosen.append((name, op is not None))
-        return op
+    def spy(op, *args):
+        compiled = available(op, *args)
+        chosen.append((op.__name__, compiled))
+        return compiled
 
-    select_op = pipeline.select_op
-    monkeypatch.setattr(pipeline, "select_op", spy)
+    available = kernels.available
+    monkeypatch.setattr(kernels, "available", spy)
     fast, fast_mask = lift_scene_flow(depth, total, total, sky, batch, LiftConfig())
     assert chosen == [("lift_dense", True)] * 2
-    monkeypatch.setattr(pipeline, "select_op", lambda *args: None)
+    monkeypatch.setattr(kernels, "available", lambda op, *args: op is not kernels.lift_dense and available(op, *args))
     slow, slow_mask = lift_scene_flow(depth, total, total, sky, batch, LiftConfig())
     assert 0.2 < slow_mask.float().mean() < 0.9  # both outcomes occur
     assert (fast_mask == slow_mask).float().mean() > 0.999

@@ -38,8 +38,8 @@ def random_scene(num: int = 40, num_cams: int = 2, width: int = 32, height: int 
 
 @pytest.fixture(scope="session")
 def cpp_op(compiled_kernels):
-    """The compiled find_pairs op (the kernels are built once per session; skipped without a compiler)."""
-    return compiled_kernels.load_extension()
+    """The compiled find_pairs wrapper (the kernels are built once per session; skipped without a compiler)."""
+    return compiled_kernels.find_pairs
 
 
 @pytest.fixture

@@ -1,16 +1,16 @@
-"""Backend choice, the optional C++ build (and its fallback), and torch/C++ agreement at full size."""
+"""The rasterizer's backend choice and torch/C++ agreement at full size (the build itself: tests/kernels)."""
 
 from __future__ import annotations
 
-import logging
 import sys
 
 import pytest
 import torch
 
+from drivingscene import kernels
 from drivingscene.bench.raster_speed import surround_scene
 from drivingscene.errors import InputError
-from drivingscene.render import cpp, rasterize
+from drivingscene.render import rasterize
 from drivingscene.render.composite import find_pairs_cpp, find_pairs_torch, pair_inputs
 from drivingscene.render.rasterize import choose_backend
 from drivingscene.render.splats import make_splats
@@ -20,7 +20,7 @@ def test_torch_and_cpp_choose_identical_pairs_at_full_size(cpp_op):
     scene = surround_scene(96, 176)  # 6 views, ~101k Gaussians: the training size
     s = make_splats(**scene, sh_degree=None, near=0.01, far=1e10, eps2d=0.3)
     inp = pair_inputs(s, 176, 96)
-    ids_cpp = find_pairs_cpp(cpp_op, inp, 176, 96, 32)
+    ids_cpp = find_pairs_cpp(inp, 176, 96, 32)
     ids_torch = find_pairs_torch(inp, 176, 96, 32)
     assert ids_cpp.shape == ids_torch.shape == (6 * 96 * 176, 32)
     assert (ids_cpp >= 0).sum() > 6 * 96 * 176 * 16  # dense: most pixels fill most layers
@@ -44,33 +44,10 @@ def test_torch_and_cpp_render_identical_images_and_gradients(cpp_op):
 def test_auto_uses_cpp_when_built_and_torch_otherwise(cpp_op, monkeypatch):
     means = torch.zeros(1, 3)
     assert choose_backend("auto", means) == "cpp"
-    monkeypatch.setattr(cpp, "load_extension", lambda: None)
+    monkeypatch.setattr(kernels, "load_extension", lambda: False)
     assert choose_backend("auto", means) == "torch"
     with pytest.raises(InputError, match="could not be built"):
         choose_backend("cpp", means)
-
-
-def test_failed_build_logs_a_warning_and_returns_none(tmp_path, monkeypatch, caplog):
-    broken = tmp_path / "broken.cpp"
-    broken.write_text('#error "deliberately broken"\n')
-    monkeypatch.setattr(cpp, "SOURCES", (broken,))
-    with caplog.at_level(logging.WARNING, logger="drivingscene.render.cpp"):
-        assert cpp.build_extension(tmp_path / "build") is None
-    assert "pure-torch path" in caplog.text
-
-
-def test_missing_source_and_env_switch_disable_the_compiled_path(tmp_path, monkeypatch, caplog):
-    monkeypatch.setattr(cpp, "SOURCES", (tmp_path / "absent.cpp",))
-    with caplog.at_level(logging.WARNING, logger="drivingscene.render.cpp"):
-        assert cpp.build_extension(tmp_path / "build") is None
-    assert "not installed" in caplog.text
-    monkeypatch.setenv("DRIVINGSCENE_NO_CPP", "1")
-    cpp.load_extension.cache_clear()
-    try:
-        assert cpp.load_extension() is None
-    finally:
-        monkeypatch.delenv("DRIVINGSCENE_NO_CPP")
-        cpp.load_extension.cache_clear()
 
 
 def test_gsplat_is_never_chosen_or_imported_on_cpu():
@@ -83,18 +60,3 @@ def test_gsplat_is_never_chosen_or_imported_on_cpu():
               torch.eye(4)[None], torch.eye(3)[None], 4, 4)  # fmt: skip
     assert imported_before or "gsplat" not in sys.modules
 
-
-def test_a_lock_left_by_a_killed_build_is_removed_and_a_live_one_kept(tmp_path, caplog):
-    import os
-    import time
-
-    from drivingscene.render.cpp import clear_stale_lock
-
-    assert not clear_stale_lock(tmp_path)  # no lock
-    lock = tmp_path / "lock"
-    lock.touch()
-    assert not clear_stale_lock(tmp_path) and lock.exists()  # another process is building now
-    old = time.time() - 3600
-    os.utime(lock, (old, old))
-    assert clear_stale_lock(tmp_path) and not lock.exists()
-    assert "interrupted build" in caplog.text

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from drivingscene.geometry.flow import backward_warp
-from drivingscene.train.losses import blank_masked, consistency_loss, render_loss, sampled_from, smoothness_loss
+from drivingscene.models.losses import blank_masked, consistency_loss, render_loss, sampled_from, smoothness_loss
 
 H, W = 36, 40
 
@@ -175,7 +175,7 @@ def _perturb_batch(batch):
 def _old_location_loss(depth, batch, targets):
     """L_loc as it was before masks, for the bit-identity check."""
     from drivingscene.geometry.flow import rigid_flow
-    from drivingscene.train.losses import reprojection_loss
+    from drivingscene.models.losses import reprojection_loss
     from drivingscene.train.stages import _source_sets
 
     c2l, k = batch.cam_to_local.flatten(0, 1), batch.intrinsics.repeat(2, 1, 1)
@@ -214,7 +214,7 @@ def test_location_loss_ignores_masked_targets_and_sources(step_setup):
 
 
 def test_warp_loss_ignores_masked_pixels(step_setup, perceptual):
-    from drivingscene.train.losses import warp_loss
+    from drivingscene.models.losses import warp_loss
     from drivingscene.train.stages import _masked_warp, _world
 
     _, _, masked, _ = step_setup

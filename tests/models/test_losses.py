@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from drivingscene.train.losses import (
+from drivingscene.models.losses import (
     consistency_loss,
     photometric_error,
     render_loss,
@@ -103,7 +103,7 @@ def test_consistency_loss_zero_for_inverse_flows_and_positive_otherwise():
 
 
 def test_box_ssim_matches_a_float64_window_loop():
-    from drivingscene.train.losses import ssim_box
+    from drivingscene.models.losses import ssim_box
 
     x, y = _image(0, 6, 7).double(), _image(1, 6, 7).double()
     got = ssim_box(x, y)

@@ -1,13 +1,18 @@
-"""Loader of the optional compiled CPU kernels: the rasterizer's pair finding (``csrc/find_pairs.cpp``),
-the per-pixel surfel frames of the Gaussian assembly (``csrc/surfels.cpp``), and the inference-time
-search along the rigid flow, residual-flow cost volume and dense lift (``csrc/flow.cpp``), and the
-plane-sweep correlation of the depth network's matching (``csrc/matching.cpp``).
+"""Build and load the optional compiled CPU kernels (``csrc/*.cpp``), and choose between them and
+the torch paths.
+
+The four sources register their ops in one torch library, ``torch.ops.drivingscene_render``:
+the rasterizer's pair finding (``csrc/find_pairs.cpp``), the per-pixel surfel frames of the
+Gaussian assembly (``csrc/surfels.cpp``), the inference-time search along the rigid flow,
+residual-flow cost volume and dense lift (``csrc/flow.cpp``), and the plane-sweep correlation of
+the depth network's matching (``csrc/matching.cpp``). Callers use the typed wrappers of
+``drivingscene.kernels`` (one per op), never the op names.
 
 Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenMP, ninja) into
 ``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
 ``DRIVINGSCENE_BUILD_DIR``); later processes reuse the build (~15 s on 2 cores the first time).
 Any failure (no compiler, no ninja, missing source, compile error) is logged once as a warning and
-``load_extension`` returns ``None``, so callers fall back to the pure-torch path. Setting
+``load_extension`` returns False, so callers fall back to the pure-torch path. Setting
 ``DRIVINGSCENE_NO_CPP=1`` disables the compiled path.
 """
 
@@ -18,7 +23,7 @@ import logging
 import os
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TypeVar
 
 import torch
 from torch import Tensor
@@ -62,8 +67,8 @@ def clear_stale_lock(build_dir: Path, max_age_s: float = STALE_LOCK_S) -> bool:
     return True
 
 
-def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> Callable | None:
-    """Compile (or reuse) the extension and return its ``find_pairs`` op, or ``None`` on any failure."""
+def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> bool:
+    """Compile (or reuse) the extension and register its ops; False on any failure (logged)."""
     build_dir = Path(build_dir) if build_dir is not None else default_build_dir()
     try:
         from torch.utils import cpp_extension
@@ -82,51 +87,68 @@ def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> 
             is_python_module=False,
             verbose=verbose,
         )
-        return torch.ops.drivingscene_render.find_pairs
+        torch.ops.drivingscene_render.find_pairs  # raises if the library did not register its ops
+        return True
     except Exception as e:  # any build/load failure means "use the torch path"
         log.warning("C++ kernels unavailable, using the pure-torch paths (same results, slower): %s", _first_line(e))
-        return None
+        return False
 
 
 @functools.lru_cache(maxsize=1)
-def load_extension() -> Callable | None:
-    """The compiled ``find_pairs`` op, built once per process; ``None`` if disabled or unavailable."""
+def load_extension() -> bool:
+    """Whether the compiled ops are registered, building them once per process; False if disabled
+    (``DRIVINGSCENE_NO_CPP``) or unavailable."""
     if os.environ.get("DRIVINGSCENE_NO_CPP", "") not in ("", "0"):
         log.info("C++ kernels disabled by DRIVINGSCENE_NO_CPP")
-        return None
+        return False
     if hasattr(torch.ops.drivingscene_render, "find_pairs"):
-        return torch.ops.drivingscene_render.find_pairs
+        return True
     return build_extension()
 
 
-def load_op(name: str) -> Callable | None:
-    """The compiled op ``torch.ops.drivingscene_render.<name>``, or ``None`` where the extension is unavailable."""
-    if load_extension() is None:
-        return None
-    return getattr(torch.ops.drivingscene_render, name)
+# The wrappers by op name: every op the sources register has one (tests/kernels checks).
+OPS: dict[str, Callable] = {}
+_Wrapper = TypeVar("_Wrapper", bound=Callable)
+
+
+def compiled(wrapper: _Wrapper) -> _Wrapper:
+    """Register ``wrapper`` as the Python face of the op of the same name."""
+    OPS[wrapper.__name__] = wrapper
+    return wrapper
+
+
+def call(name: str, *args):
+    """``torch.ops.drivingscene_render.<name>(*args)``; RuntimeError where the extension is unavailable."""
+    if not load_extension():
+        raise RuntimeError(f"{name}: the compiled kernel is unavailable (no C++ build; see the logged warning)")
+    return getattr(torch.ops.drivingscene_render, name)(*args)
 
 
 BACKENDS = ("auto", "cpp", "torch")
 
 
-def select_op(name: str, backend: str, *tensors: Tensor) -> Callable | None:
-    """The compiled op ``name`` a function with a torch path should use, or ``None`` for the torch path.
+def available(op: Callable, backend: str, *tensors: Tensor) -> bool:
+    """Whether a function with a torch path should call the compiled wrapper ``op`` (else its torch path).
 
     ``backend``: "torch" (never the op), "cpp" (the op, or a RuntimeError where it is unavailable),
     or "auto" (the op for float32 CPU ``tensors`` where the extension builds, unless one of them
     needs a gradient: the compiled ops have no backward)."""
+    name = getattr(op, "__name__", repr(op))
+    if OPS.get(name) is not op:
+        raise ValueError(f"{name}: not a compiled-kernel wrapper of drivingscene.kernels")
     if backend not in BACKENDS:
         raise ValueError(f"{name}: backend must be auto, cpp or torch, got {backend!r}")
     if backend == "torch":
-        return None
+        return False
     if backend == "auto" and not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
-        return None
+        return False
     if backend == "auto" and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return None
-    op = load_op(name)
-    if op is None and backend == "cpp":
-        raise RuntimeError(f"{name}: the compiled kernel is unavailable (CUDA tensors or no C++ build; see the logged warning)")
-    return op
+        return False
+    if not load_extension():
+        if backend == "cpp":
+            raise RuntimeError(f"{name}: the compiled kernel is unavailable (CUDA tensors or no C++ build; see the logged warning)")
+        return False
+    return True
 
 
 def _first_line(e: Exception) -> str:

@@ -1,0 +1,87 @@
+"""What a file handed to DrivingScene is, read in one place: a scene.npz (a frame pair: images,
+poses, intrinsics), a recon.npz (saved Gaussians with their rig) or a 3DGS .ply from this or
+another tool. The viewer (``drivingscene_view.loader``) and the command line (``drivingscene
+export``) both open files through ``open_source``; what they do with a scene differs (the viewer
+reconstructs it, export asks for a reconstruction).
+
+The kind is decided by the suffix (.ply) and, for .npz, by the content (``format`` names a
+reconstruction), never by trying readers one after another.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.errors import InputError
+from drivingscene.gaussians.recon import Reconstruction
+
+KINDS = ("scene", "recon", "ply")
+PLY_MARKER = b"DrivingScene"  # `comment DrivingScene ...` in the header of the PLYs we write
+HEADER_LINES = 10000  # a PLY header longer than this is not a header
+
+
+@dataclass
+class Source:
+    """An opened file: ``pair`` for a scene, ``recon`` for a reconstruction or a PLY (a PLY's
+    Gaussians wrapped with no cameras, ``ply_reconstruction``)."""
+
+    path: Path
+    kind: str  # one of KINDS
+    pair: FramePair | None = None
+    recon: Reconstruction | None = None
+    up: str = "z"  # the world's up axis: "z" (ours), "-y" (a PLY from a COLMAP/OpenCV y-down world)
+
+
+def ply_reconstruction(gaussians) -> Reconstruction:
+    """Gaussians read from a PLY (no rig) as a reconstruction with no cameras and unit time."""
+    return Reconstruction(
+        gaussians=gaussians,
+        intrinsics=np.zeros((0, 3, 3), np.float32),
+        cam_to_ego=np.zeros((0, 4, 4), np.float32),
+        ego_to_world=np.tile(np.eye(4), (2, 1, 1)),
+        timestamps=np.array([0.0, 1.0]),
+        camera_names=(),
+        image_size=(0, 0),
+        meta={"method": "ply"},
+    )
+
+
+def ply_up_axis(path: Path) -> str:
+    """ "z" for our own PLYs (z-up world, marked by a header comment), "-y" for others
+    (COLMAP/OpenCV worlds are y-down)."""
+    with open(path, "rb") as f:
+        for _ in range(HEADER_LINES):
+            line = f.readline()
+            if not line or line.startswith(b"end_header"):
+                break
+            if line.startswith(b"comment") and PLY_MARKER in line:
+                return "z"
+    return "-y"
+
+
+def open_source(path: str | Path) -> Source:
+    """Read ``path`` (scene.npz, recon.npz or .ply). Raises ``InputError`` naming the file and what
+    was expected where it is none of these or cannot be read."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: file not found")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory; expected a scene.npz, recon.npz or .ply file")
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        from drivingscene.export.ply import read_ply
+
+        return Source(path, "ply", recon=ply_reconstruction(read_ply(path)), up=ply_up_axis(path))
+    if suffix != ".npz":
+        raise InputError(f"{path}: expected a .npz (scene or reconstruction) or a .ply file, found '{path.suffix}'")
+    from drivingscene.data.npz import load_npz
+    from drivingscene.gaussians.recon import is_reconstruction_file, recon_from_arrays
+
+    arrays = load_npz(path)
+    if is_reconstruction_file(arrays):
+        return Source(path, "recon", recon=recon_from_arrays(arrays, str(path)))
+    return Source(path, "scene", pair=FramePair.from_arrays(arrays, str(path)))

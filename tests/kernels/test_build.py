@@ -1,0 +1,56 @@
+"""The optional C++ build: its fallback on failure, the switch that disables it, stale build locks."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+from drivingscene.kernels import build
+from drivingscene.kernels.build import clear_stale_lock
+
+
+def test_failed_build_logs_a_warning_and_returns_false(tmp_path, monkeypatch, caplog):
+    broken = tmp_path / "broken.cpp"
+    broken.write_text('#error "deliberately broken"\n')
+    monkeypatch.setattr(build, "SOURCES", (broken,))
+    with caplog.at_level(logging.WARNING, logger="drivingscene.kernels.build"):
+        assert build.build_extension(tmp_path / "build") is False
+    assert "pure-torch path" in caplog.text
+
+
+def test_missing_source_and_env_switch_disable_the_compiled_path(tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(build, "SOURCES", (tmp_path / "absent.cpp",))
+    with caplog.at_level(logging.WARNING, logger="drivingscene.kernels.build"):
+        assert build.build_extension(tmp_path / "build") is False
+    assert "not installed" in caplog.text
+    monkeypatch.setenv("DRIVINGSCENE_NO_CPP", "1")
+    build.load_extension.cache_clear()
+    try:
+        assert build.load_extension() is False
+    finally:
+        monkeypatch.delenv("DRIVINGSCENE_NO_CPP")
+        build.load_extension.cache_clear()
+
+
+def test_the_build_directory_follows_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("DRIVINGSCENE_BUILD_DIR", str(tmp_path))
+    assert build.default_build_dir() == tmp_path
+    monkeypatch.delenv("DRIVINGSCENE_BUILD_DIR")
+    assert build.default_build_dir().parent.name == "torch_extensions"
+
+
+def test_the_sources_are_the_packaged_csrc_files():
+    assert [s.name for s in build.SOURCES] == ["find_pairs.cpp", "surfels.cpp", "flow.cpp", "matching.cpp"]
+    assert all(s.is_file() and s.parent.name == "csrc" and s.parent.parent.name == "kernels" for s in build.SOURCES)
+
+
+def test_a_lock_left_by_a_killed_build_is_removed_and_a_live_one_kept(tmp_path, caplog):
+    assert not clear_stale_lock(tmp_path)  # no lock
+    lock = tmp_path / "lock"
+    lock.touch()
+    assert not clear_stale_lock(tmp_path) and lock.exists()  # another process is building now
+    old = time.time() - 3600
+    os.utime(lock, (old, old))
+    assert clear_stale_lock(tmp_path) and not lock.exists()
+    assert "interrupted build" in caplog.text
