@@ -50,7 +50,7 @@ real-data: setup
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 1 -o $(REAL_OUT)/ddad02_0-1.npz --force
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 1 2 -o $(REAL_OUT)/ddad02_1-2.npz --force
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 2 --eval 1 -o $(REAL_OUT)/ddad02_0-2.npz --force
-	$(VENV)/bin/drivingscene bench real $(REAL_OUT)/ddad02_0-1.npz $(REAL_OUT)/ddad02_1-2.npz $(REAL_OUT)/ddad02_0-2.npz \
+	$(VENV)/bin/drivingscene bench real --force $(REAL_OUT)/ddad02_0-1.npz $(REAL_OUT)/ddad02_1-2.npz $(REAL_OUT)/ddad02_0-2.npz \
 		--names "DDAD scene_02, 0->1" "DDAD scene_02, 1->2" "DDAD scene_02, 0->2 (1 held out)" \
 		--notes docs/real-data-notes.md --out docs/real-data.md --json docs/real-data.json --images $(OUT)/real-data $(REAL_REFINE)
 
@@ -66,5 +66,5 @@ BENCH_ABLATION ?= $(if $(ABLATION_RUNS),--two-stage-weights runs/dynamic-match2/
 WIDTH_RUNS := $(wildcard runs/width16/model.safetensors runs/width32/model.safetensors)
 BENCH_WIDTHS ?= $(if $(WIDTH_RUNS),--width-weights $(WIDTH_RUNS),)
 benchmark: setup
-	$(VENV)/bin/drivingscene bench report --scenes $(REAL_OUT)/ddad02_0-2.npz --names "DDAD scene_02, 0->2 (1 held out)" \
+	$(VENV)/bin/drivingscene bench report --force --scenes $(REAL_OUT)/ddad02_0-2.npz --names "DDAD scene_02, 0->2 (1 held out)" \
 		$(BENCH_ABLATION) $(BENCH_WIDTHS) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images

@@ -24,6 +24,7 @@ import numpy as np
 from drivingscene_view.camera import CameraController
 from drivingscene_view.renderer import RenderOptions
 
+from drivingscene.data.atomic import atomic_write_text
 from drivingscene.errors import InputError
 
 WIDTH, HEIGHT = 1280, 720
@@ -199,8 +200,7 @@ def run_bench(args) -> int:
         dynamic=int(doc.splats.dynamic.sum()),
         method=doc.info.get("method"),
     )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(report(results))
+    atomic_write_text(out, report(results))
     print(out.read_text())
     return 0
 

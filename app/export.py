@@ -16,6 +16,7 @@ from drivingscene_view.renderer import RenderOptions
 from drivingscene_view.state import SceneDoc
 from drivingscene_view.viewport import Viewport
 
+from drivingscene.data.atomic import atomic_path
 from drivingscene.errors import InputError
 from drivingscene.viz import save_png
 
@@ -125,23 +126,23 @@ def iter_video(
     if frames < 2:
         raise InputError(f"video frames: expected at least 2, found {frames}")
     path = _prepare(Path(path))
-    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
-    writer = None
-    try:
-        for i, t in enumerate(np.linspace(0.0, 1.0, frames)):
-            cam = camera_at(float(t))
-            cam = cam.resized(cam.width - cam.width % 2, cam.height - cam.height % 2)  # even sizes for the codec
-            image = viewport.image(doc, cam, float(t), _clean(opts), depth_range)
-            if writer is None:
-                writer = cv2.VideoWriter(str(partial), cv2.VideoWriter_fourcc(*"mp4v"), fps, (image.shape[1], image.shape[0]))
-                if not writer.isOpened():
-                    raise InputError(f"{path}: OpenCV could not open an MP4 writer (mp4v)")
-            writer.write(np.ascontiguousarray(image[..., ::-1]))
-            yield (i + 1) / frames
-    finally:
-        if writer is not None:
-            writer.release()
-    os.replace(partial, path)
+    with atomic_path(path) as partial:  # a hidden name beside it, renamed (fsync) when complete
+        writer = None
+        try:
+            for i, t in enumerate(np.linspace(0.0, 1.0, frames)):
+                cam = camera_at(float(t))
+                cam = cam.resized(cam.width - cam.width % 2, cam.height - cam.height % 2)  # even sizes for the codec
+                image = viewport.image(doc, cam, float(t), _clean(opts), depth_range)
+                if writer is None:
+                    size = (image.shape[1], image.shape[0])
+                    writer = cv2.VideoWriter(str(partial), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+                    if not writer.isOpened():
+                        raise InputError(f"{path}: OpenCV could not open an MP4 writer (mp4v)")
+                writer.write(np.ascontiguousarray(image[..., ::-1]))
+                yield (i + 1) / frames
+        finally:
+            if writer is not None:
+                writer.release()
     yield path
 
 

@@ -113,7 +113,7 @@ class LoadJob:
             self.result = fn(self._progress)
         except DrivingSceneError as e:
             self.error = e
-        except (OSError, ValueError, RuntimeError, KeyError, MemoryError) as e:  # unexpected: keep the window up
+        except Exception as e:  # noqa: BLE001 - a reader's bug must not take the window down with it
             log.exception("loading failed")
             self.error = DrivingSceneError(f"{self.label}: {type(e).__name__}: {e}")
         finally:

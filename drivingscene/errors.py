@@ -13,6 +13,10 @@ class InputError(DrivingSceneError):
     """A file, argument or value given by the user is not what was expected."""
 
 
+class OutputError(InputError):
+    """A file could not be written where the user asked (read-only folder, full disk, no such folder)."""
+
+
 @dataclass(frozen=True)
 class Problem:
     """One finding of a validator: where, what was expected, what was found."""

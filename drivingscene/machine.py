@@ -43,3 +43,55 @@ def peak_rss_bytes() -> int:
 def current_rss_bytes() -> int:
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+MEMORY_LIMIT_ENV = "DRIVINGSCENE_MEMORY_LIMIT"
+_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def available_memory_bytes() -> int:
+    """Bytes this process may still allocate: ``DRIVINGSCENE_MEMORY_LIMIT`` (bytes, or with a K, M,
+    G or T suffix, binary) where set, else the kernel's MemAvailable, capped by the room left under a
+    cgroup (container) memory limit, which is what the OOM killer enforces."""
+    text = os.environ.get(MEMORY_LIMIT_ENV, "").strip()
+    if text:
+        from drivingscene.errors import InputError
+
+        unit = text[-1].upper() if text[-1].isalpha() else ""
+        try:
+            value = float(text[: len(text) - len(unit)]) * _UNITS[unit]
+        except (KeyError, ValueError):
+            value = -1
+        if not value >= 0:
+            raise InputError(f"{MEMORY_LIMIT_ENV}: expected a number of bytes (e.g. 8G), found {text!r}")
+        return int(value)
+    available = _meminfo_available()
+    room = _cgroup_room()
+    return available if room is None else min(available, room)
+
+
+def _meminfo_available() -> int:
+    try:
+        with open("/proc/meminfo") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("MemAvailable:")) * 1024
+    except (OSError, StopIteration, ValueError):
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def _cgroup_room() -> int | None:
+    """Bytes left under the cgroup v2 memory limit, None without one."""
+    try:
+        with open("/sys/fs/cgroup/memory.max") as f:
+            limit = f.read().strip()
+        if limit == "max":
+            return None
+        with open("/sys/fs/cgroup/memory.current") as f:
+            return max(0, int(limit) - int(f.read().strip()))
+    except (OSError, ValueError):
+        return None
+
+
+def gib(num_bytes: float) -> str:
+    """``12.3 GiB`` (one decimal; two below 1 GiB)."""
+    value = num_bytes / 2**30
+    return f"{value:.1f} GiB" if value >= 1 else f"{value:.2f} GiB"

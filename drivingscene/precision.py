@@ -247,6 +247,8 @@ def _write_cache(path: Path, entries: dict) -> None:
         try:
             with os.fdopen(fd, "w") as f:
                 json.dump({"version": CACHE_VERSION, "entries": entries}, f, indent=1, sort_keys=True)
+                f.flush()
+                os.fsync(f.fileno())
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

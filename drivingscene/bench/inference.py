@@ -14,6 +14,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from drivingscene.data.atomic import atomic_write_text
 from drivingscene.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
 SIZES = ("96x176", "176x320", "352x640")
@@ -203,5 +204,5 @@ def run(args: argparse.Namespace) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        args.out.write_text(text)
+        atomic_write_text(args.out, text)
     return 0

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from drivingscene.data.atomic import atomic_write_text
 from drivingscene.machine import machine_description
 
 
@@ -123,5 +124,5 @@ def run(args: argparse.Namespace) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        args.out.write_text(text)
+        atomic_write_text(args.out, text)
     return 0

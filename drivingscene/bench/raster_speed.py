@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from drivingscene.data.atomic import atomic_write_text
 from drivingscene.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
 if TYPE_CHECKING:  # torch is imported inside the functions: `drivingscene --help` stays fast
@@ -244,6 +245,6 @@ def run(args: argparse.Namespace) -> int:
             f"start, {_load()} at the end.\n\n{markdown_table(rows)}"
         )
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(report)
+    atomic_write_text(args.out, report)
     print(report)
     return 0

@@ -26,6 +26,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from drivingscene.bench import read_notes
+from drivingscene.data.atomic import atomic_write_text
 from drivingscene.errors import InputError
 from drivingscene.machine import machine_description
 
@@ -389,7 +390,7 @@ def run(args: argparse.Namespace) -> int:
     print(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+        atomic_write_text(args.out, text)
     if args.json:
-        args.json.write_text(json.dumps(scores, indent=1))
+        atomic_write_text(args.json, json.dumps(scores, indent=1))
     return 0

@@ -15,6 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from drivingscene.data.atomic import atomic_write_text
 from drivingscene.machine import machine_description
 
 DEFAULT_SIZES = ("176x320", "96x176")
@@ -92,5 +93,5 @@ def run(args: argparse.Namespace) -> int:
     print(report, end="")
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(report)
+        atomic_write_text(args.out, report)
     return 0

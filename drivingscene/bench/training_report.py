@@ -11,6 +11,7 @@ import json
 import math
 from pathlib import Path
 
+from drivingscene.data.atomic import atomic_path, atomic_write_text
 from drivingscene.errors import InputError
 
 TERMS = ("loc", "smooth", "render", "warp", "consist", "flow_sup", "depth_sup", "search_sup")
@@ -25,7 +26,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _read_jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+    """The records of a JSON-lines log; a torn line (a run killed mid-append) is skipped."""
+    from drivingscene.train.trainer import parse_jsonl_line
+
+    records = [parse_jsonl_line(line) for line in path.read_text().splitlines()] if path.exists() else []
+    return [r for r in records if r is not None]
 
 
 def _read_run(folder: Path) -> tuple[dict, list[dict]]:
@@ -83,8 +88,8 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
     axes[-1].grid(alpha=0.3)
     axes[-1].legend(fontsize=7)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
     plt.close(fig)
 
 
@@ -147,5 +152,5 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         notes = args.notes.read_text() if args.notes else ""
         figure = Path("images") / args.figure.name
-        args.out.write_text(f"# Training\n\n{notes}\n## Runs\n\n{text}\n![loss curves]({figure})\n")
+        atomic_write_text(args.out, f"# Training\n\n{notes}\n## Runs\n\n{text}\n![loss curves]({figure})\n")
     return 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from pathlib import Path
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
     # name: (module, help)
@@ -61,12 +62,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     bsub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True, parser_class=type(p))
     for name, (module, help_text) in BENCHMARKS.items():
         bp = bsub.add_parser(name, help=help_text)
-        bp.set_defaults(func=_runner(module))
         importlib.import_module(module).add_arguments(bp)
+        bp.add_argument("--force", action="store_true", help="overwrite the report files (--out, --json) if they exist")
+        defaults = {dest: bp.get_default(dest) for dest in OUTPUTS}
+        bp.set_defaults(func=_runner(module, defaults))
 
 
-def _runner(module: str):
+# Report paths a benchmark writes; one given on the command line is never overwritten without
+# --force (a default path, such as raster's out/bench/raster.md, is the benchmark's own to refresh).
+OUTPUTS = ("out", "json")
+
+
+def _runner(module: str, defaults: dict):
     def run(args: argparse.Namespace) -> int:
+        from drivingscene.arguments import check_output
+
+        for dest in OUTPUTS:
+            path = getattr(args, dest, None)
+            if path is not None and path != defaults.get(dest):
+                check_output(Path(path), args.force, f"--{dest}")
         return importlib.import_module(module).run(args)
 
     return run

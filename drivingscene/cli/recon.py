@@ -36,6 +36,36 @@ def add_refine_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _scale(text: str) -> float | str:
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a scale in (0, 1] or 'auto', found {text!r}")
+    return value
+
+
+def memory_scale(scene: Path, scale: float | str, refine: bool) -> float:
+    """The scale to reconstruct ``scene`` at (``--scale``, 'auto': the largest that fits), checked
+    against the memory available from the file's array headers, before anything is loaded."""
+    from drivingscene.data.memory import declared_nbytes, declared_npz
+    from drivingscene.machine import available_memory_bytes
+    from drivingscene.methods.memory import check_reconstruct_memory, fitting_scale
+
+    arrays = declared_npz(scene)
+    if len(arrays.get("images", ((),))[0]) != 5:  # no readable images: the loader says what is wrong
+        return 1.0 if scale == "auto" else scale
+    _, views, height, width, _ = arrays["images"][0]
+    loaded = sum(declared_nbytes(*a) for a in arrays.values())
+    if scale == "auto":
+        scale = fitting_scale(views, height, width, available_memory_bytes() - loaded, refine) or 1.0
+    check_reconstruct_memory(views, height, width, str(scene), refine, loaded, flag="--scale", scale=scale)
+    return scale
+
+
 def refine_config(args: argparse.Namespace):
     """The ``RefineConfig`` of the refine flags; one-line errors for flags without ``--refine``."""
     from drivingscene.methods.refine import RefineConfig
@@ -70,6 +100,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_amp_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
     add_refine_arguments(p)
+    p.add_argument(
+        "--scale",
+        type=_scale,
+        default=1.0,
+        metavar="S",
+        help="reconstruct the keyframes resized by S in (0, 1], or 'auto': the largest scale that fits in the "
+        "memory available (default 1: refused with a message when it does not fit)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_reconstruct)
 
@@ -169,9 +207,16 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     if config is not None and device.type != "cpu":
         raise InputError("--refine: runs on the CPU rasterizer; use --device cpu")
+    scale = memory_scale(args.scene, args.scale, config is not None)
+    if scale != 1 and config is not None and config.lidar:
+        raise InputError("--lidar: the LiDAR depth is not resized; drop --scale or --lidar")
     pair = load_frame_pair(args.scene)
     if config is not None and config.lidar and pair.gt_depth is None:
         raise InputError(f"{args.scene}: --lidar: the scene has no LiDAR depth (gt_depth); drop --lidar")
+    if scale != 1:
+        from drivingscene.data.resize import resized_pair
+
+        pair = resized_pair(pair, scale)
     model = load_model(args.weights, device=device)
     options = InferenceOptions(use_residual=not args.static_only, amp=args.amp, threads=args.threads)
     if args.no_search:

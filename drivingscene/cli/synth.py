@@ -8,7 +8,7 @@ import re
 import sys
 from pathlib import Path
 
-from drivingscene.arguments import parse_resolution
+from drivingscene.arguments import check_output, parse_resolution
 from drivingscene.errors import InputError
 
 KNOBS = {  # flag: (config field, parser, meaning)
@@ -62,6 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="file name prefix of the previews: NAME_contact_sheet.png (default synth)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--force", action="store_true", help="overwrite file.npz (--seed) if it exists")
     p.set_defaults(func=run)
 
 
@@ -140,6 +141,7 @@ def _run_single(args: argparse.Namespace, config) -> int:
     out = Path(args.out)
     if out.suffix != ".npz" or out.is_dir():
         raise InputError(f"--out: expected a path ending in .npz for --seed, found {args.out!r}")
+    check_output(out, args.force, "--out")
     from drivingscene.data import save_frame_pair
     from drivingscene.synth.generate import generate_pair
 

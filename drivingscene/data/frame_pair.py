@@ -7,6 +7,7 @@ convert to float tensors at their boundary.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -151,8 +152,17 @@ def validate_frame_pair_file(path: str | os.PathLike) -> list[Problem]:
     try:
         arrays = load_npz(path)
     except InputError as e:
-        return [Problem(str(path), "<file>", "a readable .npz scene file", str(e).split(": ", 1)[-1])]
+        return [_read_problem(str(path), str(e))]
     return validate_arrays(arrays, str(path))
+
+
+def _read_problem(source: str, message: str) -> Problem:
+    """The ``Problem`` of a file that could not be read (``load_npz``'s one-line message)."""
+    text = message.removeprefix(f"{source}: ")
+    match = re.fullmatch(r"(?:([\w\[\].]+): )?expected (.*?), found (.*)", text)
+    if match is None:
+        return Problem(source, "<file>", "a readable .npz scene file", text)
+    return Problem(source, match.group(1) or "<file>", match.group(2), match.group(3))
 
 
 def load_frame_pair(path: str | os.PathLike) -> FramePair:

@@ -2,8 +2,8 @@
 
 ``numpy.savez`` stamps each zip member with the current time, so two saves of the same arrays
 differ byte for byte; this writer uses a fixed timestamp so the same arrays always give the same
-file. Files are written to a temporary name in the target folder and renamed into place, so an
-interrupted save never leaves a half-written file under the user's name. Loading never
+file. Files are written with `drivingscene.data.atomic.atomic_write` (a temporary name in the target
+folder, fsync, rename), so an interrupted save never leaves a half-written file under the user's name. Loading never
 unpickles.
 """
 
@@ -11,36 +11,18 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 import zipfile
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from drivingscene.data.atomic import atomic_write
+from drivingscene.data.memory import check_npz_fits
 from drivingscene.errors import InputError
 
 _FIXED_DATE = (1980, 1, 1, 0, 0, 0)
-
-
-def atomic_write(path: str | os.PathLike, write_fn, *, suffix: str = ".tmp") -> Path:
-    """Call ``write_fn(fileobj)`` on a temporary file beside ``path``, then rename it to ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        with os.fdopen(fd, "wb") as f:
-            write_fn(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def save_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], *, compress: bool = True, level: int = 6) -> Path:
@@ -75,19 +57,61 @@ def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise InputError(f"{path}: file not found")
     if path.is_dir():
         raise InputError(f"{path}: expected an .npz file, found a directory")
+    with open(path, "rb") as f:
+        magic = f.read(6)
+    if not magic.startswith((b"PK\x03\x04", b"PK\x05\x06")):  # a zip's first member, or an empty zip
+        found = (
+            "an empty file (0 bytes)"
+            if not magic
+            else "a single .npy array"
+            if magic == b"\x93NUMPY"
+            else f"no zip archive (the file starts with {magic!r})"
+        )
+        raise InputError(f"{path}: expected an .npz archive of named arrays (a zip of .npy files), found {found}")
     try:
         loaded = np.load(path, allow_pickle=False)
         if not isinstance(loaded, np.lib.npyio.NpzFile):
             raise InputError(f"{path}: expected an .npz archive of named arrays, found a single .npy array")
         with loaded as data:
+            check_npz_fits(path, loaded.zip)  # before any array is allocated
             out = {}
             for key in data.files:
+                _check_member(path, loaded.zip, key)
                 try:
                     out[key] = data[key]
-                except ValueError as e:  # object arrays need pickle
-                    raise InputError(f"{path}: {key}: expected a plain array, found a pickled object ({e})") from None
+                except ValueError as e:  # object arrays need pickle; short data
+                    raise InputError(f"{path}: {key}: expected a plain array, found unreadable data ({_one_line(e)})") from None
             return out
     except InputError:
         raise
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
-        raise InputError(f"{path}: expected an .npz (zip of .npy) file, could not read it: {e}") from None
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, NotImplementedError, RuntimeError) as e:
+        found = f"a damaged archive ({_one_line(e)})"
+        raise InputError(f"{path}: expected an .npz archive of named arrays (a zip of .npy files), found {found}") from None
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
+
+
+def _check_member(path: Path, zf: zipfile.ZipFile, key: str) -> None:
+    """The member's .npy header, read before its data: no pickled objects, and no more bytes
+    declared than the member holds (so a forged shape cannot make numpy allocate them)."""
+    name = key if key in zf.namelist() else f"{key}.npy"
+    size = zf.getinfo(name).file_size
+    with zf.open(name) as f:
+        try:
+            version = np.lib.format.read_magic(f)
+            if version not in ((1, 0), (2, 0)):
+                raise ValueError(f".npy format version {version[0]}.{version[1]}")
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(f, max_header_size=10_000)
+        except (ValueError, EOFError, SyntaxError, TypeError) as e:
+            raise InputError(f"{path}: {key}: expected a .npy array header, found {_one_line(e)}") from None
+        if dtype.hasobject:
+            raise InputError(f"{path}: {key}: expected a plain array, found a pickled object array (never unpickled)")
+        declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+        if declared > size - f.tell():
+            raise InputError(
+                f"{path}: {key}: expected {declared} bytes of data for shape {list(shape)} {dtype}, "
+                f"found {size - f.tell()} bytes"
+            )

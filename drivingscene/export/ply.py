@@ -89,13 +89,63 @@ def write_ply(gaussians: Gaussians, path: str | os.PathLike, kind: str = "3dgs",
     return _write(_structured(cols, dtypes), path, comments)
 
 
+PLY_TYPE_SIZES = {  # bytes of each scalar type (plyfile's names)
+    **dict.fromkeys(("int8", "i1", "char", "uint8", "u1", "uchar", "b1"), 1),
+    **dict.fromkeys(("int16", "i2", "short", "uint16", "u2", "ushort"), 2),
+    **dict.fromkeys(("int32", "i4", "int", "uint32", "u4", "uint", "float32", "f4", "float"), 4),
+    **dict.fromkeys(("float64", "f8", "double", "int64", "i8", "uint64", "u8"), 8),
+}
+MAX_HEADER_LINES = 10000
+
+
+def _check_header(path: Path) -> None:
+    """Element counts and sizes of a PLY header against the file, before plyfile reads it: a
+    negative count or a row without properties crashes numpy's memory map, and a count larger than
+    the file would make it read (or allocate) rows that are not there."""
+    elements: list[list] = []  # [name, count, minimal row bytes, properties]
+    binary = False
+    with open(path, "rb") as f:
+        for number in range(1, MAX_HEADER_LINES + 1):
+            line = f.readline()
+            if not line:
+                return  # no end_header: plyfile says so
+            words = line.decode("ascii", "replace").split()
+            if words[:1] == ["end_header"]:
+                break
+            if words[:1] == ["format"] and len(words) > 1:
+                binary = words[1].startswith("binary")
+            elif words[:1] == ["element"] and len(words) == 3:
+                if not re.fullmatch(r"\d+", words[2]):
+                    raise InputError(f"{path}: element {words[1]}: expected a row count >= 0 (header line {number}), found {words[2][:20]!r}")
+                elements.append([words[1], int(words[2]), 0, 0])
+            elif words[:1] == ["property"] and elements:
+                element = elements[-1]
+                element[3] += 1
+                size = words[2] if words[1:2] == ["list"] and len(words) > 2 else words[1] if len(words) > 1 else ""
+                element[2] += PLY_TYPE_SIZES.get(size, 1) if binary else 2  # ascii: a digit and a separator
+        else:
+            return
+        remaining = path.stat().st_size - f.tell()
+    needed = 0
+    for name, count, row, props in elements:
+        if count and not props:
+            raise InputError(f"{path}: element {name}: expected at least one property for {count} rows, found none")
+        needed += count * row
+        if needed > remaining:
+            raise InputError(f"{path}: element {name}: expected at least {needed} bytes of rows, found {remaining} after the header")
+
+
 def _vertex_element(path: Path):
     if not path.exists():
         raise InputError(f"{path}: file not found")
+    if path.is_dir():
+        raise InputError(f"{path}: expected a PLY file, found a directory")
+    _check_header(path)
     try:
         ply = PlyData.read(str(path))
     except Exception as e:  # noqa: BLE001 - plyfile raises several unrelated types for bad headers
-        raise InputError(f"{path}: expected a PLY file, could not parse it: {e}") from None
+        text = " ".join(str(e).split())
+        raise InputError(f"{path}: expected a PLY file, could not parse it: {text[:200]}") from None
     names = [el.name for el in ply.elements]
     if "vertex" not in names:
         raise InputError(f"{path}: expected a 'vertex' element, found elements {names}")
@@ -136,7 +186,7 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
     if np.any(np.isnan(opacity)):
         raise InputError(f"{path}: property 'opacity': expected numbers, found NaN")
     quats = np.stack([col(f"rot_{i}") for i in range(4)], axis=1)
-    if n and np.linalg.norm(quats, axis=1).min() == 0:
+    if n and (quats != 0).any(axis=1).min() == 0:
         raise InputError(f"{path}: properties 'rot_0..3': expected non-zero quaternions, found a zero one")
     dynamic = all(p in props for p in DYNAMIC_PROPS)
     t = torch.from_numpy

@@ -18,6 +18,7 @@ Any failure (no compiler, no ninja, missing source, compile error) is logged onc
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -67,6 +68,37 @@ def clear_stale_lock(build_dir: Path, max_age_s: float = STALE_LOCK_S) -> bool:
     return True
 
 
+GUARD_NAME = "drivingscene.guard"
+
+
+@contextlib.contextmanager
+def build_guard(build_dir: Path):
+    """Hold an advisory lock on ``build_dir`` while torch builds or loads the extension there.
+
+    torch marks a build directory busy with a ``lock`` file that it creates on every load (also
+    when nothing needs compiling) and deletes afterwards; a process killed in between leaves it
+    behind, and every later process waits on it forever. Our processes load only while holding
+    ``flock`` on a guard file, which the kernel releases when its holder dies: so while we hold the
+    guard, a ``lock`` file there was left by a killed process and is removed at once. Without
+    ``fcntl`` (Windows), a ``lock`` older than ``STALE_LOCK_S`` is removed instead."""
+    try:
+        import fcntl
+    except ImportError:
+        clear_stale_lock(build_dir)
+        yield
+        return
+    with open(Path(build_dir) / GUARD_NAME, "a+") as guard:
+        fcntl.flock(guard.fileno(), fcntl.LOCK_EX)  # waits while another of our processes builds
+        try:
+            lock = Path(build_dir) / "lock"
+            if lock.exists():
+                log.warning("%s: removing a build lock left by an interrupted process", lock)
+                lock.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(guard.fileno(), fcntl.LOCK_UN)
+
+
 def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> bool:
     """Compile (or reuse) the extension and register its ops; False on any failure (logged)."""
     build_dir = Path(build_dir) if build_dir is not None else default_build_dir()
@@ -77,16 +109,16 @@ def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> 
         if missing:
             raise FileNotFoundError(f"C++ source not installed: {', '.join(missing)}")
         build_dir.mkdir(parents=True, exist_ok=True)
-        clear_stale_lock(build_dir)
-        cpp_extension.load(
-            name=EXTENSION_NAME,
-            sources=[str(s) for s in SOURCES],
-            extra_cflags=list(CFLAGS),
-            extra_ldflags=["-fopenmp"],
-            build_directory=str(build_dir),
-            is_python_module=False,
-            verbose=verbose,
-        )
+        with build_guard(build_dir):
+            cpp_extension.load(
+                name=EXTENSION_NAME,
+                sources=[str(s) for s in SOURCES],
+                extra_cflags=list(CFLAGS),
+                extra_ldflags=["-fopenmp"],
+                build_directory=str(build_dir),
+                is_python_module=False,
+                verbose=verbose,
+            )
         torch.ops.drivingscene_render.find_pairs  # raises if the library did not register its ops
         return True
     except Exception as e:  # any build/load failure means "use the torch path"

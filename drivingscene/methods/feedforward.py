@@ -25,6 +25,7 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
+from drivingscene.methods.memory import check_reconstruct_memory
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
 from drivingscene.models.pipeline import (
     LiftConfig,
@@ -98,16 +99,58 @@ def load_model(path: str | Path | None = None, device: str = "cpu") -> DrivingSc
     try:
         meta = json.loads(config_path.read_text())
         config = ModelConfig.from_dict(meta["model"])
-        state = load_file(str(path))
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise InputError(f"{path}: could not load model weights/config: {e}") from None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise InputError(f"{config_path}: model: expected the model's JSON config, found {_one_line(e)}") from None
+    state = read_safetensors(path)
     model = DrivingSceneModel(config)
-    missing, unexpected = model.load_state_dict(state, strict=False)
+    try:
+        missing, unexpected = model.load_state_dict(state, strict=False)
+    except RuntimeError as e:  # a tensor of another shape than the config's model has
+        first = next((line.strip() for line in str(e).splitlines() if "size mismatch" in line), _one_line(e))
+        raise InputError(f"{path}: expected the tensor shapes of the model in {config_path.name}, found {first}") from None
     if missing or unexpected:
         raise InputError(
             f"{path}: weights do not match the model config (missing {len(missing)}, unexpected {len(unexpected)} tensors)"
         )
     return model.to(device).eval()
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
+
+
+SAFETENSORS_MAX_HEADER = 100_000_000  # the format's own limit on the JSON header (bytes)
+
+
+def read_safetensors_header(path: Path) -> dict:
+    """The JSON header of a ``.safetensors`` file (8-byte little-endian length, then JSON), checked
+    before the file is handed to safetensors. Raises ``InputError`` naming the file."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            prefix = f.read(8)
+            if len(prefix) < 8:
+                raise InputError(f"{path}: header: expected a safetensors file (an 8-byte header length first), found {size} bytes")
+            length = int.from_bytes(prefix, "little")
+            if length > min(size - 8, SAFETENSORS_MAX_HEADER):
+                raise InputError(f"{path}: header: expected a header length of at most {size - 8} bytes, found {length}")
+            header = json.loads(f.read(length).decode("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise InputError(f"{path}: header: expected a JSON object of tensor names, found {_one_line(e)[:200]}") from None
+    if not isinstance(header, dict):
+        raise InputError(f"{path}: header: expected a JSON object of tensor names, found {type(header).__name__}")
+    return header
+
+
+def read_safetensors(path: Path) -> dict[str, torch.Tensor]:
+    """Every tensor of a ``.safetensors`` file; one-line ``InputError``s for a damaged one."""
+    from safetensors import SafetensorError
+
+    read_safetensors_header(path)
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
+        raise InputError(f"{path}: expected a valid safetensors file, found {_one_line(e)[:200]}") from None
 
 
 def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
@@ -138,6 +181,7 @@ def reconstruct(
 
     ``flow_predictor(model, batch, depth) -> FlowPrediction`` replaces R and the search
     (diagnostics: ground-truth flow)."""
+    check_reconstruct_memory(pair.num_views, *pair.image_size)  # refuse before allocating (methods/memory.py)
     if options.threads:
         torch.set_num_threads(options.threads)
     device = next(model.parameters()).device

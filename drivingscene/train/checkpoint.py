@@ -1,22 +1,30 @@
 """Atomic checkpoints: weights (and optimiser state) in safetensors, everything else in JSON.
 
-A checkpoint is ``step_XXXXXXX.safetensors`` plus ``latest.json`` naming it; the JSON is written
-last, so a run killed mid-save resumes from the previous complete checkpoint. Nothing is pickled.
+A checkpoint is ``step_XXXXXXX.safetensors`` plus its ``step_XXXXXXX.json`` (step, optimiser
+scalars, and the SHA-256 and byte size of the weights file), and ``latest.json`` (a copy of the
+newest one's JSON); every file is written atomically and ``latest.json`` last, so a run killed
+mid-save resumes from the previous complete checkpoint. On resume each candidate, newest first, is
+checked against its recorded size and hash: a truncated or corrupted one is skipped with a warning
+and the one before it is used, so at least two checkpoints are kept. Nothing is pickled.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import os
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file
+from safetensors.torch import load as load_bytes
 
 from drivingscene.data.npz import atomic_write
 from drivingscene.errors import InputError
 
+log = logging.getLogger(__name__)
 LATEST = "latest.json"
+MIN_KEEP = 2  # the newest may be damaged; the one before it is the fallback
 
 
 def _optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
@@ -52,11 +60,22 @@ def save_checkpoint(out_dir: Path, step: int, model: torch.nn.Module, optimizer,
         opt_tensors, optim_scalars = _optimizer_tensors(optimizer)
         tensors.update(opt_tensors)
     tensors["rng.torch"] = torch.get_rng_state()
-    atomic_write(out_dir / name, lambda f: f.write(_safetensors_bytes(tensors)))
-    meta = {"step": step, "weights": name, "optimizer": optim_scalars, **info}
-    atomic_write(out_dir / LATEST, lambda f: f.write(json.dumps(meta, indent=1, sort_keys=True).encode()))
-    for old in sorted(out_dir.glob("step_*.safetensors"))[:-keep]:
+    data = _safetensors_bytes(tensors)
+    atomic_write(out_dir / name, lambda f: f.write(data))
+    meta = {
+        "step": step,
+        "weights": name,
+        "bytes": len(data),
+        "sha256": hashlib.sha256(data).hexdigest(),
+        "optimizer": optim_scalars,
+        **info,
+    }
+    text = json.dumps(meta, indent=1, sort_keys=True).encode()
+    atomic_write((out_dir / name).with_suffix(".json"), lambda f: f.write(text))
+    atomic_write(out_dir / LATEST, lambda f: f.write(text))
+    for old in sorted(out_dir.glob("step_*.safetensors"))[: -max(keep, MIN_KEEP)]:
         old.unlink()
+        old.with_suffix(".json").unlink(missing_ok=True)
     return out_dir / name
 
 
@@ -66,17 +85,39 @@ def _safetensors_bytes(tensors: dict[str, torch.Tensor]) -> bytes:
     return save(tensors)
 
 
+def _verified(out_dir: Path, record: Path) -> tuple[dict, dict[str, torch.Tensor]]:
+    """(meta, tensors) of the checkpoint ``record`` describes, after checking the weights' size and
+    SHA-256 (when recorded: checkpoints from before the check have none)."""
+    meta = json.loads(record.read_text())
+    data = (out_dir / meta["weights"]).read_bytes()
+    if "bytes" in meta and len(data) != meta["bytes"]:
+        raise ValueError(f"{meta['weights']} has {len(data)} bytes, expected {meta['bytes']} (truncated?)")
+    if "sha256" in meta and hashlib.sha256(data).hexdigest() != meta["sha256"]:
+        raise ValueError(f"{meta['weights']}: SHA-256 differs from the recorded one (corrupted)")
+    return meta, load_bytes(data)
+
+
 def load_checkpoint(out_dir: Path) -> tuple[dict, dict[str, torch.Tensor]] | None:
-    """(meta, tensors) of the latest complete checkpoint in ``out_dir``, or None."""
+    """(meta, tensors) of the newest intact checkpoint in ``out_dir``, or None when there is none.
+
+    ``latest.json`` first, then the kept ``step_*.json`` newest first; a damaged one is skipped
+    with a warning. Raises InputError when checkpoints are there but none is intact."""
     latest = out_dir / LATEST
     if not latest.exists():
         return None
-    try:
-        meta = json.loads(latest.read_text())
-        tensors = load_file(str(out_dir / meta["weights"]))
-    except (OSError, ValueError, KeyError) as e:
-        raise InputError(f"{latest}: expected a complete checkpoint, could not read it: {e}") from None
-    return meta, tensors
+    records = [latest, *sorted(out_dir.glob("step_*.json"), reverse=True)]
+    problems = []
+    for record in records:
+        try:
+            meta, tensors = _verified(out_dir, record)
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            problems.append(f"{record.name}: {e}")
+            log.warning("%s: checkpoint not usable, trying the previous one: %s", record, e)
+            continue
+        if record != latest and problems:
+            log.warning("%s: resuming from the previous intact checkpoint, step %d", out_dir, int(meta["step"]))
+        return meta, tensors
+    raise InputError(f"{latest}: expected a complete checkpoint, none is intact: {'; '.join(problems)}")
 
 
 def restore(model: torch.nn.Module, optimizer, meta: dict, tensors: dict[str, torch.Tensor]) -> int:

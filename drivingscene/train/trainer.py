@@ -6,7 +6,8 @@
 
 Every ``ckpt_every`` steps the weights, optimiser state and RNG state are saved atomically
 (safetensors + JSON); ``--resume`` continues from the last complete checkpoint after a kill.
-Logs are JSON lines in ``OUT/log.jsonl``; the resolved config is ``OUT/config.json`` (with the
+Logs are JSON lines appended to ``OUT/log.jsonl`` (a kill can tear the last line: readers skip a
+line that does not parse, and the next append starts a new line); the resolved config is ``OUT/config.json`` (with the
 precision chosen for this machine: ``amp``, and ``amp_auto`` when it was not forced).
 """
 
@@ -212,7 +213,7 @@ def _truncate_log(path: Path, step: int) -> None:
     if not path.exists():
         return
     lines = path.read_text().splitlines()
-    kept = [line for line in lines if line.strip() and json.loads(line)["step"] <= step]
+    kept = [line for line in lines if (record := parse_jsonl_line(line)) is not None and record.get("step", 0) <= step]
     if len(kept) != len(lines):
         atomic_write(path, lambda f: f.write("".join(line + "\n" for line in kept).encode()))
 
@@ -231,8 +232,7 @@ def _record_session(out: Path, start: int, world: int, config: TrainConfig) -> N
         "processes": world,
         "amp": config.amp,
     }
-    with open(out / "sessions.jsonl", "a") as f:
-        f.write(json.dumps(record) + "\n")
+    append_jsonl(out / "sessions.jsonl", record)
 
 
 # The validation score that `keep_best` ranks checkpoints by (higher is better).
@@ -257,8 +257,28 @@ def keep_best(out: Path, model, config, step: int, val: dict, info: dict) -> boo
 
 
 def _append_log(out: Path, record: dict) -> None:
-    with open(out / "log.jsonl", "a") as f:
-        f.write(json.dumps(record) + "\n")
+    append_jsonl(out / "log.jsonl", record)
+
+
+def append_jsonl(path: Path, record: dict) -> None:
+    """Append one JSON line; after a torn last line (a killed run) start a new line first, so only
+    the torn record is lost. Append-only logs are the one place writes are not atomic renames."""
+    with open(path, "a+b") as f:
+        if f.seek(0, os.SEEK_END) > 0:
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":
+                f.write(b"\n")
+        f.write((json.dumps(record) + "\n").encode())
+        f.flush()
+
+
+def parse_jsonl_line(line: str) -> dict | None:
+    """The record of one log line, or None for a blank or torn one (a run killed mid-append)."""
+    try:
+        record = json.loads(line)
+    except ValueError:
+        return None
+    return record if isinstance(record, dict) else None
 
 
 def _after_step(config, out, model, optimizer, step, loss, terms, seconds, info, val_files, bar) -> None:

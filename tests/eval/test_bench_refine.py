@@ -30,7 +30,7 @@ def test_bench_refine_budgets_and_choices(synth_pair, tiny_weights, tmp_path, mo
     assert {"default", "without the depth sweep", "learning rates x2"} <= set(CHOICES)
     few = {name: CHOICES[name] for name in ("default", "without the depth sweep")}
     monkeypatch.setattr("drivingscene.bench.refine_choices.CHOICES", few)
-    assert main([*base, "--choices", "--steps", "1", "--out", str(md)]) == 0
+    assert main([*base, "--choices", "--steps", "1", "--out", str(md), "--force"]) == 0
     text = md.read_text()
     assert all(f"| {name} |" in text for name in ("model", *few))
 

@@ -129,7 +129,7 @@ def test_bench_report_adds_ablation_models_to_a_saved_report(tiny_weights, tmp_p
     before = json.loads(js.read_text())
     add = ["bench", "report", "--from-json", str(js), "--joint-weights", str(tiny_weights), "--no-warp-weights", str(tiny_weights)]
     add += ["--width-weights", str(tiny_weights)]
-    assert main([*add, "--two-stage-weights", str(tiny_weights), "--json", str(js), "--out", str(tmp_path / "b.md")]) == 0
+    assert main([*add, "--two-stage-weights", str(tiny_weights), "--json", str(js), "--out", str(tmp_path / "b.md"), "--force"]) == 0
     after = json.loads(js.read_text())
     methods = {p["method"] for p in after["sets"]["procedural"]["points"]}
     assert {SINGLE, NO_WARP, TWO_STAGE} <= methods

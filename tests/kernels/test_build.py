@@ -54,3 +54,31 @@ def test_a_lock_left_by_a_killed_build_is_removed_and_a_live_one_kept(tmp_path, 
     os.utime(lock, (old, old))
     assert clear_stale_lock(tmp_path) and not lock.exists()
     assert "interrupted build" in caplog.text
+
+
+def test_a_lock_left_by_a_process_killed_during_a_load_does_not_stall_the_next(tmp_path):
+    """A process killed inside the guard (torch's ``lock`` file still there, as after a SIGKILL
+    during ``cpp_extension.load``) releases the guard with its death; the next process takes it at
+    once and removes the lock, instead of waiting on it (torch waits forever)."""
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, time; from pathlib import Path; from drivingscene.kernels.build import build_guard\n"
+        f"d = Path({str(tmp_path)!r})\n"
+        "with build_guard(d):\n"
+        "    (d / 'lock').touch(); print('inside', flush=True); time.sleep(60)\n"
+    )
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "inside"
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=10)
+    finally:
+        holder.kill()
+    assert (tmp_path / "lock").exists()
+    start = time.monotonic()
+    with build.build_guard(tmp_path):
+        assert not (tmp_path / "lock").exists()
+    assert time.monotonic() - start < 30.0  # not the 600 s age rule, nor forever

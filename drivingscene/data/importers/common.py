@@ -163,9 +163,23 @@ def rigid_from_quaternion(wxyz, translation) -> np.ndarray:
 
 def read_rgb(path) -> np.ndarray:
     """uint8 ``[H, W, 3]`` RGB from an image file; InputError naming the file if unreadable."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        found = "unreadable data" if Path(path).exists() else "no such file"
+    try:
+        data = np.fromfile(str(path), np.uint8)
+    except OSError:
+        data = None
+    image = None
+    if data is not None and data.size:
+        # OpenCV's own warnings about a damaged file would be a second line on stderr: the error says it
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        try:
+            image = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        except cv2.error:
+            image = None
+        finally:
+            cv2.utils.logging.setLogLevel(level)
+    if image is None or image.ndim != 3:
+        found = "no such file" if data is None else "an empty file" if not data.size else "unreadable data"
         raise InputError(f"{path}: expected a readable image file (JPEG/PNG), found {found}")
     return np.ascontiguousarray(image[..., ::-1])
 

@@ -17,8 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from drivingscene.data.atomic import atomic_path, atomic_write_text
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.importers.rig_schema import RIG_FILE, RIG_FORMAT, RIG_VERSION
+from drivingscene.errors import OutputError
 
 
 def _file_stem(name: str) -> str:
@@ -27,10 +29,10 @@ def _file_stem(name: str) -> str:
 
 def _write_png(path: Path, image: np.ndarray) -> str:
     """Write uint8 ``[H, W, 3]`` RGB or ``[H, W]`` grey; returns the name relative to the folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     pixels = image[..., ::-1] if image.ndim == 3 else image
-    if not cv2.imwrite(str(path), np.ascontiguousarray(pixels)):
-        raise OSError(f"{path}: could not write the PNG")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(pixels)):
+            raise OutputError(f"{path}: could not write the PNG")
     return f"{path.parent.name}/{path.name}"
 
 
@@ -121,11 +123,11 @@ def export_rig(pair: FramePair, folder: str | Path) -> Path:
         if depth is not None:
             poses = cam_poses if cam_poses is not None else np.broadcast_to(ego_to_world, (pair.num_views, 4, 4))
             points = _lidar_points(depth, pair.intrinsics, pair.cam_to_ego, poses, ego_to_world)
-            (folder / "lidar").mkdir(exist_ok=True)
-            np.save(folder / "lidar" / f"{f:06d}.npy", points)
+            with atomic_path(folder / "lidar" / f"{f:06d}.npy") as tmp:
+                np.save(tmp, points)
             frame["lidar"] = f"lidar/{f:06d}.npy"
         frames.append(frame)
     rig = {"format": RIG_FORMAT, "version": RIG_VERSION, "cameras": _cameras(pair, folder), "frames": frames}
     path = folder / RIG_FILE
-    path.write_text(json.dumps(rig, indent=1) + "\n", encoding="utf-8")
+    atomic_write_text(path, json.dumps(rig, indent=1) + "\n")  # last: a folder without it is no rig
     return path

@@ -1,0 +1,64 @@
+"""What an ``.npz`` file's arrays will take in memory, read from their ``.npy`` headers before any
+array is allocated (a header may declare any shape; numpy allocates what it declares)."""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from drivingscene.errors import InputError
+from drivingscene.machine import MEMORY_LIMIT_ENV, available_memory_bytes, gib
+
+
+def declared_arrays(zf: zipfile.ZipFile) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """``{key: (shape, dtype)}`` of every ``.npy`` member, from its header alone; members whose
+    header cannot be read are left out (the loader reports them)."""
+    out = {}
+    for name in zf.namelist():
+        try:
+            with zf.open(name) as f:
+                version = np.lib.format.read_magic(f)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                shape, _, dtype = read(f, max_header_size=10_000)
+        except (ValueError, EOFError, SyntaxError, TypeError, OSError, zipfile.BadZipFile, NotImplementedError):
+            continue
+        out[name.removesuffix(".npy")] = (tuple(int(n) for n in shape), dtype)
+    return out
+
+
+def declared_nbytes(shape: tuple[int, ...], dtype: np.dtype) -> int:
+    return int(np.prod(shape, dtype=object)) * dtype.itemsize
+
+
+def check_npz_fits(path: str | os.PathLike, zf: zipfile.ZipFile) -> int:
+    """Refuse an ``.npz`` whose arrays, as their headers declare them, would not fit in the memory
+    available now (`machine.available_memory_bytes`); the declared bytes otherwise.
+
+    Raises:
+        InputError: one line naming the file and its largest array.
+    """
+    arrays = declared_arrays(zf)
+    sizes = {key: declared_nbytes(shape, dtype) for key, (shape, dtype) in arrays.items()}
+    total = sum(sizes.values())
+    available = available_memory_bytes()
+    if total > available:
+        key = max(sizes, key=sizes.get)
+        shape, dtype = arrays[key]
+        raise InputError(
+            f"{Path(path)}: {key}: expected arrays that fit in the {gib(available)} of memory available, found shape "
+            f"{list(shape)} {dtype} ({gib(sizes[key])}; {gib(total)} for the whole file) "
+            f"(a smaller scene, or more memory; {MEMORY_LIMIT_ENV} overrides the measured figure)"
+        )
+    return total
+
+
+def declared_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """``declared_arrays`` of the file at ``path`` ({} where it is no zip: the loader says why)."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return declared_arrays(zf)
+    except (OSError, zipfile.BadZipFile, ValueError):
+        return {}

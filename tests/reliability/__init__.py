@@ -1,0 +1,1 @@
+"""Bad inputs: every one gets a one-line answer (issue 20)."""
