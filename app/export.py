@@ -39,9 +39,11 @@ def free_path(path: str | os.PathLike) -> Path:
     raise InputError(f"{path}: no free file name left beside it")
 
 
-def _prepare(path: Path) -> Path:
+def _prepare(path: Path, overwrite: bool = False) -> Path:
+    """The path to write: ``path`` itself with ``overwrite`` (replaced atomically: a kill leaves the
+    old file or the new one), else a free name beside it."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    return free_path(path)
+    return path if overwrite else free_path(path)
 
 
 def export_view(
@@ -53,13 +55,14 @@ def export_view(
     path: Path,
     size: tuple[int, int] | None = None,
     depth_range=(2.0, 80.0),
+    overwrite: bool = False,
 ) -> Path:
     """The view of ``camera`` at ``size`` (W, H; default the camera's) as a PNG, without overlays or selection tint."""
     if size is not None and (size[0] < 1 or size[1] < 1 or size[0] > 8192 or size[1] > 8192):
         raise InputError(f"PNG size: expected 1-8192 pixels per side, found {size[0]}x{size[1]}")
     cam = camera if size is None else camera.resized(*size)
     image = viewport.image(doc, cam, t, _clean(opts), depth_range)
-    return save_png(_prepare(Path(path)), image)
+    return save_png(_prepare(Path(path), overwrite), image)
 
 
 def _clean(opts: RenderOptions) -> RenderOptions:
@@ -82,6 +85,7 @@ def iter_rig_views(
     folder: Path,
     depth_range=(2.0, 80.0),
     names: list[str] | None = None,
+    overwrite: bool = False,
 ):
     """Generator: one PNG per rig camera at time t (rig resolution, exact intrinsics); yields each path."""
     if not doc.num_views:
@@ -94,7 +98,7 @@ def iter_rig_views(
         views = [(n, c) for n, c in views if n in names]
     for name, cam in views:
         image = viewport.image(doc, cam, t, _clean(opts), depth_range)
-        yield save_png(_prepare(Path(folder) / f"{name}_t{t:.3f}.png"), image)
+        yield save_png(_prepare(Path(folder) / f"{name}_t{t:.3f}.png", overwrite), image)
 
 
 def export_rig_views(
@@ -105,8 +109,9 @@ def export_rig_views(
     folder: Path,
     depth_range=(2.0, 80.0),
     names: list[str] | None = None,
+    overwrite: bool = False,
 ) -> list[Path]:
-    return list(iter_rig_views(viewport, doc, t, opts, folder, depth_range, names))
+    return list(iter_rig_views(viewport, doc, t, opts, folder, depth_range, names, overwrite))
 
 
 def iter_video(
@@ -160,13 +165,13 @@ def export_video(
     return out
 
 
-def export_ply(doc: SceneDoc, path: Path, kind: str = "3dgs", t: float | None = 0.0) -> Path:
+def export_ply(doc: SceneDoc, path: Path, kind: str = "3dgs", t: float | None = 0.0, overwrite: bool = False) -> Path:
     """A PLY of the visible Gaussians: "3dgs" or "points" at time t, "dynamic" with flows (no t)."""
     from drivingscene.export.ply import write_ply
 
     if kind not in PLY_KINDS:
         raise InputError(f"PLY kind: expected one of {', '.join(PLY_KINDS)}, found {kind!r}")
-    return write_ply(doc.visible_gaussians(), _prepare(Path(path)), kind=kind, t=None if kind == "dynamic" else t)
+    return write_ply(doc.visible_gaussians(), _prepare(Path(path), overwrite), kind=kind, t=None if kind == "dynamic" else t)
 
 
 def save_edited(doc: SceneDoc, path: Path) -> Path:

@@ -3,7 +3,8 @@
 Uses an EGL standalone context (no X server). Writes, for every requested time t:
 ``DIR/<camera>_t<t>.png`` for each rig camera (rig resolution, exact intrinsics),
 ``DIR/overview_t<t>.png`` from the default chase camera, and ``DIR/gaussians_t<t0>.ply`` (standard
-3DGS at the first time). Existing files are an error unless ``--force``.
+3DGS at the first time). Existing files are an error unless ``--force``, which replaces each
+one atomically (a kill leaves the old file or the new one, never none).
 """
 
 from __future__ import annotations
@@ -62,8 +63,6 @@ def run_headless(args) -> int:
         raise InputError(
             f"{existing[0]}: exists ({len(existing)} output file(s) would be overwritten); pass --force or choose another --out"
         )
-    for p in existing:
-        p.unlink()
     ctx = create_offscreen_context()
     viewport = Viewport(ctx)
     opts = RenderOptions(mode=args.mode, blend=args.blend)
@@ -72,12 +71,12 @@ def run_headless(args) -> int:
     try:
         for t in times:
             if names:
-                written += export_rig_views(viewport, doc, t, opts, out, names=names)
+                written += export_rig_views(viewport, doc, t, opts, out, names=names, overwrite=args.force)
             controller.reset(doc.recon, t, doc.splats.means_at(t))
             cam = controller.view(doc.recon, t, *args.size)
-            written.append(export_view(viewport, doc, cam, t, opts, out / f"overview_t{t:.3f}.png"))
+            written.append(export_view(viewport, doc, cam, t, opts, out / f"overview_t{t:.3f}.png", overwrite=args.force))
         if not args.no_ply:
-            written.append(export_ply(doc, out / f"gaussians_t{times[0]:.3f}.ply", "3dgs", times[0]))
+            written.append(export_ply(doc, out / f"gaussians_t{times[0]:.3f}.ply", "3dgs", times[0], overwrite=args.force))
     finally:
         viewport.close()
         ctx.release()

@@ -34,6 +34,7 @@ from drivingscene.data.frame_pair import FramePair
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.methods.depth_sweep import SweepConfig
+from drivingscene.methods.memory import check_reconstruct_memory
 from drivingscene.methods.refine_inputs import refine_inputs
 from drivingscene.methods.refine_params import GROUPS, RefineParams, gaussian_rays
 
@@ -152,6 +153,7 @@ def refine(
 ) -> Reconstruction:
     """The refined reconstruction (module docstring); ``model`` is needed only for ``adapt_steps``."""
     _check(pair, recon)
+    check_reconstruct_memory(pair.num_views, *pair.image_size, source="refine", refine=True)
     if config.adapt_steps and model is None:
         raise InputError("--adapt: adapting D and P needs the model's weights")
     threads = torch.get_num_threads()

@@ -55,6 +55,8 @@ def test_headless_renders_views_and_a_ply(capsys, tmp_path, recon_file):
     assert (
         main([str(recon_file), "--headless", "--out", str(out), "--time", "0.5", "--camera", "CAM_1", "--force", "--no-ply"]) == 0
     )
+    # replaced in place (atomically, never deleted first): no second name beside the first
+    assert sorted(p.name for p in out.iterdir()) == ["CAM_1_t0.500.png", "gaussians_t0.500.ply", "overview_t0.500.png"]
     assert "unknown camera" in _error(capsys, [str(recon_file), "--headless", "--out", str(out), "--camera", "CAM_9"])
 
 

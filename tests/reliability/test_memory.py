@@ -81,6 +81,19 @@ def test_reconstruct_refuses_before_allocating(monkeypatch):
         reconstruct(None, pair)
 
 
+def test_refine_refuses_before_allocating(monkeypatch):
+    """Refinement from the library (the viewer's Refine button) checks its larger estimate too."""
+    from drivingscene.methods.oracle import oracle_reconstruction
+    from drivingscene.methods.refine import refine
+
+    pair = make_pair(6, 16, 24)
+    recon = oracle_reconstruction(pair)
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "272000000")  # bytes: enough to reconstruct 6 x 16x24 (~257 MiB), not to refine (~263 MiB)
+    check_reconstruct_memory(6, 16, 24, "pair")
+    with pytest.raises(InputError, match=r"^refine: images: 6 cameras at 16x24 need about .* to reconstruct and refine"):
+        refine(None, pair, recon)
+
+
 def test_cli_refuses_from_the_header_alone(tmp_path, monkeypatch, capsys):
     """The command reads the images' declared shape and refuses before loading the file."""
     from drivingscene.cli import main

@@ -67,3 +67,30 @@ def test_unwritable_output_is_one_clean_line(scene, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "could not write it" in err and str(blocker / "recon.npz") in err, err
     assert blocker.read_bytes() == OLD
+
+
+@pytest.mark.gl
+def test_viewer_headless_force_replaces_files_without_deleting_them_first(scene, tmp_path):
+    """``--headless --force`` over earlier outputs, killed with SIGKILL at its first rename: every
+    earlier file is still there, complete (the old way deleted them all before rendering)."""
+    import subprocess
+    import sys
+
+    from drivingscene_view.headless import planned_outputs
+
+    out = tmp_path / "views"
+    out.mkdir()
+    planned = planned_outputs(out, [0.0], ["CAM_0", "CAM_1"], True)
+    for p in planned:
+        p.write_bytes(OLD)
+    code = (
+        "import os, signal, sys\n"
+        "os.replace = lambda *a, **k: os.kill(os.getpid(), signal.SIGKILL)\n"
+        "from drivingscene_view.__main__ import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    argv = [str(scene), "--method", "oracle", "--headless", "--out", str(out), "--time", "0", "--force"]
+    run = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=300,
+                         env={**__import__("os").environ, "PYOPENGL_PLATFORM": "egl"})
+    assert run.returncode == -9, run.stderr  # killed at the first rename
+    assert all(p.read_bytes() == OLD for p in planned)
