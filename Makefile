@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml .ci/install-system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip 2>/dev/null || true
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[dev,nuscenes]"
+	$(PY) -m pip install -q -e ".[dev,nuscenes,viewer]"
 # nuscenes-devkit without its deps: its pins (numpy<2, opencv-python-headless) would replace numpy 2
 # and clash with opencv-contrib's cv2; the [nuscenes] extra holds what its code imports (pyproject.toml)
 	$(PY) -m pip install -q --no-deps "nuscenes-devkit==1.2.0"

@@ -3,17 +3,19 @@
     drivingscene-view                         the bundled demo scene (assets/demo_scene.npz)
     drivingscene-view scene.npz               reconstruct with the model (``--method oracle``: ground truth)
     drivingscene-view recon.npz | splats.ply  open a saved reconstruction or another tool's 3DGS PLY
-    drivingscene-view scene.npz --headless --out DIR [--time T ...] [--camera NAME ...]
+    drivingscene-view scene.npz --headless -o DIR [--time T ...] [--camera NAME ...]
     drivingscene-view --bench OUT.md [scene]  performance on llvmpipe at 1280x720
     drivingscene-view --benchmark REPORT.json the report View > Benchmark charts (default docs/benchmark.json)
 
 Errors are one line on stderr (exit code 2); in the window they also appear in the status bar and the
-window stays up.
+window stays up. The window and ``--bench`` need the ``viewer`` extra (pyglet, imgui-bundle, PyOpenGL);
+``--headless`` renders through moderngl, a core dependency.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import sys
 from pathlib import Path
@@ -25,6 +27,7 @@ from drivingscene.arguments import OneLineParser, run_reporting_errors, unit_int
 from drivingscene.gaussians.timing import BLEND_MODES, DEFAULT_BLEND
 
 PROG = "drivingscene-view"
+VIEWER_EXTRA = ("pyglet", "imgui_bundle", "OpenGL")  # `pip install drivingscene[viewer]` (pyproject.toml)
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -50,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--weights", type=Path, default=None, help="model weights .safetensors (JSON config beside it)")
     p.add_argument("--headless", action="store_true", help="render to files through EGL, no window")
-    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder of --headless")
+    p.add_argument("-o", "--out", type=Path, default=None, metavar="DIR", help="output folder of --headless")
     p.add_argument(
         "--time", type=unit_interval, action="append", metavar="T", help="normalised time (repeatable; default 0, 0.5, 1)"
     )
@@ -69,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PATH",
         help="the JSON of `drivingscene bench report` shown by View > Benchmark (default: docs/benchmark.json in the repository)",
     )
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     return p
 
 
@@ -77,9 +80,9 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
     from drivingscene.resources import asset_path
 
     if args.headless and args.out is None:
-        parser.error("--headless needs --out DIR")
+        parser.error("--headless needs -o/--out DIR")
     if args.out is not None and not args.headless:
-        parser.error("--out is only used with --headless")
+        parser.error("-o/--out is only used with --headless")
     if args.benchmark is not None and (args.headless or args.bench):
         parser.error("--benchmark is only used in the window (View > Benchmark)")
     if args.path is None:
@@ -89,8 +92,26 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         args.demo = False
     if args.headless or args.bench:
         if not args.path.exists():
-            hint = " (generate it: drivingscene synth --seed 0 --out assets/demo_scene.npz)" if args.demo else ""
+            hint = " (generate it: drivingscene synth --seed 0 -o assets/demo_scene.npz)" if args.demo else ""
             parser.exit(2, f"{PROG}: error: {args.path}: file not found{hint}\n")
+
+
+def missing_viewer_extra() -> list[str]:
+    """The modules of the ``viewer`` extra that are not installed (a module set to None in
+    ``sys.modules`` counts as missing, as Python's import does)."""
+    missing = []
+    for name in VIEWER_EXTRA:
+        if name in sys.modules:
+            if sys.modules[name] is None:
+                missing.append(name)
+            continue
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            missing.append(name)
+    return missing
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     check_args(parser, args)
+    if not args.headless and missing_viewer_extra():
+        parser.exit(2, f"{PROG}: error: the viewer needs the viewer extra: pip install drivingscene[viewer]\n")
 
     def dispatch() -> int:
         if args.bench:

@@ -16,6 +16,14 @@ import numpy as np
 Z_UP = np.eye(3)
 # COLMAP / OpenCV-world PLYs from other tools: -y is up. Columns: where nav x, y, z go in the world.
 Y_DOWN_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+UP_ROTATIONS = {"z": Z_UP, "-y": Y_DOWN_UP}  # keyed by ``Source.up`` (drivingscene.export.ply.ply_up_axis)
+
+
+def up_rotation(up: str) -> np.ndarray:
+    """``NavCamera.up_to_world`` ``[3, 3]`` for a world whose up axis is ``up`` ("z" or "-y")."""
+    if up not in UP_ROTATIONS:
+        raise ValueError(f"up axis: expected one of {', '.join(UP_ROTATIONS)}, found {up!r}")
+    return UP_ROTATIONS[up].copy()
 
 
 def invert_rigid(m: np.ndarray) -> np.ndarray:
@@ -217,10 +225,12 @@ def ego_pose(recon, t: float) -> np.ndarray:
 
 class CameraController:
     """Which camera the 3D view shows: the navigation camera (in the world or following the ego),
-    or a rig camera snapped at the current time."""
+    or a rig camera snapped at the current time. ``up`` is the world's up axis (``Loaded.info["up"]``):
+    the window and the headless renders both build their camera with it."""
 
-    def __init__(self, fov_y_deg: float = 60.0):
+    def __init__(self, fov_y_deg: float = 60.0, up: str = "z"):
         self.nav = NavCamera(fov_y_deg)
+        self.nav.up_to_world = up_rotation(up)
         self.rig_index: int | None = None  # snapped to this rig camera
         self.follow_ego = False
         self.fly_mode = False  # left drag looks around instead of orbiting

@@ -166,12 +166,14 @@ def export_video(
 
 
 def export_ply(doc: SceneDoc, path: Path, kind: str = "3dgs", t: float | None = 0.0, overwrite: bool = False) -> Path:
-    """A PLY of the visible Gaussians: "3dgs" or "points" at time t, "dynamic" with flows (no t)."""
+    """A PLY of the visible Gaussians: "3dgs" or "points" at time t, "dynamic" with flows (no t), in
+    the document's frame (``info["up"]``: a y-down file from another tool stays y-down)."""
     from drivingscene.export.ply import write_ply
 
     if kind not in PLY_KINDS:
         raise InputError(f"PLY kind: expected one of {', '.join(PLY_KINDS)}, found {kind!r}")
-    return write_ply(doc.visible_gaussians(), _prepare(Path(path), overwrite), kind=kind, t=None if kind == "dynamic" else t)
+    t = None if kind == "dynamic" else t
+    return write_ply(doc.visible_gaussians(), _prepare(Path(path), overwrite), kind=kind, t=t, up=doc.info.get("up", "z"))
 
 
 def save_edited(doc: SceneDoc, path: Path) -> Path:

@@ -3,8 +3,11 @@
 Uses an EGL standalone context (no X server). Writes, for every requested time t:
 ``DIR/<camera>_t<t>.png`` for each rig camera (rig resolution, exact intrinsics),
 ``DIR/overview_t<t>.png`` from the default chase camera, and ``DIR/gaussians_t<t0>.ply`` (standard
-3DGS at the first time). Existing files are an error unless ``--force``, which replaces each
-one atomically (a kill leaves the old file or the new one, never none).
+3DGS at the first time). Where time changes nothing (`time_changes_nothing`: a PLY of static
+Gaussians, no rig), only the first time is rendered, with a note on stdout. Existing files are an
+error unless ``--force``, which replaces each one atomically (a kill leaves the old file or the new
+one, never none). The camera's up axis is the file's (``Loaded.info["up"]``, as in the window), so a
+y-down PLY from another tool renders upright.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
 from drivingscene_view.camera import CameraController
 from drivingscene_view.export import export_ply, export_rig_views, export_view
 from drivingscene_view.loader import Loaded, MissingWeightsError, open_path, reconstruct_pair
@@ -20,6 +24,7 @@ from drivingscene_view.renderer import RenderOptions
 from drivingscene_view.state import SceneDoc
 
 from drivingscene.errors import InputError
+from drivingscene.gaussians.timing import LAYERED_BLENDS
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +38,17 @@ def load_for_cli(path: Path, method: str, weights: Path | None) -> Loaded:
             raise
         print(f"drivingscene-view: note: {e}; showing the oracle reconstruction (ground truth) instead", file=sys.stderr)
         return reconstruct_pair(e.pair, e.source, "oracle", None, lambda f, m: None)
+
+
+def time_changes_nothing(doc: SceneDoc, blend: str) -> bool:
+    """True when every time t renders the same images: no rig (rig views and the chase view follow
+    the ego through time), no moving Gaussian, and no blend weight that changes with t ("fade" and
+    "nearest" weight each keyframe by t; the layered blends weight two keyframes' layers by t, which
+    cancels when one keyframe holds every Gaussian)."""
+    splats = doc.splats
+    if doc.num_views or splats.dynamic.any():
+        return False
+    return blend == "all" or (blend in LAYERED_BLENDS and len(np.unique(splats.keyframes)) <= 1)
 
 
 def planned_outputs(out: Path, times: list[float], cameras: list[str], ply: bool) -> list[Path]:
@@ -57,6 +73,9 @@ def run_headless(args) -> int:
             raise InputError(f"--camera: unknown camera {unknown[0]!r}; expected one of {', '.join(names) or '(none: no rig)'}")
         names = args.camera
     times = args.time or [0.0, 0.5, 1.0]
+    if len(times) > 1 and time_changes_nothing(doc, args.blend):
+        print(f"{loaded.source}: static Gaussians and no rig, time changes nothing; rendering t={times[0]:.3f} only")
+        times = times[:1]
     out = Path(args.out)
     existing = [p for p in planned_outputs(out, times, names, not args.no_ply) if p.exists()]
     if existing and not args.force:
@@ -66,7 +85,7 @@ def run_headless(args) -> int:
     ctx = create_offscreen_context()
     viewport = Viewport(ctx)
     opts = RenderOptions(mode=args.mode, blend=args.blend)
-    controller = CameraController()
+    controller = CameraController(up=loaded.info.get("up", "z"))  # as the window does (viewer.set_loaded)
     written = []
     try:
         for t in times:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 from drivingscene_view.selection import brush_mask, pick, rect_mask, sphere_mask
+from drivingscene_view.shortcuts import find, held_keys
 from drivingscene_view.viewer import Viewer
 
 LEFT, MIDDLE, RIGHT = 1, 2, 4  # pyglet's button bits
@@ -112,7 +113,7 @@ def _sphere_select(viewer: Viewer, x: float, y: float, modifiers: int) -> None:
 
 def fly(viewer: Viewer, keys_down: set[str], dt: float) -> None:
     """WASD/QE movement for the frame: speed scales with the orbit distance (shift: 4x)."""
-    if viewer.doc is None or not keys_down & set("wasdqe"):
+    if viewer.doc is None or not keys_down & set(held_keys()):
         return
     if viewer.camera.rig_index is not None:
         viewer.camera.unsnap(viewer.doc.recon, viewer.view.t)
@@ -126,43 +127,17 @@ def fly(viewer: Viewer, keys_down: set[str], dt: float) -> None:
 
 
 def key_press(viewer: Viewer, key: str, ctrl: bool, shift: bool) -> bool:
-    """Shortcuts; ``key`` is a lower-case name ('space', 'left', 'f', '1', ...). True if handled."""
-    doc = viewer.doc
-    if ctrl:
-        actions = {
-            "z": viewer_redo if shift else viewer_undo,
-            "y": viewer_redo,
-            "q": _quit,
-            "a": lambda v: v.doc and v.doc.select(np.ones(len(v.doc.splats), bool), "replace", "select all"),
-        }
-        if key in actions:
-            actions[key](viewer)
-            return True
+    """Shortcuts (``shortcuts.SHORTCUTS``); ``key`` is a lower-case name ('space', 'left', 'f', '1', ...).
+    True if handled."""
+    shortcut = find(key, ctrl, shift)
+    if shortcut is None:
         return False
-    simple = {
-        "space": lambda v: setattr(v.view, "playing", not v.view.playing),
-        "left": lambda v: v.step_time(-1),
-        "right": lambda v: v.step_time(1),
-        "comma": lambda v: v.step_time(-1),
-        "period": lambda v: v.step_time(1),
-        "home": lambda v: v.set_time(0.0),
-        "end": lambda v: v.set_time(1.0),
-        "f": lambda v: v.frame_all(),
-        "r": lambda v: v.reset_camera(),
-        "0": lambda v: v.snap(None),
-        "g": lambda v: v.set_follow(not v.camera.follow_ego),
-        "escape": lambda v: (setattr(v.tools, "tool", "navigate"), v.doc and v.doc.clear_selection()),
-        "delete": lambda v: v.doc and v.doc.delete_selected(),
-        "h": lambda v: v.doc and v.doc.hide_selected(),
-        "i": lambda v: v.doc and v.doc.invert_selection(),
-    }
-    if key in simple:
-        simple[key](viewer)
+    if shortcut.name == "rig_camera":
+        if viewer.doc is not None:
+            viewer.snap(int(key) - 1)
         return True
-    if key.isdigit() and doc is not None:
-        viewer.snap(int(key) - 1)
-        return True
-    return False
+    ACTIONS[shortcut.name](viewer)
+    return True
 
 
 def viewer_undo(viewer: Viewer) -> None:
@@ -177,5 +152,45 @@ def viewer_redo(viewer: Viewer) -> None:
         viewer.info(f"redo: {label}" if label else "nothing to redo")
 
 
-def _quit(viewer: Viewer) -> None:
-    viewer.quit_requested = True
+def _file_dialog(mode: str):
+    def open_it(viewer: Viewer) -> None:
+        from drivingscene_view.panels import filedialog
+
+        if mode == "open" or viewer.doc is not None:
+            filedialog.open_dialog(viewer, mode)
+
+    return open_it
+
+
+def _clear_selection(viewer: Viewer) -> None:
+    viewer.tools.tool = "navigate"
+    if viewer.doc is not None:
+        viewer.doc.clear_selection()
+
+
+def _on_doc(method: str):
+    return lambda v: v.doc is not None and getattr(v.doc, method)()
+
+
+# What each shortcut of ``shortcuts.SHORTCUTS`` does (held keys: ``fly``, every frame).
+ACTIONS = {
+    "open": _file_dialog("open"),
+    "save": _file_dialog("save"),
+    "quit": lambda v: v.request_quit(),
+    "undo": viewer_undo,
+    "redo": viewer_redo,
+    "select_all": lambda v: v.doc is not None and v.doc.select(np.ones(len(v.doc.splats), bool), "replace", "select all"),
+    "clear_selection": _clear_selection,
+    "invert_selection": _on_doc("invert_selection"),
+    "hide_selected": _on_doc("hide_selected"),
+    "delete_selected": _on_doc("delete_selected"),
+    "frame_all": lambda v: v.frame_all(),
+    "reset_camera": lambda v: v.reset_camera(),
+    "free_camera": lambda v: v.snap(None),
+    "follow_ego": lambda v: v.set_follow(not v.camera.follow_ego),
+    "play": lambda v: setattr(v.view, "playing", not v.view.playing),
+    "step_back": lambda v: v.step_time(-1),
+    "step_forward": lambda v: v.step_time(1),
+    "first_keyframe": lambda v: v.set_time(0.0),
+    "last_keyframe": lambda v: v.set_time(1.0),
+}

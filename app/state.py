@@ -80,20 +80,20 @@ class SceneDoc:
     def edit(self, edit: Edit) -> None:
         edit.apply(self)
         self.history.push(edit)
-        self.edited = True
+        self.edited |= changes_content(edit)
 
     def undo(self) -> str | None:
         edit = self.history.pop_undo()
         if edit is not None:
             edit.revert(self)
-            self.edited = True
+            self.edited |= changes_content(edit)
         return None if edit is None else edit.label
 
     def redo(self) -> str | None:
         edit = self.history.pop_redo()
         if edit is not None:
             edit.apply(self)
-            self.edited = True
+            self.edited |= changes_content(edit)
         return None if edit is None else edit.label
 
     # --- user operations ---------------------------------------------------------------------
@@ -186,6 +186,16 @@ class SceneDoc:
             }
             self._stats_key = key
         return self._stats
+
+
+def changes_content(edit: Edit) -> bool:
+    """False for an edit of the selection alone: recon.npz does not store the selection, so it leaves
+    nothing unsaved (the quit question and the "unsaved edits" note)."""
+    if isinstance(edit, SelectEdit):
+        return False
+    if isinstance(edit, CompoundEdit):
+        return any(changes_content(p) for p in edit.parts)
+    return True
 
 
 @dataclass

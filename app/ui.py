@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from drivingscene_view.panels import benchmark, cameras, edit, export, filedialog, menu, scene, stats, timeline, view
+from drivingscene_view.panels import benchmark, cameras, edit, export, filedialog, menu, scene, stats, timeline, unsaved, view
 from drivingscene_view.viewer import Viewer
 from imgui_bundle import icons_fontawesome_6 as fa
 from imgui_bundle import imgui
@@ -80,6 +80,7 @@ def layout(viewer: Viewer, width: int, height: int) -> None:
     cameras.draw_enlarged(viewer)
     benchmark.draw(viewer)
     filedialog.draw(viewer)
+    unsaved.draw(viewer)
     _view_overlay(viewer)
 
 

@@ -11,9 +11,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from drivingscene_view.camera import Y_DOWN_UP, Z_UP, CameraController, ViewCamera, fit_rect, invert_rigid
+from drivingscene_view.camera import CameraController, ViewCamera, fit_rect, invert_rigid
 from drivingscene_view.loader import Loaded, LoadJob, MissingWeightsError, open_path, reconstruct_pair
 from drivingscene_view.overlays import LineRenderer, scene_overlays
+from drivingscene_view.quitting import QuitGuard, default_save_path
 from drivingscene_view.refine_job import RefineState, poll_refine
 from drivingscene_view.renderer import RenderOptions
 from drivingscene_view.state import SceneDoc, Status, ViewState
@@ -75,7 +76,7 @@ class Viewer:
         self.moving_until = 0.0
         self.panels: dict = {}  # per-panel UI state
         self.ui_rects: dict[str, tuple[float, float, float, float]] = {}  # widget rectangles (scripted tests)
-        self.quit_requested = False
+        self.quit = QuitGuard()  # Ctrl+Q / close: asks first when edits are unsaved (app/quitting.py)
         self.task = None  # (label, generator, results): an export drawn one picture per frame
         self.refine = RefineState()  # test-time refinement running in the background (app/refine_job.py)
 
@@ -96,6 +97,27 @@ class Viewer:
         except (DrivingSceneError, OSError, ValueError) as e:
             self.error(f"{label}: {e}")
             return None
+
+    # --- quitting ----------------------------------------------------------------------------------
+    def request_quit(self) -> None:
+        """Ctrl+Q, File > Quit, the window's close button: quit now, or ask when edits are unsaved."""
+        self.quit.request(self.doc)
+
+    def answer_quit(self, choice: str) -> None:
+        """The answer to the unsaved-edits question: 'save' (beside the source, then quit), 'discard', 'cancel'."""
+        self.quit.answer(choice, self._save_default)
+
+    def _save_default(self):
+        from drivingscene_view.export import save_edited
+
+        out = self.run_action("save", lambda: save_edited(self.doc, default_save_path(self.doc)))
+        if out is not None:
+            self.info(f"saved the edited reconstruction to {out}")
+        return out
+
+    @property
+    def quit_requested(self) -> bool:
+        return self.quit.confirmed
 
     # --- long exports, one step per frame ---------------------------------------------------------
     def start_task(self, label: str, generator) -> None:
@@ -169,8 +191,7 @@ class Viewer:
         self.pair = loaded.pair or self.pair
         self.textures.clear()
         self.view.t, self.view.playing = 0.0, False
-        self.camera = CameraController()
-        self.camera.nav.up_to_world = Y_DOWN_UP if loaded.info.get("up") == "-y" else Z_UP
+        self.camera = CameraController(up=loaded.info.get("up", "z"))
         self.camera.reset(self.doc.recon, 0.0, self.doc.splats.means_at(0.0))
         self._auto_ranges()
         stats = self.doc.stats()

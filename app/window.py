@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 from drivingscene_view import interaction, ui
+from drivingscene_view.shortcuts import held_keys
 from drivingscene_view.viewer import Viewer
 
 KEY_NAMES = {
@@ -60,10 +61,12 @@ class ViewerWindow:
         self.keys = pyglet.window.key.KeyStateHandler()
         self.window.push_handlers(self.keys)
         self.window.push_handlers(self)
+        # pyglet's own on_key_press (it runs after every pushed handler) closes the window on Esc:
+        # Esc clears the selection here, and quitting goes through ``Viewer.request_quit``.
+        self.window.on_key_press = lambda symbol, modifiers: pyglet.event.EVENT_HANDLED
         self.viewer = Viewer(self.ctx, method, weights, lod, benchmark)
         self._dragging = False
         self._last = time.perf_counter()
-        self.closed = False
 
     # --- pyglet events (pyglet: y up; the viewer: y down) ---------------------------------------
     def _io(self):
@@ -94,40 +97,37 @@ class ViewerWindow:
             interaction.mouse_scroll(self.viewer, scroll_y)
 
     def on_key_press(self, symbol, modifiers):
+        """Shortcuts (``shortcuts.SHORTCUTS``) when imgui does not want the keyboard (with a menu or
+        dialog open, Esc goes to imgui and closes it)."""
         import pyglet
 
-        if self._io().want_capture_keyboard:
+        if self._io().want_capture_keyboard or self.viewer.quit.asking:
             return
         name = pyglet.window.key.symbol_string(symbol)
         name = KEY_NAMES.get(name, name.lower().lstrip("_"))
         ctrl = bool(modifiers & pyglet.window.key.MOD_CTRL)
-        if ctrl and name == "o":
-            from drivingscene_view.panels import filedialog
-
-            filedialog.open_dialog(self.viewer, "open")
-        elif ctrl and name == "s" and self.viewer.doc is not None:
-            from drivingscene_view.panels import filedialog
-
-            filedialog.open_dialog(self.viewer, "save")
-        else:
-            interaction.key_press(self.viewer, name, ctrl, bool(modifiers & pyglet.window.key.MOD_SHIFT))
+        interaction.key_press(self.viewer, name, ctrl, bool(modifiers & pyglet.window.key.MOD_SHIFT))
 
     def on_file_drop(self, x, y, paths):
         if paths:
             self.viewer.open(Path(paths[0]))
 
     def on_close(self):
-        self.closed = True
+        """The window's close button: like Ctrl+Q (asks first when edits are unsaved)."""
+        import pyglet
+
+        self.viewer.request_quit()
+        return pyglet.event.EVENT_HANDLED
 
     # --- frames ----------------------------------------------------------------------------------
     def _keys_down(self) -> set[str]:
         import pyglet
 
         k = pyglet.window.key
-        down = {name for name, sym in (("w", k.W), ("a", k.A), ("s", k.S), ("d", k.D), ("q", k.Q), ("e", k.E)) if self.keys[sym]}
+        down = {name for name in held_keys() if self.keys[getattr(k, name.upper())]}
         if down and (self.keys[k.LSHIFT] or self.keys[k.RSHIFT]):
             down.add("shift")
-        if self._io().want_capture_keyboard or self.keys[k.LCTRL] or self.keys[k.RCTRL]:
+        if self._io().want_capture_keyboard or self.viewer.quit.asking or self.keys[k.LCTRL] or self.keys[k.RCTRL]:
             return set()
         return down
 
@@ -174,7 +174,7 @@ class ViewerWindow:
         return np.frombuffer(data, np.uint8).reshape(fb_h, fb_w, 3)[::-1].copy()
 
     def run(self) -> None:
-        while not self.closed and not self.viewer.quit_requested:
+        while not self.viewer.quit_requested:
             self.step()
             if self.idle:
                 time.sleep(1 / 40)

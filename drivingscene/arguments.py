@@ -120,3 +120,90 @@ def add_amp_arguments(p: argparse.ArgumentParser) -> None:
         help="force bf16 autocast for the networks (default: where the CPU/GPU does bf16 natively, else float32)",
     )
     amp.add_argument("--no-amp", dest="amp", action="store_false", help="force float32 networks")
+
+
+def add_output_argument(p: argparse.ArgumentParser, *flags: str, **kwargs) -> argparse.Action:
+    """The one output option of a command: ``-o/--out`` (``flags`` adds aliases such as ``--ply``)."""
+    kwargs.setdefault("type", Path)
+    kwargs.setdefault("dest", "out")
+    return p.add_argument("-o", "--out", *flags, **kwargs)
+
+
+def list_items(item_type: Callable[[str], object] = str) -> Callable[[str], list]:
+    """argparse type for a list option (``nargs="+"`` plus ``action=ExtendList``): one value, or the old
+    comma-separated form (``--sizes 96x176,176x320``) split into several."""
+
+    def parse(text: str) -> list:
+        items = [t.strip() for t in text.split(",")]
+        if not all(items):
+            raise argparse.ArgumentTypeError(f"expected values separated by spaces, found {text!r}")
+        return [item_type(t) for t in items]
+
+    parse.__name__ = getattr(item_type, "__name__", "value")
+    return parse
+
+
+class ExtendList(argparse.Action):
+    """Flattens the lists of ``list_items`` into one list: ``--sizes 8x12 16x24,32x48`` is three sizes."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, [item for value in values for item in value])
+
+
+def add_list_argument(p: argparse.ArgumentParser, flag: str, item_type: Callable[[str], object] = str, **kwargs):
+    """A space-separated list option (``--sizes 96x176 176x320``); the comma form is accepted too."""
+    return p.add_argument(flag, nargs=kwargs.pop("nargs", "+"), type=list_items(item_type), action=ExtendList, **kwargs)
+
+
+class Progress:
+    """Stage lines on stderr (``prog: stage (1.2 s)``), only once the work has taken longer than
+    ``after`` seconds, so quick runs stay silent; never on stdout. The stage under way when the
+    threshold passes is printed then (a timer), not only when the next one starts. Callable as the
+    ``progress(fraction, message)`` callback of ``methods.refine.refine`` and the viewer's loader;
+    a context manager, whose exit stops the timer."""
+
+    def __init__(self, prog: str, after: float = 1.0, stream=None):
+        import os
+        import threading
+        import time
+
+        env = os.environ.get("DRIVINGSCENE_PROGRESS_AFTER")  # tests force the threshold to 0
+        self.after = float(env) if env else after
+        self.prog, self.stream = prog, stream
+        self._clock = time.monotonic
+        self.start = self._clock()
+        self._lock = threading.Lock()
+        self._pending: tuple[float | None, str] | None = None
+        self._timer = threading.Timer(self.after, self._flush)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def __call__(self, fraction: float | None, message: str) -> None:
+        with self._lock:
+            self._pending = (fraction, message)
+        if self._clock() - self.start >= self.after:
+            self._flush()
+
+    def stage(self, message: str) -> None:
+        self(None, message)
+
+    def _flush(self) -> None:
+        with self._lock:
+            if self._pending is None:
+                return
+            fraction, message = self._pending
+            self._pending = None
+            pct = "" if fraction is None else f" [{100 * min(max(fraction, 0.0), 1.0):.0f}%]"
+            elapsed = self._clock() - self.start
+            print(f"{self.prog}: {message}{pct} ({elapsed:.1f} s)", file=self.stream or sys.stderr, flush=True)
+
+    def close(self) -> None:
+        self._timer.cancel()
+        with self._lock:
+            self._pending = None
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -6,6 +6,12 @@ reconstructs it, export asks for a reconstruction).
 
 The kind is decided by the suffix (.ply) and, for .npz, by the content (``format`` names a
 reconstruction), never by trying readers one after another.
+
+Which way is up: a scene or recon.npz is in our z-up world; a PLY's frame is stated in its header
+or, with no DrivingScene comment, is another tool's y-down world (the rule is
+``drivingscene.export.ply.ply_up_axis``; docs/reconstruction-format.md, "Which way is up").
+``Source.up`` carries it to the viewer's camera (window and headless) and to ``drivingscene
+export``, which writes it back into the file (``write_ply(..., up=source.up)``).
 """
 
 from __future__ import annotations
@@ -20,8 +26,6 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
 
 KINDS = ("scene", "recon", "ply")
-PLY_MARKER = b"DrivingScene"  # `comment DrivingScene ...` in the header of the PLYs we write
-HEADER_LINES = 10000  # a PLY header longer than this is not a header
 
 
 @dataclass
@@ -33,7 +37,7 @@ class Source:
     kind: str  # one of KINDS
     pair: FramePair | None = None
     recon: Reconstruction | None = None
-    up: str = "z"  # the world's up axis: "z" (ours), "-y" (a PLY from a COLMAP/OpenCV y-down world)
+    up: str = "z"  # the world's up axis: "z" (ours), "-y" (a y-down PLY: graphdeco / COLMAP); export.ply.ply_up_axis
 
 
 def ply_reconstruction(gaussians) -> Reconstruction:
@@ -50,19 +54,6 @@ def ply_reconstruction(gaussians) -> Reconstruction:
     )
 
 
-def ply_up_axis(path: Path) -> str:
-    """ "z" for our own PLYs (z-up world, marked by a header comment), "-y" for others
-    (COLMAP/OpenCV worlds are y-down)."""
-    with open(path, "rb") as f:
-        for _ in range(HEADER_LINES):
-            line = f.readline()
-            if not line or line.startswith(b"end_header"):
-                break
-            if line.startswith(b"comment") and PLY_MARKER in line:
-                return "z"
-    return "-y"
-
-
 def open_source(path: str | Path) -> Source:
     """Read ``path`` (scene.npz, recon.npz or .ply). Raises ``InputError`` naming the file and what
     was expected where it is none of these or cannot be read."""
@@ -73,7 +64,7 @@ def open_source(path: str | Path) -> Source:
         raise InputError(f"{path}: is a directory; expected a scene.npz, recon.npz or .ply file")
     suffix = path.suffix.lower()
     if suffix == ".ply":
-        from drivingscene.export.ply import read_ply
+        from drivingscene.export.ply import ply_up_axis, read_ply
 
         return Source(path, "ply", recon=ply_reconstruction(read_ply(path)), up=ply_up_axis(path))
     if suffix != ".npz":

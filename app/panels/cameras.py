@@ -17,9 +17,19 @@ KINDS = {
     "images": "Images",
     "depth": "Depth",
     "rigid_flow": "Rigid flow",
-    "residual_flow": "Residual flow",
-    "total_flow": "Total flow",
+    "residual_flow": "Residual flow (applied)",  # what moves the dynamic Gaussians, 0 where static
+    "total_flow": "Total flow (applied)",
 }
+
+
+def applied_map(recon, kind: str):
+    """The per-camera array a tab shows: the flows are the ones the Gaussians follow (the residual
+    0 where a pixel's Gaussian is static, not what R and the search proposed there)."""
+    if kind == "residual_flow":
+        return recon.applied_residual_flow
+    if kind == "total_flow":
+        return recon.applied_total_flow
+    return getattr(recon, kind)
 
 
 @dataclass
@@ -36,7 +46,7 @@ def _state(viewer: Viewer) -> StripState:
 
 def raw_map(viewer: Viewer, kind: str, keyframe: int, v: int) -> np.ndarray | None:
     recon = viewer.doc.recon
-    data = recon.total_flow if kind == "total_flow" else getattr(recon, kind)
+    data = applied_map(recon, kind)
     return None if data is None else data[keyframe, v]
 
 
@@ -47,7 +57,7 @@ def flow_scale(viewer: Viewer, kind: str) -> float:
     key = (id(viewer.doc), kind)
     if key not in cache:
         recon = viewer.doc.recon
-        data = recon.total_flow if kind == "total_flow" else getattr(recon, kind)
+        data = applied_map(recon, kind)
         mag = np.linalg.norm(data[:, :, ::2, ::2], axis=-1)
         mag = mag[(mag > 0) & (mag < np.hypot(*recon.image_size))]
         cache[key] = max(float(np.percentile(mag, 95)), 1e-3) if mag.size else 1.0

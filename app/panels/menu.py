@@ -5,24 +5,11 @@ from __future__ import annotations
 from drivingscene_view import interaction
 from drivingscene_view.panels import benchmark, filedialog
 from drivingscene_view.renderer import MODES
+from drivingscene_view.shortcuts import MOUSE, SHORTCUTS
 from drivingscene_view.viewer import Viewer
 from imgui_bundle import imgui
 
 MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "dynamic": "Dynamic highlighted", "flow": "Flow magnitude"}
-CONTROLS = (
-    ("left drag", "orbit (fly mode: look around)"),
-    ("right / middle / shift+left drag", "pan"),
-    ("wheel", "zoom"),
-    ("W A S D, Q E", "fly (shift: faster)"),
-    ("F, R", "frame all, reset camera"),
-    ("1-9, 0", "rig camera, free camera"),
-    ("G", "follow ego"),
-    ("Space", "play / pause"),
-    ("Left/Right, Home/End", "step time, go to a keyframe"),
-    ("Esc, I, H, Delete", "clear, invert, hide, delete selection"),
-    ("shift / ctrl + select", "add / subtract"),
-    ("Ctrl+Z, Ctrl+Shift+Z", "undo, redo"),
-)
 
 
 def draw(viewer: Viewer) -> int:
@@ -43,18 +30,26 @@ def draw(viewer: Viewer) -> int:
     if opened:
         _view_menu(viewer)
         imgui.end_menu()
-    if imgui.begin_menu("Help"):
-        if imgui.begin_table("controls", 2, imgui.TableFlags_.sizing_fixed_fit | imgui.TableFlags_.row_bg):
-            for key, action in CONTROLS:
-                imgui.table_next_row()
-                imgui.table_next_column()
-                imgui.text_disabled(key)
-                imgui.table_next_column()
-                imgui.text(action)
-            imgui.end_table()
+    opened = imgui.begin_menu("Help")
+    viewer.ui_rects["menu_help"] = (*imgui.get_item_rect_min(), *imgui.get_item_rect_max())
+    if opened:
+        _help_menu()
         imgui.end_menu()
     imgui.end_main_menu_bar()
     return height
+
+
+def _help_menu() -> None:
+    """Every shortcut, from the table the key handler uses, then the mouse."""
+    rows = [(s.label, s.text) for s in SHORTCUTS] + list(MOUSE)
+    if imgui.begin_table("controls", 2, imgui.TableFlags_.sizing_fixed_fit | imgui.TableFlags_.row_bg):
+        for key, action in rows:
+            imgui.table_next_row()
+            imgui.table_next_column()
+            imgui.text_disabled(key)
+            imgui.table_next_column()
+            imgui.text(action)
+        imgui.end_table()
 
 
 def _file_menu(viewer: Viewer) -> None:
@@ -73,7 +68,7 @@ def _file_menu(viewer: Viewer) -> None:
     _export_items(viewer)
     imgui.separator()
     if imgui.menu_item_simple("Quit", "Ctrl+Q"):
-        viewer.quit_requested = True
+        viewer.request_quit()
 
 
 def _export_items(viewer: Viewer) -> None:

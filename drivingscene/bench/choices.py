@@ -161,7 +161,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--count", type=int, default=6, help="pairs per folder (default 6)")
     p.add_argument("--weights", type=Path, default=None, help="model (default: the shipped weights)")
     p.add_argument("--variant", action="append", default=None, metavar="KEY=VALUE,...", help="repeatable; default: a built-in list")
-    p.add_argument("--out", type=Path, default=None, help="write the markdown report here (default: print it)")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
 def score_variant(model, pair, variant: Variant) -> dict[str, float]:

@@ -14,6 +14,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from drivingscene.arguments import Progress, add_list_argument
 from drivingscene.data.atomic import atomic_write_text
 from drivingscene.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
@@ -21,7 +22,7 @@ SIZES = ("96x176", "176x320", "352x640")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sizes", nargs="+", default=list(SIZES), metavar="HxW", help="procedural pairs generated at these sizes")
+    add_list_argument(p, "--sizes", default=list(SIZES), metavar="HxW", help="procedural pairs generated at these sizes")
     p.add_argument(
         "--scenes",
         nargs="+",
@@ -33,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--runs", type=int, default=5, help="timed runs per size (after 2 warm-up runs)")
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     from drivingscene.arguments import add_amp_arguments
 
     add_amp_arguments(p)  # default: bf16 autocast where the CPU/GPU does bf16 natively, else float32
@@ -42,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_match_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
-    p.add_argument("--out", type=Path, default=None, help="also write the markdown table here")
+    p.add_argument("-o", "--out", type=Path, default=None, help="also write the markdown table here")
 
 
 WARMUP_RUNS = 2
@@ -111,28 +112,35 @@ def measure(
     device: str = "cpu",
     scenes: list[Path] = (),
     match: str = "fallback",
+    progress=lambda fraction, message: None,
 ) -> list[dict]:
     """One row per size (a generated procedural pair) and per scene file. The timed runs go round
     the pairs in turn, so that a shared machine's slow spells fall on every pair alike, after each
     pair's warm-up; each pair's peak memory comes from a fresh process (`peak_memory_mib`, before
-    any timing)."""
+    any timing). ``progress(fraction, message)`` hears of each step (``arguments.Progress``)."""
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.methods.feedforward import reconstruct
 
     options = _options(amp, threads, without, match)
+    progress(0.0, f"generating the procedural pairs ({', '.join(sizes)})")
     pairs = {size: _pair(size) for size in sizes}
     for path in scenes:
         pair = load_frame_pair(path)
         pairs[f"{path.name} ({pair.num_views} × {pair.image_size[0]}x{pair.image_size[1]})"] = pair
     sizes = list(pairs)
-    peak = {size: peak_memory_mib(pairs[size], weights, device, amp, threads, without, match) for size in sizes}
+    peak = {}
+    for size in sizes:
+        progress(0.0, f"peak memory of {size} in a fresh process")
+        peak[size] = peak_memory_mib(pairs[size], weights, device, amp, threads, without, match)
     totals, parts, count = {s: [] for s in sizes}, {s: [] for s in sizes}, {}
     for size in sizes:
+        progress(0.0, f"{WARMUP_RUNS} warm-up runs of {size}")
         for _ in range(WARMUP_RUNS):  # oneDNN builds its kernels for each new shape on the first calls
             recon = reconstruct(model, pairs[size], options)
         count[size] = len(recon.gaussians)
-    for _ in range(runs):
-        for size in sizes:
+    for run in range(runs):
+        for k, size in enumerate(sizes):
+            progress((run * len(sizes) + k) / (runs * len(sizes)), f"run {run + 1}/{runs} of {size}")
             tic = time.perf_counter()
             recon = reconstruct(model, pairs[size], options)
             totals[size].append(time.perf_counter() - tic)
@@ -174,7 +182,10 @@ def run(args: argparse.Namespace) -> int:
 
     amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
     without = ("search",) if args.no_search else ()
-    rows = measure(model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes, args.match)
+    with Progress("drivingscene bench inference") as progress:  # on stderr once it takes more than a second
+        rows = measure(
+            model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes, args.match, progress
+        )
     from drivingscene.kernels import load_extension
 
     kernels = "on" if device.type == "cpu" and load_extension() else "off: torch paths"

@@ -22,7 +22,7 @@ from drivingscene.machine import machine_description
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, required=True, help="folder of pairs with ground truth (drivingscene synth)")
     p.add_argument("--count", type=int, default=None, help="use the first COUNT pairs (default: all)")
-    p.add_argument("--out", type=Path, default=None, help="write the markdown report here (default: print it)")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
 def rigid_from_gt_depth(pair) -> tuple[np.ndarray, np.ndarray]:

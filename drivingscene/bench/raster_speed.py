@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from drivingscene.arguments import add_list_argument
 from drivingscene.data.atomic import atomic_write_text
 from drivingscene.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
@@ -209,26 +210,26 @@ def layers_study(size: str, layer_counts: list[int]) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", default=",".join(DEFAULT_SIZES), help="comma-separated HxW per view (6 views)")
-    parser.add_argument("--backends", default="cpp,torch", help="comma-separated: cpp, torch")
-    parser.add_argument("--max-layers", default="", help="comma-separated layer caps (default: rasterize's)")
+    add_list_argument(parser, "--sizes", default=list(DEFAULT_SIZES), metavar="HxW", help="HxW per view (6 views)")
+    add_list_argument(parser, "--backends", default=["cpp", "torch"], metavar="NAME", help="cpp, torch (default both)")
+    add_list_argument(parser, "--max-layers", int, default=[], metavar="K", help="layer caps (default: rasterize's)")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs after one warm-up (median reported)")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--sh-degree", type=int, default=None, help="colours as SH of this degree (default RGB)")
-    parser.add_argument("--layers-study", default="", help="comma-separated max_layers to compare (skips timing)")
+    add_list_argument(parser, "--layers-study", int, default=[], metavar="K", help="max_layers to compare (skips timing)")
     parser.add_argument("--study-size", default="24x44", help="HxW per view for --layers-study")
     parser.add_argument("--in-process", action="store_true", help="no subprocess per case (peak RSS then cumulative)")
-    parser.add_argument("--out", type=Path, default=Path("out/bench/raster.md"), help="markdown report path")
+    parser.add_argument("-o", "--out", type=Path, default=Path("out/bench/raster.md"), help="markdown report path")
 
 
 def run(args: argparse.Namespace) -> int:
     from drivingscene.render import DEFAULT_MAX_LAYERS
 
-    layer_caps = [int(k) for k in args.max_layers.split(",")] if args.max_layers else [DEFAULT_MAX_LAYERS]
+    layer_caps = args.max_layers or [DEFAULT_MAX_LAYERS]
     if args.layers_study:
-        report = layers_study(args.study_size, [int(k) for k in args.layers_study.split(",")])
+        report = layers_study(args.study_size, args.layers_study)
     else:
-        cases = [(s, b, k) for s in args.sizes.split(",") for b in args.backends.split(",") for k in layer_caps]
+        cases = [(s, b, k) for s in args.sizes for b in args.backends for k in layer_caps]
         rows = []
         load_start = _load()
         ctx = multiprocessing.get_context("spawn")

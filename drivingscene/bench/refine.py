@@ -30,15 +30,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--data", type=Path, required=True, help="folder of pair_*.npz (e.g. data/val176r)")
     p.add_argument("--count", type=int, default=4, help="pairs to use (default 4)")
-    p.add_argument("--budgets", type=non_negative_seconds, nargs="+", default=(0.0, 10.0, 30.0), metavar="SECONDS")
+    p.add_argument(
+        "--budgets",
+        type=non_negative_seconds,
+        nargs="+",
+        default=(0.0, 10.0, 30.0),
+        metavar="SECONDS",
+        help="refinement budgets to compare (default 0 10 30)",
+    )
     p.add_argument("--depth-scale", type=float, default=1.0, help="start from the model's depth times this (default 1)")
     p.add_argument("--lidar", action="store_true", help="refine against gt_depth too (it is then also what depth is scored on)")
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
-    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
+    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
     p.add_argument("--choices", action="store_true", help="compare the settings' variants at --steps steps instead")
     p.add_argument("--steps", type=int, default=12, help="with --choices: gradient steps per variant (default 12)")
     p.add_argument("--speed", action="store_true", help="seconds per step by views, image scale and threads instead")
-    p.add_argument("--out", type=Path, default=None, help="write the markdown report here")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here")
     p.add_argument("--json", type=Path, default=None, help="also write every score as JSON")
 
 

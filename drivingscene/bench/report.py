@@ -114,7 +114,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="models at different network widths trained with one schedule (parsimony: width against quality and speed)",
     )
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
-    p.add_argument("--out", type=Path, default=None, help="markdown report (e.g. docs/benchmark.md)")
+    p.add_argument("-o", "--out", type=Path, default=None, help="markdown report (e.g. docs/benchmark.md)")
     p.add_argument("--json", type=Path, default=None, help="the report as JSON (e.g. docs/benchmark.json)")
     p.add_argument("--charts", type=Path, default=None, help="folder for the charts (e.g. docs/images)")
     p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables")

@@ -66,9 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="also score the model's depth with ground-truth flow, and the oracle without scene flow "
         "(what better flow, and what better depth, would be worth)",
     )
-    p.add_argument("--no-oracle", action="store_true")
-    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto")
-    p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/results.md)")
+    p.add_argument("--no-oracle", action="store_true", help="skip the ground-truth oracle rows")
+    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (e.g. docs/results.md)")
     p.add_argument(
         "--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/results-notes.md)"
     )

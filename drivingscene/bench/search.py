@@ -49,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE,...",
         help="MotionSearchConfig fields to change from the defaults (repeatable; default: a built-in list)",
     )
-    p.add_argument("--out", type=Path, default=None, help="write the markdown report here (default: print it)")
+    p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
 def parse_setting(text: str):

@@ -15,6 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from drivingscene.arguments import add_list_argument
 from drivingscene.data.atomic import atomic_write_text
 from drivingscene.machine import machine_description
 
@@ -22,10 +23,10 @@ DEFAULT_SIZES = ("176x320", "96x176")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sizes", nargs="+", default=list(DEFAULT_SIZES), metavar="HxW", help="image sizes (default: %(default)s)")
+    add_list_argument(p, "--sizes", default=list(DEFAULT_SIZES), metavar="HxW", help="image sizes (default: %(default)s)")
     p.add_argument("--runs", type=int, default=5, help="timed pairs per size after one warm-up (default 5)")
     p.add_argument("--preset", default="default", help="difficulty preset (default: default)")
-    p.add_argument("--out", type=Path, help="also write the markdown report to this file")
+    p.add_argument("-o", "--out", type=Path, help="also write the markdown report to this file")
 
 
 def measure(size: str, runs: int, preset: str, renderer) -> dict:

@@ -20,8 +20,10 @@ VAL_KEYS = ("psnr", "psnr_input", "psnr_dyn", "depth_abs_rel", "depth_ms_abs_rel
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("runs", nargs="+", type=Path, metavar="RUN", help="run folders (drivingscene train --out)")
-    p.add_argument("--figure", type=Path, default=Path("docs/images/training_curves.png"))
-    p.add_argument("--out", type=Path, default=None, help="write the markdown report here (e.g. docs/training.md)")
+    p.add_argument(
+        "--figure", type=Path, default=Path("docs/images/training_curves.png"), help="loss-curve figure (default: %(default)s)"
+    )
+    p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (e.g. docs/training.md)")
     p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables")
 
 

@@ -8,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from drivingscene.arguments import (
+    Progress,
     add_amp_arguments,
     add_match_arguments,
     check_output,
@@ -82,8 +83,8 @@ def refine_config(args: argparse.Namespace):
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("reconstruct", help="reconstruct a scene.npz with the model into recon.npz")
-    p.add_argument("scene", type=Path, metavar="SCENE")
-    p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON")
+    p.add_argument("scene", type=Path, metavar="SCENE", help="a scene.npz (drivingscene synth, drivingscene import)")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON", help="the recon.npz to write")
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: assets/weights/drivingscene.safetensors)")
     p.add_argument("--static-only", action="store_true", help="no residual flow (every Gaussian static)")
     p.add_argument(
@@ -96,7 +97,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "explains its flow (docs/depth.md, parallax before motion)",
     )
     add_match_arguments(p)
-    p.add_argument("--threads", type=positive_int, default=None)
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: torch's choice)")
     add_amp_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N (a GPU is optional)")
     add_refine_arguments(p)
@@ -112,8 +113,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_reconstruct)
 
     p = sub.add_parser("oracle", help="per-pixel Gaussians from a scene's ground-truth depth and scene flow")
-    p.add_argument("scene", type=Path, metavar="SCENE")
-    p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON")
+    p.add_argument("scene", type=Path, metavar="SCENE", help="a scene.npz (drivingscene synth, drivingscene import)")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON", help="the recon.npz to write")
     p.add_argument("--no-flow", action="store_true", help="ignore gt_scene_flow (every Gaussian static)")
     p.add_argument(
         "--refine", type=int, default=1, metavar="N", help="colour deconvolution steps (default 1; 0 = raw pixel colours)"
@@ -129,8 +130,8 @@ def _register_classical(sub: argparse._SubParsersAction) -> None:
         "classical",
         help="learning-free baseline: OpenCV DIS optical flow triangulated with the known poses, no network",
     )
-    p.add_argument("scene", type=Path, metavar="SCENE")
-    p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON")
+    p.add_argument("scene", type=Path, metavar="SCENE", help="a scene.npz (drivingscene synth, drivingscene import)")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON", help="the recon.npz to write")
     p.add_argument(
         "--preset", choices=("medium", "fast", "ultrafast"), default="medium", help="OpenCV DIS preset (default medium)"
     )
@@ -147,11 +148,11 @@ def _register_classical(sub: argparse._SubParsersAction) -> None:
 
 def _register_prune(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("prune", help="model no more than the scene needs: prune and merge a reconstruction's Gaussians")
-    p.add_argument("recon", type=Path, metavar="RECON")
-    p.add_argument("-o", "--out", type=Path, required=True, metavar="OUT")
+    p.add_argument("recon", type=Path, metavar="RECON", help="the recon.npz to prune")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="OUT", help="the pruned recon.npz to write")
     p.add_argument("--scene", type=Path, default=None, help="scene.npz with intermediate frames: report the PSNR change there")
     p.add_argument("--target", type=positive_int, default=None, help="at most this many Gaussians")
-    p.add_argument("--min-opacity", type=float, default=0.02)
+    p.add_argument("--min-opacity", type=float, default=0.02, help="drop Gaussians less opaque than this (default 0.02)")
     p.add_argument("--merge-cell", type=float, default=3.0, help="merge cell in multiples of a Gaussian's size (0: no merging)")
     p.add_argument("--max-distance", type=float, default=None, help="drop Gaussians farther from the rig (metres)")
     p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
@@ -197,12 +198,17 @@ def _report(recon, path: Path) -> None:
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
+    check_output(args.out, args.force, "-o")
+    with Progress("drivingscene reconstruct") as progress:  # stage lines on stderr once it takes more than a second
+        return _reconstruct(args, progress)
+
+
+def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.gaussians.recon import save_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct, resolve_device
     from drivingscene.methods.matched_depth import match_mode
 
-    check_output(args.out, args.force, "-o")
     config = refine_config(args)
     device = resolve_device(args.device)
     if config is not None and device.type != "cpu":
@@ -210,6 +216,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     scale = memory_scale(args.scene, args.scale, config is not None)
     if scale != 1 and config is not None and config.lidar:
         raise InputError("--lidar: the LiDAR depth is not resized; drop --scale or --lidar")
+    progress.stage(f"loading {args.scene}")
     pair = load_frame_pair(args.scene)
     if config is not None and config.lidar and pair.gt_depth is None:
         raise InputError(f"{args.scene}: --lidar: the scene has no LiDAR depth (gt_depth); drop --lidar")
@@ -217,6 +224,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         from drivingscene.data.resize import resized_pair
 
         pair = resized_pair(pair, scale)
+    progress.stage("loading the networks")
     model = load_model(args.weights, device=device)
     options = InferenceOptions(use_residual=not args.static_only, amp=args.amp, threads=args.threads)
     if args.no_search:
@@ -224,11 +232,23 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
     options = replace(options, match=match_mode(args.match))
+    progress.stage(f"reconstructing {pair.num_views} cameras at {pair.image_size[1]}x{pair.image_size[0]}")
     recon = reconstruct(model, pair, options)
+    progress.stage(stage_times(recon.meta.get("timings", {})))
     if config is not None:
         recon = run_refinement(model, pair, recon, config)
+    progress.stage(f"writing {args.out}")
     _report(recon, save_reconstruction(recon, args.out))
     return 0
+
+
+STAGES = (("static_s", "networks D+P"), ("match_s", "matching"), ("flow_s", "flow"), ("assembly_s", "assembly"))
+
+
+def stage_times(timings: dict) -> str:
+    """The model's stages as one progress line, from ``recon.meta["timings"]`` (feedforward.reconstruct)."""
+    done = ", ".join(f"{name} {timings[key]:.2f} s" for key, name in STAGES if key in timings)
+    return f"reconstructed: {done}" if done else "reconstructed"
 
 
 def run_refinement(model, pair, recon, config):

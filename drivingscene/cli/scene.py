@@ -1,4 +1,5 @@
-"""``drivingscene validate`` and ``drivingscene info``."""
+"""``drivingscene validate`` and ``drivingscene info``: on a scene.npz, its problems or its summary;
+on a recon.npz or a .ply (told apart by ``drivingscene.sources``), what the file is."""
 
 from __future__ import annotations
 
@@ -6,22 +7,74 @@ import argparse
 import sys
 from pathlib import Path
 
+FRAMES = {"z": "z-up (DrivingScene's world)", "-y": "y-down (graphdeco / COLMAP convention)"}
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("validate", help="check a scene.npz against the format; one line per problem, exit 2 if invalid")
-    p.add_argument("files", nargs="+", type=Path, metavar="FILE")
+    p = sub.add_parser(
+        "validate",
+        help="check a scene.npz against the format (a recon.npz too); one line per problem, exit 2 if invalid",
+    )
+    p.add_argument("files", nargs="+", type=Path, metavar="FILE", help="scene.npz files (a recon.npz or .ply: says what it is)")
     p.set_defaults(func=run_validate)
-    p = sub.add_parser("info", help="summarise a scene.npz")
-    p.add_argument("file", type=Path, metavar="FILE")
+    p = sub.add_parser("info", help="summarise a scene.npz, or say what a recon.npz or .ply holds")
+    p.add_argument("file", type=Path, metavar="FILE", help="a scene.npz, recon.npz or 3DGS .ply")
     p.set_defaults(func=run_info)
+
+
+def source_kind(path: Path) -> str:
+    """"scene", "recon" or "ply" by the rule of ``drivingscene.sources`` (suffix, then the .npz's
+    ``format``); "scene" where the file cannot be read, so the scene reader says what is wrong."""
+    from drivingscene.errors import InputError
+
+    if path.suffix.lower() == ".ply":
+        return "ply"
+    try:
+        from drivingscene.data.npz import load_npz
+        from drivingscene.gaussians.recon import is_reconstruction_file
+
+        return "recon" if is_reconstruction_file(load_npz(path)) else "scene"
+    except InputError:
+        return "scene"
+
+
+def describe_gaussians(source) -> str:
+    """One line on a recon.npz or PLY opened by ``open_source``: what it is and what it holds."""
+    recon = source.recon
+    g = recon.gaussians
+    counts = f"{len(g)} Gaussians ({int(g.dynamic.sum())} dynamic), SH degree {g.sh_degree}"
+    if source.kind == "ply":
+        return f"{source.path}: a 3DGS PLY, {counts}, frame {FRAMES.get(source.up, source.up)}"
+    h, w = recon.image_size
+    hidden = int(recon.hidden.sum()) if recon.hidden is not None else 0
+    parts = [counts, f"{recon.num_views} cameras ({', '.join(recon.camera_names)}) at {w}x{h}"]
+    if hidden:
+        parts.append(f"{hidden} hidden by edits")
+    if "method" in recon.meta:
+        parts.append(f"method {recon.meta['method']}")
+    return f"{source.path}: a DrivingScene reconstruction ({'; '.join(parts)})"
 
 
 def run_validate(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import validate_frame_pair_file
+    from drivingscene.errors import InputError, SceneFormatError
+    from drivingscene.sources import open_source
 
     bad = 0
     for path in args.files:
-        problems = validate_frame_pair_file(path)
+        kind = source_kind(path)
+        if kind == "scene":
+            problems = [str(p) for p in validate_frame_pair_file(path)]
+        else:
+            try:
+                source = open_source(path)  # a recon.npz is validated on reading, a PLY is only read
+                verdict = "valid" if kind == "recon" else "readable (validate checks scene.npz and recon.npz files)"
+                print(f"{describe_gaussians(source)}: {verdict}")
+                continue
+            except SceneFormatError as e:
+                problems = [str(p) for p in e.problems]
+            except InputError as e:
+                problems = [str(e)]
         for problem in problems:
             print(problem, file=sys.stderr)
         if problems:
@@ -32,6 +85,11 @@ def run_validate(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    if source_kind(args.file) != "scene":
+        from drivingscene.sources import open_source
+
+        print(describe_gaussians(open_source(args.file)))
+        return 0
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.data.summary import summarise
 

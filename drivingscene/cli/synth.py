@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="One pair (--seed S --out file.npz) or a dataset (--split SPLIT --count N --out DIR). "
         "Seeds: train [0, 100000), val [100000, 110000), test [200000, 210000).",
     )
-    p.add_argument("--out", metavar="PATH", help="file.npz for --seed, folder for --split")
+    p.add_argument("-o", "--out", metavar="PATH", help="file.npz for --seed, folder for --split")
     p.add_argument("--seed", metavar="S", help="generate this one seed")
     p.add_argument("--split", metavar="SPLIT", help="train, val or test: a dataset of the split's first seeds")
     p.add_argument("--count", metavar="N", help="number of pairs of the dataset")

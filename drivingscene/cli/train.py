@@ -16,16 +16,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train", help="train the model: --stage static, then dynamic (or joint for the ablation); gaussians: P alone after them"
     )
-    p.add_argument("--stage", choices=STAGES, required=True)
+    p.add_argument("--stage", choices=STAGES, required=True, help="which networks train (docs/training.md)")
     p.add_argument(
         "--data", type=Path, required=True, nargs="+", metavar="DIR", help="training pairs (drivingscene synth --split train); several folders: a mix"
     )
     p.add_argument(
         "--val-data", type=Path, default=None, nargs="+", metavar="DIR", help="validation pairs (drivingscene synth --split val); several: interleaved"
     )
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="run folder: checkpoints, log.jsonl, model.safetensors")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="DIR", help="run folder: checkpoints, log.jsonl, model.safetensors")
     p.add_argument("--init", type=Path, default=None, metavar="WEIGHTS", help="start from these weights (stage 2: stage 1's)")
-    p.add_argument("--steps", type=positive_int, default=None)
+    p.add_argument("--steps", type=positive_int, default=None, help="gradient steps of the stage (default: the stage's)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-4, the paper's)")
     p.add_argument("--flow-lr", type=float, default=None, help="learning rate of R, the residual flow network (default: --lr)")
     p.add_argument(
@@ -50,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="W",
         help="add W x L1 log-depth error against the pairs' ground-truth depth (synthetic pre-training of D; not in the paper)",
     )
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=int, default=None, help="random seed of the data order and initialisation")
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads per process")
     p.add_argument("--batch-pairs", type=positive_int, default=None, help="frame pairs per step and process (default 1)")
     p.add_argument("--render-every", type=positive_int, default=None, help="L_render on every n-th step")
@@ -65,13 +65,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--render-blend", choices=("layers", "all"), default=None, help="how L_render combines both keyframes' Gaussians (default: layers, as inference)"
     )
-    p.add_argument("--val-every", type=positive_int, default=None)
-    p.add_argument("--ckpt-every", type=positive_int, default=None)
-    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default=None)
+    p.add_argument("--val-every", type=positive_int, default=None, help="validate every n-th step")
+    p.add_argument("--ckpt-every", type=positive_int, default=None, help="write a checkpoint every n-th step")
+    p.add_argument(
+        "--lpips", choices=("auto", "lpips", "stlpips"), default=None, help="perceptual loss network (auto: the one installed)"
+    )
     add_amp_arguments(p)  # --amp / --no-amp; default: bf16 autocast where the CPU does bf16 natively
     p.add_argument("--config", type=Path, default=None, help="JSON config to start from (e.g. a run's config.json)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     register_ship(sub)
 
@@ -81,10 +83,11 @@ def register_ship(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "source", type=Path, metavar="RUN_OR_WEIGHTS", help="a run folder (its latest checkpoint) or model.safetensors"
     )
-    p.add_argument("dest", type=Path, metavar="OUT.safetensors")
+    p.add_argument("dest", type=Path, nargs="?", metavar="OUT.safetensors", help="the weights to write (or -o OUT.safetensors)")
+    p.add_argument("-o", "--out", type=Path, default=None, metavar="OUT.safetensors", help="the weights to write")
     p.add_argument("--float32", action="store_true", help="keep float32 (default: float16, half the size)")
     p.add_argument("--note", default="", help="text stored in the JSON (e.g. which runs it came from)")
-    p.add_argument("--force", action="store_true")
+    p.add_argument("--force", action="store_true", help="overwrite OUT.safetensors (and its JSON) if it exists")
     p.set_defaults(func=run_ship)
 
 
@@ -93,7 +96,10 @@ def run_ship(args: argparse.Namespace) -> int:
     from drivingscene.methods.feedforward import load_model
     from drivingscene.train.checkpoint import export_weights, model_from_run
 
-    check_output(args.dest, args.force, "OUT")
+    if (args.dest is None) == (args.out is None):
+        raise InputError("-o/--out: expected the weights to write once, as -o OUT.safetensors (or the positional OUT)")
+    args.dest = args.dest or args.out
+    check_output(args.dest, args.force, "-o")
     if args.source.is_dir():
         model, info = model_from_run(args.source)
     else:

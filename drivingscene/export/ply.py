@@ -5,10 +5,22 @@ Standard 3DGS (graphdeco's loader, SuperSplat, most viewers), binary little-endi
     x y z nx ny nz f_dc_0..2 f_rest_0..(3(K-1)-1) opacity scale_0..2 rot_0..3
 
 with opacity as a logit, scales as logs, rotation (w, x, y, z), and f_rest grouped by colour
-channel (all of red's higher-order coefficients, then green's, then blue's). The dynamic variant
-appends ``flow_x flow_y flow_z`` (world displacement towards the other keyframe), ``keyframe``
-(uchar) and ``camera`` (short). Point clouds hold ``x y z red green blue`` (uchar) for
-CloudCompare, Open3D and MeshLab.
+channel as graphdeco's ``save_ply`` writes them (``features_rest`` ``[N, K-1, 3]`` transposed to
+``[N, 3, K-1]`` and flattened: ``f_rest_{c (K-1) + k}`` is channel c's coefficient k). By default
+the SH are zero-padded to degree 3 (45 f_rest), because graphdeco's ``load_ply`` asserts that
+count at its default degree; ``sh_degree`` writes fewer (or truncates). ``read_ply`` reads degree
+0-3 and drops trailing SH bands that are zero for every Gaussian, so a padded file reads back at
+the degree it was written from. The dynamic variant appends ``flow_x flow_y flow_z`` (world
+displacement towards the other keyframe), ``keyframe`` (uchar) and ``camera`` (short). Point
+clouds hold ``x y z red green blue`` (uchar) for CloudCompare, Open3D and MeshLab.
+
+Which way is up (the one rule; ``drivingscene.sources``, the viewer's window and headless modes
+and ``drivingscene export`` all use `ply_up_axis` and `frame_comment`): a PLY's coordinates are in
+its own world frame, written as they are, never rotated. A file states its frame in a header line
+``comment DrivingScene frame z-up`` (our worlds: x forward, y left, z up) or ``comment DrivingScene
+frame y-down`` (the graphdeco / COLMAP / OpenCV convention, -y up). A ``comment DrivingScene`` line
+without a frame (files written before the frame was stated) means z-up; a file with no DrivingScene
+comment is another tool's and is y-down. Up axes are named as in ``Source.up``: "z" or "-y".
 """
 
 from __future__ import annotations
@@ -30,11 +42,44 @@ REQUIRED_3DGS = (
     ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
 )
 DYNAMIC_PROPS = ("flow_x", "flow_y", "flow_z")
+MAX_SH_DEGREE = 3  # graphdeco's default, and the degree its loader asserts
+PLY_MARKER = "DrivingScene"  # `comment DrivingScene ...` in the header of the PLYs we write
+FRAMES = {"z": "z-up", "-y": "y-down"}  # up axis -> its name in `comment DrivingScene frame <name>`
+FOREIGN_UP = "-y"  # a PLY without our comment: graphdeco / COLMAP worlds are y-down
+HEADER_LINES = 10000  # a PLY header longer than this is not a header
 
 
-def _gaussian_fields(g: Gaussians) -> list[tuple[str, np.ndarray]]:
-    """(name, float32 column) pairs of the standard layout."""
+def frame_comment(up: str) -> str:
+    """The header comment (without ``comment ``) that states a file's frame, e.g. "DrivingScene frame z-up"."""
+    if up not in FRAMES:
+        raise InputError(f"up axis: expected one of {', '.join(FRAMES)}, found {up!r}")
+    return f"{PLY_MARKER} frame {FRAMES[up]}"
+
+
+def ply_up_axis(path: str | os.PathLike) -> str:
+    """The up axis of a PLY's world by the rule in the module docstring: "z" or "-y"."""
+    ours = False
+    with open(path, "rb") as f:
+        for _ in range(HEADER_LINES):
+            words = f.readline().decode("ascii", "replace").split()
+            if not words or words[0] == "end_header":
+                break
+            if words[0] == "comment" and PLY_MARKER in words[1:2]:
+                ours = True
+                if words[2:3] == ["frame"] and len(words) > 3:
+                    named = {name: up for up, name in FRAMES.items()}
+                    if words[3] not in named:
+                        expected = ", ".join(named)
+                        raise InputError(f"{path}: header comment 'frame': expected one of {expected}, found {words[3]!r}")
+                    return named[words[3]]
+    return "z" if ours else FOREIGN_UP
+
+
+def _gaussian_fields(g: Gaussians, sh_degree: int) -> list[tuple[str, np.ndarray]]:
+    """(name, float32 column) pairs of the standard layout, SH truncated or zero-padded to ``sh_degree``."""
     g = g.detach().to("cpu")
+    if g.sh_degree != sh_degree:
+        g = g.with_sh_degree(sh_degree)
     rest = g.sh[:, 1:].transpose(1, 2).reshape(len(g), -1).float().numpy()  # [N, 3 (K-1)] by channel
     means = g.means.float().numpy()
     columns = [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
@@ -61,25 +106,40 @@ def _write(vertices: np.ndarray, path: str | os.PathLike, comments: list[str]) -
     return atomic_write(path, data.write)
 
 
-def write_ply(gaussians: Gaussians, path: str | os.PathLike, kind: str = "3dgs", t: float | None = None) -> Path:
+def write_ply(
+    gaussians: Gaussians,
+    path: str | os.PathLike,
+    kind: str = "3dgs",
+    t: float | None = None,
+    sh_degree: int | None = None,
+    up: str = "z",
+) -> Path:
     """Write Gaussians as ``kind`` ("3dgs", "dynamic" or "points").
 
     ``t`` (normalised time) moves dynamic Gaussians first; "dynamic" keeps them at their keyframe
-    with their flow, so ``t`` must be None for it.
+    with their flow, so ``t`` must be None for it. ``sh_degree`` (0-3, "3dgs" and "dynamic") is
+    the SH degree written: None pads with zeros to degree 3, the layout graphdeco-family tools load;
+    a lower degree than the Gaussians' drops their higher bands. ``up`` is the up axis of the
+    Gaussians' world ("z" ours, "-y" a y-down file from another tool), stated in the header (module
+    docstring: which way is up); the coordinates are written as they are.
     """
     if kind not in PLY_KINDS:
         raise InputError(f"--kind: expected one of {', '.join(PLY_KINDS)}, found {kind!r}")
     if kind == "dynamic" and t is not None:
         raise InputError("--time: a dynamic PLY stores Gaussians at their keyframes with their flow; omit --time")
+    if sh_degree is not None and kind == "points":
+        raise InputError("--sh-degree: a points PLY stores colours, not spherical harmonics; omit --sh-degree")
+    if sh_degree is not None and sh_degree not in range(MAX_SH_DEGREE + 1):
+        raise InputError(f"--sh-degree: expected 0 to {MAX_SH_DEGREE}, found {sh_degree!r}")
     g = gaussians if t is None else gaussians.at_time(t)
-    comments = ["DrivingScene"] + ([f"time {t:.6f} (normalised between keyframes)"] if t is not None else [])
+    comments = [frame_comment(up)] + ([f"time {t:.6f} (normalised between keyframes)"] if t is not None else [])
     if kind == "points":
         rgb = np.round(g.colors().detach().cpu().numpy() * 255).astype(np.uint8)
         means = g.means.detach().cpu().float().numpy()
         cols = [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
         cols += [(c, rgb[:, i]) for i, c in enumerate(("red", "green", "blue"))]
         return _write(_structured(cols, {"red": "u1", "green": "u1", "blue": "u1"}), path, comments)
-    cols = _gaussian_fields(g)
+    cols = _gaussian_fields(g, MAX_SH_DEGREE if sh_degree is None else sh_degree)
     dtypes = {}
     if kind == "dynamic":
         flows = g.flows.detach().cpu().float().numpy()
@@ -160,7 +220,8 @@ def _column(vertex, path: Path, name: str) -> np.ndarray:
 
 
 def read_ply(path: str | os.PathLike) -> Gaussians:
-    """Read a standard (or dynamic) 3DGS PLY with SH degree 0-3; extra properties are ignored."""
+    """Read a standard (or dynamic) 3DGS PLY with SH degree 0-3; extra properties are ignored.
+    Trailing SH bands that are zero for every Gaussian (a file padded to degree 3) are dropped."""
     path = Path(path)
     vertex = _vertex_element(path)
     props = [p.name for p in vertex.properties]
@@ -182,6 +243,9 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
     if k > 1:
         rest = np.stack([col(f"f_rest_{i}") for i in rest_idx], axis=1)  # [N, 3 (K-1)], by channel
         sh[:, 1:] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
+    while degree > 0 and not sh[:, num_sh_coeffs(degree - 1) :].any():
+        degree -= 1
+    sh = np.ascontiguousarray(sh[:, : num_sh_coeffs(degree)])
     opacity = col("opacity")
     if np.any(np.isnan(opacity)):
         raise InputError(f"{path}: property 'opacity': expected numbers, found NaN")

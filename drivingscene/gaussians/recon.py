@@ -52,11 +52,12 @@ OPTIONAL = {
     "images": KeySpec("uint8", (2, "V", "H", "W", 3), "input images"),
     "depth": KeySpec("float32", (2, "V", "H", "W"), "predicted z-depth"),
     "rigid_flow": KeySpec("float32", (2, "V", "H", "W", 2), "rigid flow, pixels"),
-    "residual_flow": KeySpec("float32", (2, "V", "H", "W", 2), "residual (non-rigid) flow, pixels"),
+    "residual_flow": KeySpec("float32", (2, "V", "H", "W", 2), "residual (non-rigid) flow proposed by R and the search, pixels"),
+    "moving": KeySpec("bool", (2, "V", "H", "W"), "pixels whose Gaussian moves: the residual is applied there only"),
     "meta": KeySpec("str", (), "JSON: method, source, timings"),
     "valid_mask": KeySpec("bool", ("V", "H", "W"), "pixels that see the world (False: ego body, hood)"),
 }
-PER_CAMERA = ("images", "depth", "rigid_flow", "residual_flow")
+PER_CAMERA = ("images", "depth", "rigid_flow", "residual_flow", "moving")
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,7 +76,8 @@ class Reconstruction:
     images: np.ndarray | None = None  # [2, V, H, W, 3] uint8
     depth: np.ndarray | None = None  # [2, V, H, W] float32
     rigid_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32
-    residual_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32
+    residual_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32, as proposed (also where static)
+    moving: np.ndarray | None = None  # [2, V, H, W] bool: pixels whose Gaussian moves
     valid_mask: np.ndarray | None = None  # [V, H, W] bool: the input pixels that see the world
     meta: dict = field(default_factory=dict)
 
@@ -98,6 +100,22 @@ class Reconstruction:
     @property
     def num_views(self) -> int:
         return len(self.camera_names)
+
+    @property
+    def applied_residual_flow(self) -> np.ndarray | None:
+        """The residual flow the Gaussians carry out ``[2, V, H, W, 2]``: ``residual_flow`` where a
+        pixel's Gaussian moves, 0 where it stays static (as proposed where ``moving`` is absent)."""
+        if self.residual_flow is None or self.moving is None:
+            return self.residual_flow
+        return np.where(self.moving[..., None], self.residual_flow, 0.0).astype(np.float32)
+
+    @property
+    def applied_total_flow(self) -> np.ndarray | None:
+        """Rigid + applied residual flow ``[2, V, H, W, 2]``: where each pixel's Gaussian goes."""
+        if self.rigid_flow is None:
+            return None
+        residual = self.applied_residual_flow
+        return self.rigid_flow if residual is None else self.rigid_flow + residual
 
     @property
     def total_flow(self) -> np.ndarray | None:
@@ -158,7 +176,7 @@ def recon_to_arrays(recon: Reconstruction) -> dict[str, np.ndarray]:
     for key in PER_CAMERA:
         value = getattr(recon, key)
         if value is not None:
-            arrays[key] = np.asarray(value, dtype=np.uint8 if key == "images" else np.float32)
+            arrays[key] = np.asarray(value, dtype={"images": np.uint8, "moving": bool}.get(key, np.float32))
     return arrays
 
 

@@ -225,7 +225,7 @@ def reconstruct(
         _sync(device)
         timings["search_s"] = time.perf_counter() - t1
     net_width = model.config.input_size[1] if model.config.input_size else None
-    scene_flow = None
+    scene_flow = applied = None
     if flow is not None:
         scene_flow, dynamic = lift_scene_flow(
             depth, flow.total, flow.residual, sky, batch, options.lift, net_width, rigid=flow.rigid, behind=flow.behind
@@ -243,6 +243,11 @@ def reconstruct(
             scene_flow = torch.where(explained[..., None], torch.zeros_like(scene_flow), scene_flow)
             static = with_depth(static, depth)
             timings["parallax_s"] = time.perf_counter() - t1
+            dynamic = dynamic & ~explained
+        # The pixels whose Gaussian moves: the residual is applied there only; elsewhere (below the
+        # threshold, inconsistent, explained by parallax) it was a proposal of R and the search that
+        # nothing follows (issue 21: 90 px proposed on cameras where nothing moves).
+        applied = dynamic
     rigid = flow.rigid if flow is not None else None
     _sync(device)
     timings["flow_s"] = time.perf_counter() - t0
@@ -268,6 +273,7 @@ def reconstruct(
         depth=np.where(sky_np[..., 0], 0.0, depth.cpu().numpy()).astype(np.float32),
         rigid_flow=np.where(sky_np, 0.0, rigid.cpu().numpy()).astype(np.float32),
         residual_flow=None if flow is None else np.where(sky_np, 0.0, flow.residual.cpu().numpy()).astype(np.float32),
+        moving=None if applied is None else (applied & ~sky).cpu().numpy(),
         meta={
             "method": "drivingscene" if options.use_residual else "drivingscene-static",
             "timings": {k: round(v, 4) for k, v in timings.items()},

@@ -66,7 +66,7 @@ def test_recon_and_ply_files(tmp_path):
     assert ours.info["up"] == "z" and ours.recon.num_views == 0
     torch.testing.assert_close(ours.recon.gaussians.flows, recon.gaussians.flows)
     foreign = tmp_path / "foreign.ply"
-    text = write_ply(random_gaussians(50), tmp_path / "x.ply").read_bytes().replace(b"comment DrivingScene\n", b"")
+    text = write_ply(random_gaussians(50), tmp_path / "x.ply").read_bytes().replace(b"comment DrivingScene frame z-up\n", b"")
     foreign.write_bytes(text)
     other = open_path(foreign)
     assert other.info["up"] == "-y" and len(other.recon.gaussians) == 50

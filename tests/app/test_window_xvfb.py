@@ -71,3 +71,23 @@ def test_scripted_session(xvfb, tmp_path):
     # A scene without model weights: one-line error in the window, which stays up and offers the oracle.
     assert "model weights not found" in r["error"] and "\n" not in r["error"]
     assert r["actions"] == ["Reconstruct from ground truth (oracle)"] and r["after_offer"] == "oracle"
+
+
+@pytest.mark.gl
+def test_escape_never_quits_and_unsaved_edits_ask(xvfb, tmp_path):
+    env = {**os.environ, "DISPLAY": xvfb}
+    run = subprocess.run(
+        [sys.executable, "-m", "tests.app.xvfb_session", str(tmp_path), "quit"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads((tmp_path / "result.json").read_text())
+    assert r["selected"] > 0 and r["after_escape"] == {"selected": 0, "quit": False}
+    assert r["unsaved"]
+    assert r["after_ctrl_q"] == {"asking": True, "quit": False, "modal": True}
+    assert r["after_cancel"] == {"asking": False, "quit": False}
+    assert r["after_discard"] == {"asking": False, "quit": True}

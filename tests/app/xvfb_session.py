@@ -189,7 +189,51 @@ def _export(s: Session, result: dict) -> None:
     result["exported_shapes"] = [list(cv2.imread(p).shape) for p in viewer.export.last]
 
 
+def run_quit(out: Path) -> dict:
+    """Esc does not quit; with an unsaved edit Ctrl+Q asks (the modal), Cancel keeps the window, Discard quits."""
+    from drivingscene.gaussians.recon import save_reconstruction
+    from tests.app.scenes import street_recon
+
+    result: dict = {}
+    s = Session(out)
+    viewer = s.win.viewer
+    viewer.open(save_reconstruction(street_recon(height=24, width=32), out / "recon.npz"))
+    s.pump(5, until=lambda: viewer.doc is not None)
+    x, y, w, h = viewer.view_rect
+    s.move(x + w / 2, y + h / 2)
+    _xdo("key", "--window", s.wid, "ctrl+a")
+    s.pump(3)
+    result["selected"] = int(viewer.doc.selected.sum())
+    _xdo("key", "--window", s.wid, "Escape")
+    s.pump(3)
+    result["after_escape"] = {"selected": int(viewer.doc.selected.sum()), "quit": viewer.quit_requested}
+    _xdo("key", "--window", s.wid, "ctrl+a")
+    _xdo("key", "--window", s.wid, "h")  # hide: an edit that is saved
+    s.pump(3)
+    result["unsaved"] = viewer.doc.edited
+    _xdo("key", "--window", s.wid, "ctrl+q")
+    s.pump(4, settle=False)
+    result["after_ctrl_q"] = {
+        "asking": viewer.quit.asking,
+        "quit": viewer.quit_requested,
+        "modal": "quit_cancel" in viewer.ui_rects,
+    }
+    for answer in ("cancel", "discard"):
+        if answer == "discard":
+            s.move(x + w / 2, y + h / 2, settle=False)
+            _xdo("key", "--window", s.wid, "ctrl+q")
+            s.pump(4, settle=False)
+        x0, y0, x1, y1 = viewer.ui_rects[f"quit_{answer}"]
+        s.move((x0 + x1) / 2, (y0 + y1) / 2, settle=False)
+        _xdo("click", "1")
+        s.pump(3, settle=False)
+        result[f"after_{answer}"] = {"asking": viewer.quit.asking, "quit": viewer.quit_requested}
+    s.win.close()
+    return result
+
+
 if __name__ == "__main__":
     out_dir = Path(sys.argv[1])
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "result.json").write_text(json.dumps(run(out_dir), indent=1))
+    session = run_quit if sys.argv[2:] == ["quit"] else run
+    (out_dir / "result.json").write_text(json.dumps(session(out_dir), indent=1))

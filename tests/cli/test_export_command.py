@@ -67,3 +67,15 @@ def test_bad_arguments_are_one_line(tmp_path, recon_path, capsys, args, message)
 def test_missing_source_is_one_line(tmp_path, capsys):
     assert main(["export", str(tmp_path / "nope.npz"), "--ply", str(tmp_path / "o.ply")]) == 2
     assert "nope.npz: file not found" in capsys.readouterr().err
+
+
+def test_export_out_and_sh_degree(tmp_path, recon_path, capsys):
+    """``-o/--out`` like every command (``--ply`` is the same option); ``--sh-degree`` reaches the writer."""
+    path, g = recon_path
+    assert main(["export", str(path), "-o", str(tmp_path / "a.ply"), "--sh-degree", "0"]) == 0
+    assert read_ply(tmp_path / "a.ply").sh_degree == 0
+    assert main(["export", str(path), "--out", str(tmp_path / "b.ply"), "--sh-degree", "1"]) == 0
+    torch.testing.assert_close(read_ply(tmp_path / "b.ply").sh, g.sh[5:], rtol=0, atol=0)
+    with pytest.raises(SystemExit) as info:
+        main(["export", str(path), "-o", str(tmp_path / "c.ply"), "--sh-degree", "4"])
+    assert info.value.code == 2 and "--sh-degree: invalid choice" in capsys.readouterr().err

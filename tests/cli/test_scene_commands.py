@@ -138,3 +138,38 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     on_grid = np.abs(total - s[..., None] * rigid).max(-1) < 1e-2
     assert (is_r | on_grid).all()
     assert on_grid.mean() > 0.5  # most pixels keep a multiple of the rigid flow
+
+
+def _recon_and_ply(tmp_path):
+    from drivingscene.export.ply import write_ply
+    from drivingscene.gaussians import Reconstruction, save_reconstruction
+    from tests.factories import make_pair
+    from tests.gaussians.test_core_recon import random_gaussians
+
+    g = random_gaussians(30, degree=1)
+    recon = Reconstruction.from_pair(make_pair(num_views=3, height=6, width=8), g)
+    return save_reconstruction(recon, tmp_path / "recon.npz"), write_ply(g, tmp_path / "x.ply"), g
+
+
+def test_info_and_validate_say_what_a_recon_is(tmp_path, capsys):
+    recon, _, g = _recon_and_ply(tmp_path)
+    assert main(["info", str(recon)]) == 0
+    out = capsys.readouterr().out.strip()
+    dynamic = int(g.dynamic.sum())
+    assert out == f"{recon}: a DrivingScene reconstruction (30 Gaussians ({dynamic} dynamic), SH degree 1; 3 cameras (CAM_0, CAM_1, CAM_2) at 8x6)"
+    assert main(["validate", str(recon)]) == 0
+    captured = capsys.readouterr()
+    assert captured.out.startswith(f"{recon}: a DrivingScene reconstruction") and captured.out.strip().endswith(": valid")
+    assert "pickled" not in captured.out + captured.err and "frame-pair" not in captured.err
+
+
+def test_info_and_validate_say_what_a_ply_is(tmp_path, capsys):
+    _, ply, _ = _recon_and_ply(tmp_path)
+    assert main(["info", str(ply)]) == 0
+    assert capsys.readouterr().out.strip() == f"{ply}: a 3DGS PLY, 30 Gaussians (0 dynamic), SH degree 1, frame z-up (DrivingScene's world)"
+    assert main(["validate", str(ply)]) == 0
+    assert "a 3DGS PLY" in capsys.readouterr().out
+    bad = tmp_path / "bad.ply"
+    bad.write_text("ply\nformat junk\n")
+    assert main(["validate", str(bad)]) == 2
+    assert capsys.readouterr().err.strip().startswith(f"{bad}: expected a PLY file")

@@ -9,6 +9,7 @@ from plyfile import PlyData, PlyElement
 
 from drivingscene.errors import InputError
 from drivingscene.export import read_ply, write_ply
+from drivingscene.export.ply import ply_up_axis
 from tests.gaussians.test_core_recon import random_gaussians
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
@@ -30,7 +31,7 @@ def test_rewriting_a_read_file_gives_identical_bytes(tmp_path):
 
 
 def test_header_is_the_standard_layout(tmp_path):
-    path = write_ply(random_gaussians(5, degree=1), tmp_path / "g.ply")
+    path = write_ply(random_gaussians(5, degree=1), tmp_path / "g.ply", sh_degree=1)
     ply = PlyData.read(str(path))
     names = [p.name for p in ply["vertex"].properties]
     expected = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
@@ -43,7 +44,7 @@ def test_header_is_the_standard_layout(tmp_path):
 
 def test_f_rest_is_grouped_by_channel_and_activations_are_stored_raw(tmp_path):
     g = random_gaussians(3, degree=1)
-    vertex = PlyData.read(str(write_ply(g, tmp_path / "g.ply")))["vertex"]
+    vertex = PlyData.read(str(write_ply(g, tmp_path / "g.ply", sh_degree=1)))["vertex"]
     # 3 higher-order coefficients per channel: f_rest_0..2 red, 3..5 green, 6..8 blue.
     np.testing.assert_array_equal(vertex["f_rest_0"], g.sh[:, 1, 0].numpy())
     np.testing.assert_array_equal(vertex["f_rest_3"], g.sh[:, 1, 1].numpy())
@@ -51,6 +52,38 @@ def test_f_rest_is_grouped_by_channel_and_activations_are_stored_raw(tmp_path):
     np.testing.assert_allclose(1 / (1 + np.exp(-vertex["opacity"])), g.opacities.numpy(), rtol=1e-6)
     np.testing.assert_allclose(np.exp(vertex["scale_1"]), g.scales[:, 1].numpy(), rtol=1e-6)
     np.testing.assert_array_equal(vertex["rot_0"], g.quats[:, 0].numpy())  # w first
+
+
+@pytest.mark.parametrize("kind", ["3dgs", "dynamic"])
+def test_sh_is_padded_to_degree_3_by_default_in_graphdeco_order(tmp_path, kind):
+    g = random_gaussians(4, degree=1)
+    vertex = PlyData.read(str(write_ply(g, tmp_path / "g.ply", kind=kind)))["vertex"]
+    rest = sorted(int(p.name.split("_")[-1]) for p in vertex.properties if p.name.startswith("f_rest_"))
+    assert rest == list(range(45))
+    # graphdeco: f_rest_{c * 15 + k} is channel c's coefficient k + 1; bands 2 and 3 are zero.
+    for c in range(3):
+        for k in range(15):
+            expected = g.sh[:, k + 1, c].numpy() if k < 3 else np.zeros(4, np.float32)
+            np.testing.assert_array_equal(vertex[f"f_rest_{c * 15 + k}"], expected)
+    assert read_ply(tmp_path / "g.ply").sh_degree == 1  # trailing zero bands dropped on reading
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_degree_chooses_the_written_degree(tmp_path, degree):
+    g = random_gaussians(6, degree=2)
+    path = write_ply(g, tmp_path / "g.ply", sh_degree=degree)
+    names = [p.name for p in PlyData.read(str(path))["vertex"].properties]
+    assert sum(n.startswith("f_rest_") for n in names) == 3 * (degree + 1) ** 2 - 3
+    back = read_ply(path)
+    torch.testing.assert_close(back.sh, g.with_sh_degree(min(degree, 2)).sh, rtol=0, atol=0)
+
+
+def test_sh_degree_is_checked(tmp_path):
+    g = random_gaussians(3)
+    with pytest.raises(InputError, match="--sh-degree: expected 0 to 3"):
+        write_ply(g, tmp_path / "g.ply", sh_degree=4)
+    with pytest.raises(InputError, match="points PLY"):
+        write_ply(g, tmp_path / "p.ply", kind="points", sh_degree=0)
 
 
 def test_dynamic_round_trip_keeps_flow_keyframe_and_camera(tmp_path):
@@ -144,3 +177,24 @@ def test_no_vertex_element(tmp_path):
     PlyData([PlyElement.describe(np.zeros(2, dtype=[("a", "<f4")]), "face")]).write(str(path))
     with pytest.raises(InputError, match="expected a 'vertex' element"):
         read_ply(path)
+
+
+def test_the_header_states_the_frame(tmp_path):
+    g = random_gaussians(5)
+    ours = write_ply(g, tmp_path / "ours.ply")
+    assert b"comment DrivingScene frame z-up\n" in ours.read_bytes()[:400] and ply_up_axis(ours) == "z"
+    y_down = write_ply(g, tmp_path / "y.ply", kind="points", up="-y")
+    assert ply_up_axis(y_down) == "-y"
+    text = ours.read_bytes()
+    older = tmp_path / "older.ply"  # written before the frame was stated: ours, z-up
+    older.write_bytes(text.replace(b"comment DrivingScene frame z-up\n", b"comment DrivingScene\n"))
+    assert ply_up_axis(older) == "z"
+    foreign = tmp_path / "foreign.ply"  # another tool's: y-down
+    foreign.write_bytes(text.replace(b"comment DrivingScene frame z-up\n", b"comment made by another tool\n"))
+    assert ply_up_axis(foreign) == "-y"
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(text.replace(b"frame z-up", b"frame x-up"))
+    with pytest.raises(InputError, match="expected one of z-up, y-down"):
+        ply_up_axis(bad)
+    with pytest.raises(InputError, match="up axis"):
+        write_ply(g, tmp_path / "x.ply", up="y")

@@ -1,0 +1,54 @@
+"""Progress of long commands: stage lines on stderr once the work takes more than a second (the
+threshold forced to 0 here), nothing added on stdout, silence for quick runs."""
+
+from __future__ import annotations
+
+import io
+import time
+
+from drivingscene.arguments import Progress
+from drivingscene.cli import main
+from drivingscene.data import save_frame_pair
+from tests.factories import make_pair
+from tests.reliability.corpus import tiny_weights
+
+
+def test_progress_is_silent_below_the_threshold_and_prints_the_stage_under_way_after_it():
+    stream = io.StringIO()
+    with Progress("cmd", after=0.2, stream=stream) as progress:
+        progress.stage("quick")
+        progress.stage("slow")
+        time.sleep(0.5)  # the timer prints "slow", the stage under way, when the threshold passes
+        assert stream.getvalue().startswith("cmd: slow (0.")
+        progress(0.5, "half")
+    assert stream.getvalue().splitlines()[1].startswith("cmd: half [50%] (")
+    quiet = io.StringIO()
+    with Progress("cmd", after=60, stream=quiet) as progress:
+        progress.stage("anything")
+    time.sleep(0.05)
+    assert quiet.getvalue() == ""
+
+
+def test_reconstruct_shows_its_stages_on_stderr_only(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("DRIVINGSCENE_PROGRESS_AFTER", "0")
+    scene = save_frame_pair(make_pair(num_views=2, height=24, width=40), tmp_path / "scene.npz")
+    weights = tiny_weights(tmp_path)
+    out = tmp_path / "recon.npz"
+    assert main(["reconstruct", str(scene), "-o", str(out), "--weights", str(weights), "--match", "off"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out.strip().splitlines() == [captured.out.strip()] and captured.out.startswith(f"{out}: ")
+    stages = [line.split(": ", 1)[1] for line in captured.err.splitlines() if line.startswith("drivingscene reconstruct: ")]
+    assert stages[0].startswith(f"loading {scene}") and stages[1].startswith("loading the networks")
+    assert stages[2].startswith("reconstructing 2 cameras at 40x24")
+    assert stages[3].startswith("reconstructed: networks D+P ") and "flow " in stages[3] and "assembly " in stages[3]
+    assert stages[4].startswith(f"writing {out}")
+
+
+def test_bench_inference_shows_its_runs_on_stderr(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("DRIVINGSCENE_PROGRESS_AFTER", "0")
+    weights = tiny_weights(tmp_path)
+    args = ["bench", "inference", "--sizes", "24x40", "--runs", "2", "--weights", str(weights), "--match", "off"]
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    assert "drivingscene bench inference: run 2/2 of 24x40 [50%]" in captured.err
+    assert "warm-up" in captured.err and "drivingscene bench inference:" not in captured.out
