@@ -2,7 +2,8 @@
 e.g. ``xvfb-run -s "-screen 0 1600x900x24" python -m drivingscene_view.screenshots docs/images assets/demo_scene.npz``).
 
 Writes viewer_main.png (RGB view, flow panel), viewer_benchmark.png (View > Benchmark over it, when
-docs/benchmark.json exists), viewer_depth.png (depth mode, depth panel),
+docs/benchmark.json exists), viewer_depth.png (depth mode, depth panel), viewer_depth_moving.png and
+viewer_depth_settled.png (a frame while time moves and the settled one),
 viewer_rig.png (snapped to a rig camera, dynamic highlighted), viewer_edit_before.png (the moving
 objects selected), viewer_edit_after.png (deleted), viewer_refine_running.png (Refine in progress,
 clicked with xdotool when it is installed) and viewer_refine_after.png (refined).
@@ -80,6 +81,8 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     v.view.mode = "depth"
     v.panels["cameras"] = StripState(kind="depth")
     shoot(win, out / "viewer_depth.png")
+    depth_preview_shots(win, out)
+    v.set_time(0.5)
     v.view.mode = "dynamic"
     v.snap(0)
     v.panels["cameras"] = StripState(kind="residual_flow")
@@ -95,6 +98,19 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     v.doc.clear_selection()
     refine_shots(win, out)
     win.close()
+
+
+def depth_preview_shots(win: ViewerWindow, out: Path) -> None:
+    """viewer_depth_moving.png (a frame drawn while time moves: the full scene at a lower resolution)
+    and viewer_depth_settled.png (the same time, settled): the same depths in the same colours."""
+    v = win.viewer
+    v.view.mode = "depth"
+    v.panels["cameras"] = StripState(kind="depth")
+    settle(win)
+    v.set_time(0.45)
+    win.step()  # one frame while moving
+    save_png(out / "viewer_depth_moving.png", win.screenshot())
+    shoot(win, out / "viewer_depth_settled.png")
 
 
 def benchmark_shot(win: ViewerWindow, out: Path) -> None:

@@ -90,6 +90,15 @@ def _camera_key(cam: ViewCamera) -> bytes:
     return cam.world_to_cam.tobytes() + cam.intrinsics.tobytes() + bytes(f"{cam.width}x{cam.height}", "ascii")
 
 
+def preview_uses_level(level: int, num_levels: int, mode: str) -> bool:
+    """Whether a moving frame draws the merged level ``level`` rather than the full scene (at a lower
+    resolution only). Never in the depth view: a merged Gaussian sits at its cell's mean depth and,
+    widened to close the seams, spills over the sky and across depth edges, so interim frames showed
+    other depths (in the same colours) than the settled frame; the full scene at a lower resolution
+    shows the same ones."""
+    return 0 <= level < num_levels and mode != "depth"
+
+
 class Viewport:
     """Renderer, sort worker and splat sets bound to one document at a time."""
 
@@ -256,7 +265,7 @@ class Viewport:
 
     def _preview(self, camera: ViewCamera, t: float, opts: RenderOptions) -> bool:
         level, scale = self.ladder.step
-        s = self.levels[level] if level >= 0 and self.levels else self.full
+        s = self.levels[level] if preview_uses_level(level, len(self.levels), opts.mode) else self.full
         if s is not self.full and opts.blend == "cameras":
             # a merged level mixes cameras' Gaussians: previewed with one layer per keyframe (2 passes, not 2V)
             opts = replace(opts, blend="layers")

@@ -148,3 +148,13 @@ def test_levels_of_detail_follow_edits():
     doc.make_static_selected()
     _, flows = level_state(level, doc.splats, doc.hidden, doc.selected, True)
     assert np.abs(flows[(flags & 1) == 0]).max() == 0
+
+
+def test_depth_view_previews_the_full_scene_not_a_merged_level():
+    """Moving frames of the depth view draw the full scene (at a lower resolution), so interim frames
+    show the settled frame's depths; other views may use a merged level."""
+    from drivingscene_view.viewport import preview_uses_level
+
+    assert preview_uses_level(0, 2, "rgb") and preview_uses_level(1, 2, "flow")
+    assert not preview_uses_level(0, 2, "depth") and not preview_uses_level(1, 2, "depth")
+    assert not preview_uses_level(-1, 2, "rgb") and not preview_uses_level(0, 0, "rgb")
