@@ -48,6 +48,7 @@ class Variant:
     search: bool = True
     region: int | None = None  # LiftConfig.min_dynamic_region; None: the default
     bonus: float | None = None  # MotionSearchConfig.static_bonus; None: the default
+    unseen: bool | None = None  # MotionSearchConfig.unseen_static; None: the default
     photo: bool | None = None  # LiftConfig.photometric_check; None: the default
     parallax: bool | None = None  # LiftConfig.epipolar_static; None: the default
     head: bool = True  # InferenceOptions.gaussian_head: P's predictions (False: default surfels)
@@ -88,6 +89,8 @@ class Variant:
         search = base.search if self.search else None
         if search is not None and self.bonus is not None:
             search = replace(search, static_bonus=self.bonus)
+        if search is not None and self.unseen is not None:
+            search = replace(search, unseen_static=self.unseen)
         return replace(base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match)
 
 
@@ -111,7 +114,7 @@ def _nanmean(values: list[float]) -> float:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, bonus, region."""
+    windows, guide, levels, passes, mscale, bonus, region, unseen."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
     from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
@@ -127,6 +130,8 @@ def parse_variant(text: str) -> Variant:
             values["search"] = value == "on"
         elif key == "region" and value.isdigit():
             values["region"] = int(value)
+        elif key == "unseen" and value in ("static", "search"):
+            values["unseen"] = value == "static"
         elif key in ("photo", "parallax", "head") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
@@ -151,7 +156,7 @@ def parse_variant(text: str) -> Variant:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
                 f"photo=on|off, parallax=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
-                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0) or region=PIXELS, found {item!r}"
+                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0), region=PIXELS or unseen=static|search, found {item!r}"
             )
     return Variant(**values)
 

@@ -36,6 +36,11 @@ def test_variant_options_change_only_what_they_name():
     assert v.lift.dynamic_threshold_px == base.lift.dynamic_threshold_px
     assert parse_variant("search=off,bonus=0.05").options(base).search is None
     assert same.gaussian_head and not parse_variant("head=off").options(base).gaussian_head
+    unseen = parse_variant("unseen=static").options(base).search
+    assert unseen.unseen_static and replace(unseen, unseen_static=base.search.unseen_static) == base.search
+    assert not parse_variant("unseen=search").options(base).search.unseen_static
+    with pytest.raises(InputError, match="'unseen=maybe'"):
+        parse_variant("unseen=maybe")
 
 
 def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
