@@ -308,8 +308,9 @@ class MotionSearchConfig:
     # hypothesis that lands inside won there: on side cameras 30-50 % of static surfaces, those
     # leaving the view, took a random s (issue 21). True: a scaled-rigid pick there falls back to
     # s = 1 (R's flow, when it wins, is kept): without evidence the world stays static. Off by default
-    # until the benchmark docs are regenerated with it: on 4 validation pairs (data/val176) the
-    # in-between frame gained 0.25 dB, moving pixels unchanged, dynamic Gaussians 21.7k -> 6.3k.
+    # until the benchmark docs are regenerated with it: on the first 4 validation pairs (data/val176)
+    # the in-between frame gained 0.25 dB, moving pixels unchanged, dynamic Gaussians 21.7k -> 6.3k
+    # (`drivingscene bench choices --data data/val176 --variant unseen=search --variant unseen=static`).
     unseen_static: bool = False
 
     def __post_init__(self):
