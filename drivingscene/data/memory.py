@@ -12,6 +12,19 @@ import numpy as np
 from drivingscene.errors import InputError
 from drivingscene.machine import MEMORY_LIMIT_ENV, available_memory_bytes, gib
 
+HEADER_ERRORS = (ValueError, EOFError, SyntaxError, TypeError)  # what a malformed .npy header raises
+
+
+def read_npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
+    """``(shape, dtype)`` from the ``.npy`` header at the start of the open member ``f``, which is
+    left at the first byte of data. Raises one of ``HEADER_ERRORS`` for a malformed header."""
+    version = np.lib.format.read_magic(f)
+    if version not in ((1, 0), (2, 0)):
+        raise ValueError(f".npy format version {version[0]}.{version[1]}")
+    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, _, dtype = read(f, max_header_size=10_000)
+    return tuple(int(n) for n in shape), dtype
+
 
 def declared_arrays(zf: zipfile.ZipFile) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     """``{key: (shape, dtype)}`` of every ``.npy`` member, from its header alone; members whose
@@ -20,12 +33,10 @@ def declared_arrays(zf: zipfile.ZipFile) -> dict[str, tuple[tuple[int, ...], np.
     for name in zf.namelist():
         try:
             with zf.open(name) as f:
-                version = np.lib.format.read_magic(f)
-                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-                shape, _, dtype = read(f, max_header_size=10_000)
-        except (ValueError, EOFError, SyntaxError, TypeError, OSError, zipfile.BadZipFile, NotImplementedError):
+                shape, dtype = read_npy_header(f)
+        except (*HEADER_ERRORS, OSError, zipfile.BadZipFile, NotImplementedError):
             continue
-        out[name.removesuffix(".npy")] = (tuple(int(n) for n in shape), dtype)
+        out[name.removesuffix(".npy")] = (shape, dtype)
     return out
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from drivingscene.data.atomic import atomic_write
-from drivingscene.data.memory import check_npz_fits
+from drivingscene.data.memory import HEADER_ERRORS, check_npz_fits, declared_nbytes, read_npy_header
 from drivingscene.errors import InputError
 
 _FIXED_DATE = (1980, 1, 1, 0, 0, 0)
@@ -100,16 +100,12 @@ def _check_member(path: Path, zf: zipfile.ZipFile, key: str) -> None:
     size = zf.getinfo(name).file_size
     with zf.open(name) as f:
         try:
-            version = np.lib.format.read_magic(f)
-            if version not in ((1, 0), (2, 0)):
-                raise ValueError(f".npy format version {version[0]}.{version[1]}")
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            shape, _, dtype = read_header(f, max_header_size=10_000)
-        except (ValueError, EOFError, SyntaxError, TypeError) as e:
+            shape, dtype = read_npy_header(f)
+        except HEADER_ERRORS as e:
             raise InputError(f"{path}: {key}: expected a .npy array header, found {_one_line(e)}") from None
         if dtype.hasobject:
             raise InputError(f"{path}: {key}: expected a plain array, found a pickled object array (never unpickled)")
-        declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+        declared = declared_nbytes(shape, dtype)
         if declared > size - f.tell():
             raise InputError(
                 f"{path}: {key}: expected {declared} bytes of data for shape {list(shape)} {dtype}, "
