@@ -27,6 +27,20 @@ def synth_pair():
     return generate_pair(SynthConfig(height=64, width=112), 200000, renderer)
 
 
+@pytest.fixture(scope="session")
+def gl_ctx():
+    """One offscreen EGL context for the session (skipped cleanly where EGL is missing)."""
+    from drivingscene.errors import DrivingSceneError
+    from drivingscene.gl import create_offscreen_context
+
+    try:
+        ctx = create_offscreen_context()
+    except DrivingSceneError as e:
+        pytest.skip(f"no EGL OpenGL context: {e}")
+    yield ctx
+    ctx.release()
+
+
 @pytest.fixture
 def one_thread():
     """Torch on one thread for the test, as refinement and its depth sweep run on a busy machine

@@ -43,18 +43,23 @@ def xvfb():
     proc.wait(10)
 
 
-@pytest.mark.gl
-def test_scripted_session(xvfb, tmp_path):
-    env = {**os.environ, "DISPLAY": xvfb}
+def run_session(display: str, module: str, *args: str) -> subprocess.CompletedProcess:
+    """Run a scripted window session (``python -m module args``) on the Xvfb ``display``; it must exit 0."""
     run = subprocess.run(
-        [sys.executable, "-m", "tests.app.xvfb_session", str(tmp_path)],
-        env=env,
+        [sys.executable, "-m", module, *args],
+        env={**os.environ, "DISPLAY": display},
         capture_output=True,
         text=True,
         timeout=240,
         cwd=Path(__file__).resolve().parents[2],
     )
     assert run.returncode == 0, run.stderr[-3000:]
+    return run
+
+
+@pytest.mark.gl
+def test_scripted_session(xvfb, tmp_path):
+    run = run_session(xvfb, "tests.app.xvfb_session", str(tmp_path))
     assert "drivingscene-view: error: " in run.stderr  # the same error line on stderr
     r = json.loads((tmp_path / "result.json").read_text())
     # The slider went to ~80 % of its width and the picture is the scene at that time (not the old one).
@@ -75,16 +80,7 @@ def test_scripted_session(xvfb, tmp_path):
 
 @pytest.mark.gl
 def test_escape_never_quits_and_unsaved_edits_ask(xvfb, tmp_path):
-    env = {**os.environ, "DISPLAY": xvfb}
-    run = subprocess.run(
-        [sys.executable, "-m", "tests.app.xvfb_session", str(tmp_path), "quit"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=240,
-        cwd=Path(__file__).resolve().parents[2],
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
+    run_session(xvfb, "tests.app.xvfb_session", str(tmp_path), "quit")
     r = json.loads((tmp_path / "result.json").read_text())
     assert r["selected"] > 0 and r["after_escape"] == {"selected": 0, "quit": False}
     assert r["unsaved"]

@@ -127,19 +127,6 @@ def test_splat_shader_runs_the_shared_glsl():
 
 
 @pytest.fixture(scope="module")
-def gl_ctx():
-    from drivingscene.errors import DrivingSceneError
-    from drivingscene.gl import create_offscreen_context
-
-    try:
-        ctx = create_offscreen_context()
-    except DrivingSceneError as e:
-        pytest.skip(f"no EGL OpenGL context: {e}")
-    yield ctx
-    ctx.release()
-
-
-@pytest.fixture(scope="module")
 def probe(gl_ctx):
     """``run(t, code, layer) -> (positions [N, 3], steps [N], weights [N])`` from shaders/time_rule_probe.glsl."""
     g = _gaussians()

@@ -277,22 +277,35 @@ def rig_folder(folder: Path) -> Path:
     return folder / "rig"
 
 
-def _rig(edit: Callable[[Path], None]) -> Callable[[Path], Path]:
+def _built(make: Callable[[Path], Path], edit: Callable[[Path], None]) -> Callable[[Path], Path]:
+    """A case writer: a valid folder made by ``make``, then broken by ``edit``."""
+
     def write(folder: Path) -> Path:
-        rig = rig_folder(folder)
-        edit(rig)
-        return rig
+        root = make(folder)
+        edit(root)
+        return root
 
     return write
 
 
-def _edit_rig_json(fn: Callable[[dict], None]) -> Callable[[Path], None]:
-    def edit(rig: Path) -> None:
-        data = json.loads((rig / "rig.json").read_text())
+def _edit_json(relative: str, fn: Callable[[dict], None]) -> Callable[[Path], None]:
+    """An edit that changes the JSON file ``relative`` to the folder in place with ``fn``."""
+
+    def edit(root: Path) -> None:
+        path = root / relative
+        data = json.loads(path.read_text())
         fn(data)
-        (rig / "rig.json").write_text(json.dumps(data))
+        path.write_text(json.dumps(data))
 
     return edit
+
+
+def _rig(edit: Callable[[Path], None]) -> Callable[[Path], Path]:
+    return _built(rig_folder, edit)
+
+
+def _edit_rig_json(fn: Callable[[dict], None]) -> Callable[[Path], None]:
+    return _edit_json("rig.json", fn)
 
 
 def dgp_folder(folder: Path) -> Path:
@@ -302,22 +315,11 @@ def dgp_folder(folder: Path) -> Path:
 
 
 def _dgp(edit: Callable[[Path], None]) -> Callable[[Path], Path]:
-    def write(folder: Path) -> Path:
-        dgp = dgp_folder(folder)
-        edit(dgp)
-        return dgp
-
-    return write
+    return _built(dgp_folder, edit)
 
 
 def _dgp_calibration(fn: Callable[[dict], None]) -> Callable[[Path], None]:
-    def edit(dgp: Path) -> None:
-        path = dgp / "calibration" / "c0.json"
-        data = json.loads(path.read_text())
-        fn(data)
-        path.write_text(json.dumps(data))
-
-    return edit
+    return _edit_json("calibration/c0.json", fn)
 
 
 def _first_image(root: Path) -> Path:

@@ -4,27 +4,15 @@ bar (and on stderr), the window keeps drawing, and a good file opens afterwards 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
-from tests.app.test_window_xvfb import xvfb  # noqa: F401  (fixture)
+from tests.app.test_window_xvfb import run_session, xvfb  # noqa: F401  (fixture)
 
 
 @pytest.mark.gl
 def test_bad_files_in_the_window(xvfb, tmp_path):  # noqa: F811
-    run = subprocess.run(
-        [sys.executable, "-m", "tests.reliability.xvfb_corpus_session", str(tmp_path)],
-        env={**os.environ, "DISPLAY": xvfb},
-        capture_output=True,
-        text=True,
-        timeout=240,
-        cwd=Path(__file__).resolve().parents[2],
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
+    run = run_session(xvfb, "tests.reliability.xvfb_corpus_session", str(tmp_path))
     assert "Traceback" not in run.stderr, run.stderr[-3000:]
     r = json.loads((tmp_path / "result.json").read_text())
     assert len(r["cases"]) == 4
