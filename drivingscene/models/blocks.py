@@ -55,11 +55,20 @@ class ReplicateConv3x3(nn.Conv2d):
 
 
 def replicate_pad1(x: Tensor) -> Tensor:
-    """``F.pad(x, (1, 1, 1, 1), mode="replicate")`` for ``[B, C, H, W]``, by concatenating edge
-    rows and columns: the same values, several times faster on CPU for channels-last float32
-    input, where torch's replication pad takes a slow path (30 ms for a 12 x 32 x 96 x 176 map)."""
-    x = torch.cat([x[:, :, :1], x, x[:, :, -1:]], dim=2)
-    return torch.cat([x[..., :1], x, x[..., -1:]], dim=3)
+    """``F.pad(x, (1, 1, 1, 1), mode="replicate")`` for ``[B, C, H, W]``: the same values, written
+    into one preallocated tensor of ``x``'s memory format (one copy of the interior, then the edge
+    rows and columns). On CPU torch's replication pad takes a slow path for channels-last float32
+    input (30 ms for a 12 x 32 x 96 x 176 map), and concatenating edges copies the map twice."""
+    channels_last = x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
+    out = x.new_empty((*x.shape[:-2], x.shape[-2] + 2, x.shape[-1] + 2))
+    if channels_last:
+        out = out.contiguous(memory_format=torch.channels_last)
+    out[..., 1:-1, 1:-1] = x
+    out[..., 0, 1:-1] = x[..., 0, :]
+    out[..., -1, 1:-1] = x[..., -1, :]
+    out[..., :, 0] = out[..., :, 1]
+    out[..., :, -1] = out[..., :, -2]
+    return out
 
 
 def upsample_to(x: Tensor, like: Tensor, mode: str = "nearest") -> Tensor:

@@ -12,14 +12,10 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def recon_and_pair(synth_pair):
-    from dataclasses import replace
-
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
-    from drivingscene.models.pipeline import MotionSearchConfig
 
-    # with the search's fix for surfaces leaving the view (off by default until the docs are regenerated)
-    options = replace(InferenceOptions(), search=MotionSearchConfig(unseen_static=True))
-    return reconstruct(load_model(), synth_pair, options), synth_pair
+    assert InferenceOptions().search.unseen_static  # the search's fix for surfaces leaving the view is the default
+    return reconstruct(load_model(), synth_pair, InferenceOptions()), synth_pair
 
 
 def _static_cameras(pair) -> list[int]:
@@ -66,7 +62,7 @@ def test_moving_mask_round_trips(recon_and_pair, tmp_path):
 
 def test_search_keeps_unseen_static_surfaces_static(synth_pair):
     """Where the static hypothesis leaves the other image, no scaled rigid flow wins with
-    ``unseen_static`` (off by default until the benchmark docs are regenerated with it), and nearly
+    ``unseen_static`` (the default), and nearly
     every such pixel takes one without it."""
     import torch
 

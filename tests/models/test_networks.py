@@ -128,6 +128,28 @@ def test_replicate_conv_equals_torch_replicate_padding_conv():
         assert torch.equal(conv(x), reference(x))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_replicate_pad_equals_torch_and_keeps_gradients_and_layout(dtype, channels_last):
+    from drivingscene.models.blocks import replicate_pad1
+
+    torch.manual_seed(4)
+    x = torch.randn(2, 3, 5, 6).to(dtype)
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    x.requires_grad_(True)
+    reference = x.detach().clone().requires_grad_(True)
+    out, expected = replicate_pad1(x), F.pad(reference.float(), (1, 1, 1, 1), mode="replicate").to(dtype)
+    assert torch.equal(out, expected)
+    assert out.is_contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+    weight = torch.randn(out.shape).to(dtype)
+    (out.float() * weight.float()).sum().backward()
+    (expected.float() * weight.float()).sum().backward()
+    # edge pixels collect the gradients of their copies (corners: three, summed in another order)
+    tolerance = 1e-6 if dtype == torch.float32 else 2e-2
+    assert torch.allclose(x.grad.float(), reference.grad.float(), atol=tolerance, rtol=tolerance)
+
+
 def test_coarse_radius_widens_only_the_coarsest_cost_volume():
     wide = CameraDecoder(FlowConfig(radius=3, coarse_radius=6))
     assert FlowConfig(radius=3, coarse_radius=6).level_radii == [3, 3, 3, 6]
