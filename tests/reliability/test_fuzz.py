@@ -1,5 +1,5 @@
 """Property-based fuzzing of the readers: mutated bytes of a valid npz, PLY, safetensors file and
-rig folder either read or fail with the project's own error type (``DrivingSceneError``), never
+rig folder, DGP scene and nuScenes tables either read or fail with the project's own error type (``DrivingSceneError``), never
 another exception. Example counts are kept small for the suite's time (about a minute in all)."""
 
 from __future__ import annotations
@@ -219,27 +219,83 @@ def _paths(node, prefix=()):
             yield from _paths(value, (*prefix, i))
 
 
-@settings(max_examples=120, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def mutated_json(data, text: str) -> str:
+    """``text`` (a JSON document) with one value replaced or deleted somewhere, or its text damaged."""
+    if data.draw(st.booleans()):
+        doc = json.loads(text)
+        paths = [p for p in _paths(doc) if p]
+        if not paths:
+            return json.dumps(data.draw(JSON_VALUES))
+        path = data.draw(st.sampled_from(paths))
+        node = doc
+        for key in path[:-1]:
+            node = node[key]
+        if data.draw(st.booleans()):
+            del node[path[-1]]
+        else:
+            node[path[-1]] = data.draw(JSON_VALUES)
+        return json.dumps(doc)
+    return data.draw(mutations(text.encode())).decode("utf-8", "replace")
+
+
+def _fuzzed_copy(source: Path, folder: Path, data, relative: str) -> Path:
+    """A fresh copy of ``source`` at ``folder`` with its JSON file ``relative`` mutated."""
+    shutil.rmtree(folder, ignore_errors=True)
+    shutil.copytree(source, folder)
+    (folder / relative).write_text(mutated_json(data, (source / relative).read_text()))
+    return folder
+
+
+JSON_FUZZ = settings(max_examples=120, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@JSON_FUZZ
 @given(data=st.data())
 def test_rig_json_mutated(work, rig, data):
     from drivingscene.data.importers.rig import import_rig
 
-    folder = work / "rig_fuzz"
-    shutil.rmtree(folder, ignore_errors=True)
-    shutil.copytree(rig, folder)
-    text = (rig / "rig.json").read_text()
-    if data.draw(st.booleans()):  # a value somewhere replaced (or deleted)
-        doc = json.loads(text)
-        path = data.draw(st.sampled_from([p for p in _paths(doc) if p]))
-        node = doc
-        for key in path[:-1]:
-            node = node[key]
-        if data.draw(st.booleans()) and isinstance(node, dict):
-            del node[path[-1]]
-        else:
-            node[path[-1]] = data.draw(JSON_VALUES)
-        text = json.dumps(doc)
-    else:  # the text itself damaged
-        text = data.draw(mutations(text.encode())).decode("utf-8", "replace")
-    (folder / "rig.json").write_text(text)
+    folder = _fuzzed_copy(rig, work / "rig_fuzz", data, "rig.json")
     read_or_own_error(import_rig, folder, (0, 1), (), None, "crop")
+
+
+@pytest.fixture(scope="module")
+def dgp(work):
+    from tests.reliability.corpus import dgp_folder
+
+    return dgp_folder(work / "dgp_source")
+
+
+@JSON_FUZZ
+@given(data=st.data(), relative=st.sampled_from(["scene_0.json", "calibration/c0.json"]))
+def test_dgp_json_mutated(work, dgp, data, relative):
+    """DGP (DDAD) scene and calibration files with a value replaced or deleted, or their text damaged."""
+    from drivingscene.data.importers.ddad import import_ddad
+
+    folder = _fuzzed_copy(dgp, work / "dgp_fuzz", data, relative)
+    read_or_own_error(import_ddad, folder, (0, 1), (), None)
+
+
+@pytest.fixture(scope="module")
+def nuscenes_root(work, synth_pair):
+    pytest.importorskip("nuscenes.nuscenes", reason="nuscenes-devkit not installed (make setup installs it)")
+    from tests.data.importers.nuscenes_layout import write_nuscenes
+
+    return write_nuscenes(synth_pair, work / "nuscenes_source")
+
+
+NUSCENES_TABLES = ["scene", "sample", "sample_data", "calibrated_sensor", "ego_pose", "sensor", "log"]
+
+
+@settings(max_examples=60, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data(), table=st.sampled_from(NUSCENES_TABLES))
+def test_nuscenes_tables_mutated(work, nuscenes_root, data, table):
+    """nuScenes tables, read through the real devkit, with a value replaced or deleted, or damaged text."""
+    from drivingscene.data.importers.nuscenes import import_nuscenes
+    from tests.data.importers.nuscenes_layout import SCENE, VERSION
+
+    folder = work / "nuscenes_fuzz"
+    shutil.rmtree(folder, ignore_errors=True)
+    shutil.copytree(nuscenes_root, folder, symlinks=True)
+    relative = f"{VERSION}/{table}.json"
+    (folder / relative).write_text(mutated_json(data, (nuscenes_root / relative).read_text()))
+    read_or_own_error(import_nuscenes, folder, VERSION, SCENE, 0, "keyframe", False, None)

@@ -158,6 +158,8 @@ def rigid_from_quaternion(wxyz, translation) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = quat_to_matrix(q).numpy()
     out[:3, 3] = [float(t) for t in translation]
+    if not np.isfinite(out).all():
+        raise ValueError(f"expected a finite translation (x, y, z), found {list(translation)}")
     return out
 
 

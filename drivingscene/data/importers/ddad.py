@@ -116,14 +116,24 @@ def _scene_file(scene_dir: Path) -> Path:
 
 def _sample_data(scene_dir: Path, scene: dict, index: int, source: Path) -> tuple[dict[str, _Datum], str]:
     """Datums of sample ``index`` by sensor name, and its calibration key."""
+    if not isinstance(scene, dict):
+        raise InputError(f"{source}: expected a DGP scene object (data, samples), found {_kind(scene)}")
     samples = scene.get("samples")
     if not isinstance(samples, list) or not samples:
         raise InputError(f"{source}: samples: expected a non-empty list, found {type(samples).__name__}")
     if not 0 <= index < len(samples):
         raise InputError(f"{source}: samples[{index}]: expected an index in 0..{len(samples) - 1} (the scene has {len(samples)} samples)")
-    data = {d.get("key"): d for d in scene.get("data", [])}
+    entries, sample = scene.get("data"), samples[index]
+    if not isinstance(entries, list) or not all(isinstance(d, dict) for d in entries):
+        raise InputError(f"{source}: data: expected a list of datum objects, found {_kind(entries)}")
+    if not isinstance(sample, dict):
+        raise InputError(f"{source}: samples[{index}]: expected an object with datum_keys, found {_kind(sample)}")
+    keys = sample.get("datum_keys", [])
+    if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+        raise InputError(f"{source}: samples[{index}].datum_keys: expected a list of strings, found {_kind(keys)}")
+    data = {d["key"]: d for d in entries if isinstance(d.get("key"), str)}
     out = {}
-    for key in samples[index].get("datum_keys", []):
+    for key in keys:
         if key not in data:
             raise InputError(f"{source}: samples[{index}].datum_keys: expected keys of entries in data, found unknown {key}")
         d = data[key]
@@ -132,10 +142,20 @@ def _sample_data(scene_dir: Path, scene: dict, index: int, source: Path) -> tupl
             kind = next(k for k in ("image", "point_cloud") if k in d["datum"])
             body, name = d["datum"][kind], d["id"]["name"]
             filename, iso = body["filename"], d["id"].get("timestamp", "")
-        except (KeyError, StopIteration, TypeError):
-            raise InputError(f"{where}: expected datum.image or datum.point_cloud with filename and id.name") from None
+            if not (isinstance(filename, str) and filename and isinstance(name, str) and isinstance(iso, str)):
+                raise TypeError
+        except (KeyError, StopIteration, TypeError, AttributeError):
+            raise InputError(f"{where}: expected datum.image or datum.point_cloud with filename and id.name (strings)") from None
         out[name] = _Datum(name, kind, scene_dir / filename, _pose(body.get("pose"), f"{where}.pose"), _seconds(filename, iso, where))
-    return out, samples[index].get("calibration_key", "")
+    calibration_key = sample.get("calibration_key", "")
+    if not isinstance(calibration_key, str) or not calibration_key or Path(calibration_key).name != calibration_key:
+        raise InputError(f"{source}: samples[{index}].calibration_key: expected the name of a file in calibration/, found {calibration_key!r:.80}")
+    return out, calibration_key
+
+
+def _kind(value) -> str:
+    """What a JSON value is, for messages: its type, or a short repr for scalars."""
+    return f"{value!r:.40}" if isinstance(value, (str, int, float, bool)) or value is None else type(value).__name__
 
 
 @dataclass(frozen=True)
@@ -162,19 +182,25 @@ def _calibration(scene_dir: Path, key: str) -> dict[str, _Sensor]:
     cal = read_json(path, "a DGP calibration file")
     try:
         names, intrinsics, extrinsics = cal["names"], cal["intrinsics"], cal["extrinsics"]
+        if not all(isinstance(x, list) for x in (names, intrinsics, extrinsics)):
+            raise TypeError
     except (KeyError, TypeError):
         raise InputError(f"{path}: expected names, intrinsics and extrinsics lists") from None
+    if not all(isinstance(n, str) for n in names):
+        raise InputError(f"{path}: names: expected sensor names (strings), found {names!r:.80}")
     if not len(names) == len(intrinsics) == len(extrinsics):
         raise InputError(f"{path}: expected names, intrinsics, extrinsics of equal length, found {len(names)}, {len(intrinsics)}, {len(extrinsics)}")
     out = {}
     for i, (name, k, e) in enumerate(zip(names, intrinsics, extrinsics)):
         try:
             mat = np.array([[k["fx"], k.get("skew", 0.0), k["cx"]], [0.0, k["fy"], k["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64)
-        except (KeyError, TypeError):
-            raise InputError(f"{path}: intrinsics[{i}] ({name}): expected fx, fy, cx, cy") from None
+            if not np.isfinite(mat).all():
+                raise ValueError
+        except (KeyError, TypeError, ValueError, AttributeError):
+            raise InputError(f"{path}: intrinsics[{i}] ({name}): expected finite numbers fx, fy, cx, cy") from None
         try:
             model, coeffs = _distortion(k)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, AttributeError):
             raise InputError(f"{path}: intrinsics[{i}] ({name}): expected numeric distortion coefficients {', '.join(DISTORTION_KEYS)}") from None
         out[name] = _Sensor(mat, _pose(e, f"{path}: extrinsics[{i}] ({name})"), model, coeffs)
     return out
@@ -215,6 +241,10 @@ def _camera_names(datums: dict[str, _Datum], calibration: dict[str, _Sensor], so
     missing = [n for n in names if n not in calibration]
     if missing:
         raise InputError(f"{source}: calibration: expected intrinsics and extrinsics for {', '.join(missing)}, found none")
+    for n in names:  # LiDAR sensors are listed with zero focal lengths; cameras need positive ones
+        k = calibration[n].intrinsics
+        if not (k[0, 0] > 0 and k[1, 1] > 0):
+            raise InputError(f"{source}: calibration: {n}: expected a camera's focal lengths fx, fy > 0, found {k[0, 0]:g}, {k[1, 1]:g}")
     order = order_around_car(np.stack([calibration[n].to_vehicle for n in names]))
     return [names[i] for i in order]
 

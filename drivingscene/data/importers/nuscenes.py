@@ -82,9 +82,15 @@ class _Image:
         sd = _record(nusc, "sample_data", token, "an image")
         cs = _record(nusc, "calibrated_sensor", sd["calibrated_sensor_token"], f"sample_data {token}")
         ego = _record(nusc, "ego_pose", sd["ego_pose_token"], f"sample_data {token}")
-        k = np.array(cs.get("camera_intrinsic") or [], dtype=np.float64)
-        if k.shape != (3, 3):
-            raise InputError(f"{nusc.dataroot}/{nusc.version}/calibrated_sensor.json: {cs['token']}: camera_intrinsic: expected 3x3, found {list(k.shape)}")
+        try:
+            k = np.array(cs.get("camera_intrinsic") or [], dtype=np.float64)
+        except (TypeError, ValueError):
+            k = np.zeros(0)
+        if k.shape != (3, 3) or not np.isfinite(k).all():
+            raise InputError(
+                f"{nusc.dataroot}/{nusc.version}/calibrated_sensor.json: {cs['token']}: camera_intrinsic: "
+                f"expected a 3x3 matrix of finite numbers, found {cs.get('camera_intrinsic')!r:.80}"
+            )
         where = f"{nusc.version}/sample_data {token}"
         return cls(Path(nusc.dataroot) / sd["filename"], sd["timestamp"] * 1e-6, _pose(ego, where), _pose(cs, where), k)
 
@@ -236,6 +242,9 @@ def import_nuscenes(
         return _import(nusc, scene, sample, next_frame == "sweep", eval_sweeps, size, fit)
     except KeyError as e:  # a record without a field the devkit or we read
         raise InputError(f"{nusc.dataroot}/{version}: expected nuScenes records with the field {e}, found one without it") from None
+    except (TypeError, ValueError, AttributeError, IndexError) as e:  # a field of another type (a list for a token, ...)
+        found = " ".join(str(e).split())[:160]
+        raise InputError(f"{nusc.dataroot}/{version}: expected nuScenes records with fields of the devkit's types, found {type(e).__name__}: {found}") from None
 
 
 def _import(nusc, scene: str, index: int, sweep: bool, eval_sweeps: bool, size, fit: str) -> FramePair:
