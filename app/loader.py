@@ -69,8 +69,12 @@ def reconstruct_pair(pair: FramePair, source: Path | None, method: str, weights:
         model = load_model(path)
         from drivingscene.precision import describe_precision  # DRIVINGSCENE_AMP=1/0 forces
 
-        progress(None, f"running the model on {pair.num_views} cameras, {describe_precision(next(model.parameters()).device)}")
-        recon = reconstruct(model, pair)
+        precision = describe_precision(next(model.parameters()).device)
+
+        def stage(fraction: float | None, message: str) -> None:  # each stage of the model, named
+            progress(fraction, f"{message} ({pair.num_views} cameras, {precision})")
+
+        recon = reconstruct(model, pair, progress=stage)
     seconds = time.perf_counter() - start
     return Loaded(
         recon, source, {"kind": "scene", "method": recon.meta.get("method", method), "seconds": seconds, "up": "z"}, pair

@@ -152,7 +152,9 @@ def _progress(viewer: Viewer, draw) -> None:
     imgui.set_next_window_size(imgui.ImVec2(420, 0))
     imgui.begin("##progress", None, FIXED | imgui.WindowFlags_.no_title_bar | imgui.WindowFlags_.always_auto_resize)
     imgui.text(f"{fa.ICON_FA_SPINNER}  {viewer.job.label}")
+    imgui.push_text_wrap_pos(0.0)  # long stage lines wrap inside the box
     imgui.text_disabled(f"{message}  ({viewer.job.elapsed:.1f} s)")
+    imgui.pop_text_wrap_pos()
     imgui.progress_bar(
         fraction if fraction is not None else -1.0 * imgui.get_time(),
         imgui.ImVec2(-1, 0),

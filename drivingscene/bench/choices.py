@@ -49,6 +49,7 @@ class Variant:
     region: int | None = None  # LiftConfig.min_dynamic_region; None: the default
     bonus: float | None = None  # MotionSearchConfig.static_bonus; None: the default
     unseen: bool | None = None  # MotionSearchConfig.unseen_static; None: the default
+    unseen_px: float | None = None  # MotionSearchConfig.unseen_residual_px; None: the default
     photo: bool | None = None  # LiftConfig.photometric_check; None: the default
     parallax: bool | None = None  # LiftConfig.epipolar_static; None: the default
     head: bool = True  # InferenceOptions.gaussian_head: P's predictions (False: default surfels)
@@ -91,6 +92,8 @@ class Variant:
             search = replace(search, static_bonus=self.bonus)
         if search is not None and self.unseen is not None:
             search = replace(search, unseen_static=self.unseen)
+        if search is not None and self.unseen_px is not None:
+            search = replace(search, unseen_residual_px=self.unseen_px)
         return replace(base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match)
 
 
@@ -114,7 +117,7 @@ def _nanmean(values: list[float]) -> float:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, bonus, region, unseen."""
+    windows, guide, levels, passes, mscale, bonus, region, unseen, unseenpx."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
     from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
@@ -132,6 +135,8 @@ def parse_variant(text: str) -> Variant:
             values["region"] = int(value)
         elif key == "unseen" and value in ("static", "search"):
             values["unseen"] = value == "static"
+        elif key == "unseenpx" and _is_number(value) and float(value) >= 0:
+            values["unseen_px"] = float(value)
         elif key in ("photo", "parallax", "head") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
@@ -156,7 +161,7 @@ def parse_variant(text: str) -> Variant:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
                 f"photo=on|off, parallax=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
-                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0), region=PIXELS or unseen=static|search, found {item!r}"
+                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
 

@@ -233,7 +233,7 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
     options = replace(options, match=match_mode(args.match))
     progress.stage(f"reconstructing {pair.num_views} cameras at {pair.image_size[1]}x{pair.image_size[0]}")
-    recon = reconstruct(model, pair, options)
+    recon = reconstruct(model, pair, options, progress=progress)
     progress.stage(stage_times(recon.meta.get("timings", {})))
     if config is not None:
         recon = run_refinement(model, pair, recon, config)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -173,15 +174,46 @@ def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
     return gaussians.index(keep)
 
 
+# The stages of `reconstruct` as its progress callback names them, in order.
+STAGES = {
+    "static": "depth and Gaussian parameters (D, P) on {views} images",
+    "match": "matching the keyframes (DIS flow, triangulation)",
+    "flow": "motion: rigid flow, R and the search",
+    "assembly": "assembling the Gaussians and the sky",
+}
+
+
+def _stage_reporter(progress, num_views: int) -> Callable[[str | None], None]:
+    """``report(stage)``: ``progress(share of stages done, the stage's name)``; ``report(None)``: done."""
+    names = list(STAGES)
+
+    def report(stage: str | None) -> None:
+        if progress is None:
+            return
+        if stage is None:
+            progress(1.0, "reconstructed")
+        else:
+            progress(names.index(stage) / len(names), STAGES[stage].format(views=2 * num_views))
+
+    return report
+
+
 @torch.no_grad()
 def reconstruct(
-    model: DrivingSceneModel, pair: FramePair, options: InferenceOptions = InferenceOptions(), flow_predictor=None
+    model: DrivingSceneModel,
+    pair: FramePair,
+    options: InferenceOptions = InferenceOptions(),
+    flow_predictor=None,
+    progress: Callable[[float | None, str], None] | None = None,
 ) -> Reconstruction:
     """Dynamic Gaussians of both keyframes (world frame) and per-camera maps, with timings in ``meta``.
 
     ``flow_predictor(model, batch, depth) -> FlowPrediction`` replaces R and the search
-    (diagnostics: ground-truth flow)."""
+    (diagnostics: ground-truth flow). ``progress(fraction, message)`` is called as each stage
+    starts (`STAGES`; the fraction is the share of stages done), and with 1.0 at the end."""
     check_reconstruct_memory(pair.num_views, *pair.image_size)  # refuse before allocating (methods/memory.py)
+    report = _stage_reporter(progress, pair.num_views)
+    report("static")
     if options.threads:
         torch.set_num_threads(options.threads)
     device = next(model.parameters()).device
@@ -204,12 +236,14 @@ def reconstruct(
         sky = sky | ~batch.valid_mask
     matched = None  # pixels whose depth the matching triangulated
     if options.match is not None:
+        report("match")
         t0 = time.perf_counter()
         depth, matched, match_timings = match_depth(depth, sky, pair, batch, options.match)
         timings["match_views"] = match_timings.get("match_fallback_views", 0.0)
         static = with_depth(static, depth)
         _sync(device)
         timings["match_s"] = time.perf_counter() - t0
+    report("flow")
     t0 = time.perf_counter()
     search = options.search if flow_predictor is None else None
     if not options.use_residual:
@@ -251,6 +285,7 @@ def reconstruct(
     rigid = flow.rigid if flow is not None else None
     _sync(device)
     timings["flow_s"] = time.perf_counter() - t0
+    report("assembly")
     t0 = time.perf_counter()
     gaussians = assemble(static, batch, sky, scene_flow, local_to_world=batch.local_to_world)
     if options.carve is not None:
@@ -266,6 +301,7 @@ def reconstruct(
 
         rigid = rigid_flows(depth, batch)
     sky_np = sky.cpu().numpy()[..., None]
+    report(None)
     return Reconstruction.from_pair(
         pair,
         gaussians.detach().to("cpu"),

@@ -312,6 +312,10 @@ class MotionSearchConfig:
     # and +0.01 dB on data/val176rand, moving pixels within 0.01 dB, depth AbsRel as good or
     # better, dynamic Gaussians 3.1 % -> 0.8 % and 2.2 % -> 1.0 %. False: the search decides there too.
     unseen_static: bool = True
+    # ... only where R's own flow moves the pixel less than this many pixels (at the networks' input
+    # size) away from the rigid flow: where R sees motion, that is evidence, and the search's pick
+    # stands (a car leaving the view). 0: every such pick falls back to s = 1.
+    unseen_residual_px: float = 0.0
 
     def __post_init__(self):
         if not (self.scale_step > 0 and self.scale_min <= 1.0 <= self.scale_max):
@@ -535,6 +539,8 @@ def search_motion(
     if config.unseen_static:
         grid = pixel_grid(*net_size, device=rigid_net.device, dtype=rigid_net.dtype)
         unseen = ~inside_image(grid + rigid_net, *net_size) & (choice < len(scales))
+        if config.unseen_residual_px > 0:
+            unseen &= (total_net - rigid_net).norm(dim=-1) < config.unseen_residual_px
         choice = torch.where(unseen, int((scales - 1.0).abs().argmin()), choice)  # scales() has 1 exactly
     choice = median_of_choice(choice, scales, config.median_window)
     if net_size != size:
@@ -543,8 +549,8 @@ def search_motion(
     return replace(flow, searched=searched.unflatten(0, (2, batch.num_views)))
 
 
-# Above this share of candidate pixels the lift computes every pixel (dense) instead of gathering
-# the candidates: the same result, and about twice as fast at the share the search leaves (~60 %).
+# Without the compiled kernel: above this share of candidate pixels the torch lift computes every
+# pixel (dense) instead of gathering the candidates: the same result, and about twice as fast at ~60 %.
 DENSE_LIFT_SHARE = 0.3
 
 
@@ -582,15 +588,16 @@ def lift_scene_flow(
         if behind is not None and config.behind_candidates:
             moving |= behind[k]
         moving &= ~sky[k]
+        # the same result in one compiled pass over every pixel (`drivingscene.kernels.lift_dense`,
+        # inference only): faster than gathering the candidates at any share measured (12-60 %)
+        if not check and kernels.available(kernels.lift_dense, "auto", depth[k], depth[o], total[k], total[o], c2l):
+            sf, dynamic = kernels.lift_dense(
+                depth[k], depth[o], total[k], total[o], moving, batch.intrinsics, c2l[k], c2l[o], FB_ALPHA, FB_BETA
+            )
+            flows.append(sf)
+            masks.append(dynamic)
+            continue
         if not check and moving.float().mean() > DENSE_LIFT_SHARE:  # cheaper at every pixel, same result
-            # the same in one compiled pass (`drivingscene.kernels.lift_dense`), inference only
-            if kernels.available(kernels.lift_dense, "auto", depth[k], depth[o], total[k], total[o], c2l):
-                sf, dynamic = kernels.lift_dense(
-                    depth[k], depth[o], total[k], total[o], moving, batch.intrinsics, c2l[k], c2l[o], FB_ALPHA, FB_BETA
-                )
-                flows.append(sf)
-                masks.append(dynamic)
-                continue
             sf, valid = scene_flow_from_optical_flow(depth[k], depth[o], total[k], batch.intrinsics, c2l[k], c2l[o])
             dynamic = moving & valid & forward_backward_consistency(total[k].detach(), total[o].detach())
             flows.append(torch.where(dynamic[..., None], sf, torch.zeros_like(sf)))

@@ -88,6 +88,18 @@ def test_points_ply_is_rejected_with_a_hint(tmp_path):
         open_path(path)
 
 
+def test_model_load_reports_each_stage_in_order(scene_file, tmp_path):
+    """The progress box names the model's stages as they start, with the share of them done."""
+    from tests.reliability.corpus import tiny_weights
+
+    seen = []
+    open_path(scene_file, "model", tiny_weights(tmp_path), lambda fraction, message: seen.append((fraction, message)))
+    staged = [(f, m) for f, m in seen if f is not None]
+    assert [f for f, _ in staged] == [0.0, 0.25, 0.5, 0.75, 1.0]
+    assert staged[0][1].startswith("depth and Gaussian parameters") and staged[1][1].startswith("matching the keyframes")
+    assert all("cameras, " in m for _, m in staged)  # the camera count and the precision stay in view
+
+
 def test_background_job_reports_progress_and_errors(scene_file, tmp_path):
     job = LoadJob("oracle", lambda progress: open_path(scene_file, "oracle", None, progress))
     assert job.wait(60)

@@ -40,8 +40,13 @@ def test_reconstruct_shows_its_stages_on_stderr_only(tmp_path, capsys, monkeypat
     stages = [line.split(": ", 1)[1] for line in captured.err.splitlines() if line.startswith("drivingscene reconstruct: ")]
     assert stages[0].startswith(f"loading {scene}") and stages[1].startswith("loading the networks")
     assert stages[2].startswith("reconstructing 2 cameras at 40x24")
-    assert stages[3].startswith("reconstructed: networks D+P ") and "flow " in stages[3] and "assembly " in stages[3]
-    assert stages[4].startswith(f"writing {out}")
+    # the model's own stages as they start, with the share of stages done (no matching: --match off)
+    assert stages[3].startswith("depth and Gaussian parameters (D, P) on 4 images [0%]")
+    assert stages[4].startswith("motion: rigid flow, R and the search [50%]")
+    assert stages[5].startswith("assembling the Gaussians and the sky [75%]")
+    assert stages[6].startswith("reconstructed [100%]")
+    assert stages[7].startswith("reconstructed: networks D+P ") and "flow " in stages[7] and "assembly " in stages[7]
+    assert stages[8].startswith(f"writing {out}")
 
 
 def test_bench_inference_shows_its_runs_on_stderr(tmp_path, capsys, monkeypatch):

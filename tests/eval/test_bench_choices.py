@@ -41,6 +41,9 @@ def test_variant_options_change_only_what_they_name():
     assert not parse_variant("unseen=search").options(base).search.unseen_static
     with pytest.raises(InputError, match="'unseen=maybe'"):
         parse_variant("unseen=maybe")
+    assert parse_variant("unseenpx=1.5").options(base).search.unseen_residual_px == 1.5
+    with pytest.raises(InputError, match="'unseenpx=-1'"):
+        parse_variant("unseenpx=-1")
 
 
 def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811

@@ -86,3 +86,15 @@ def test_search_keeps_unseen_static_surfaces_static(synth_pair):
     assert scaled[unseen].float().mean() < 0.02
     off = (before - flow.rigid).norm(dim=-1) > 1e-4
     assert (off & ((before - flow.total).norm(dim=-1) > 1e-4))[unseen].float().mean() > 0.5
+
+    def scaled_share(config):  # unseen pixels that took a scaled rigid flow
+        with torch.no_grad():
+            out = search_motion(flow, batch, config, model.config.input_size).searched
+        picked = ((out - flow.rigid).norm(dim=-1) > 1e-4) & ((out - flow.total).norm(dim=-1) > 1e-4)
+        return float(picked[unseen].float().mean())
+
+    # with unseen_residual_px, only where R's own flow stays near the rigid flow: in between
+    every, none = scaled_share(MotionSearchConfig(unseen_static=True)), scaled_share(MotionSearchConfig(unseen_static=False))
+    some = scaled_share(MotionSearchConfig(unseen_static=True, unseen_residual_px=1.0))
+    assert every <= some <= none
+    assert scaled_share(MotionSearchConfig(unseen_static=True, unseen_residual_px=1e-6)) > 0.9 * none
