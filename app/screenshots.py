@@ -1,10 +1,10 @@
 """Make the documentation screenshots: ``python -m drivingscene_view.screenshots OUT_DIR SCENE`` (needs a display,
 e.g. ``xvfb-run -s "-screen 0 1600x900x24" python -m drivingscene_view.screenshots docs/images assets/demo_scene.npz``).
 
-Writes viewer_main.png (RGB view, flow panel), viewer_benchmark.png (View > Benchmark over it, when
+Writes viewer_loading.png (the progress box naming the model's stage while it runs), viewer_main.png (RGB view, flow panel), viewer_benchmark.png (View > Benchmark over it, when
 docs/benchmark.json exists), viewer_depth.png (depth mode, depth panel), viewer_depth_moving.png and
 viewer_depth_settled.png (a frame while time moves and the settled one),
-viewer_rig.png (snapped to a rig camera, dynamic highlighted), viewer_edit_before.png (the moving
+viewer_rig.png (snapped to a rig camera, dynamic highlighted), viewer_y_down_ply.png (a y-down PLY opened upright), viewer_edit_before.png (the moving
 objects selected), viewer_edit_after.png (deleted), viewer_refine_running.png (Refine in progress,
 clicked with xdotool when it is installed) and viewer_refine_after.png (refined).
 """
@@ -71,6 +71,7 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     win = ViewerWindow(1600, 900, method=method)
     v = win.viewer
     v.open(scene)
+    loading_shot(win, out)
     settle(win)
     v.viewport.wait_lod()
     v.set_time(0.5)
@@ -97,7 +98,58 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     v.doc.undo()
     v.doc.clear_selection()
     refine_shots(win, out)
+    y_down_shot(win, out)
     win.close()
+
+
+def loading_shot(win: ViewerWindow, out: Path, timeout: float = 120.0) -> None:
+    """viewer_loading.png: the progress box while the model runs, once it names a stage past the first."""
+    start = time.time()
+    while time.time() - start < timeout and win.viewer.job is not None and not win.viewer.job.done:
+        win.step()
+        fraction, _ = win.viewer.job.status()
+        if fraction is not None and fraction > 0:
+            win.step()  # the frame that draws the stage just reported
+            path = out / "viewer_loading.png"
+            save_png(path, win.screenshot())
+            print(path)
+            return
+
+
+def y_down_shot(win: ViewerWindow, out: Path) -> None:
+    """viewer_y_down_ply.png: the scene's Gaussians at t = 0 rotated into a y-down world (the graphdeco /
+    COLMAP convention) and written as such a PLY, then opened: upright, as the window takes the file's up."""
+    import tempfile
+
+    import torch
+    from drivingscene_view.camera import Y_DOWN_UP
+
+    from drivingscene.export.ply import write_ply
+
+    z_up_to_y_down = torch.eye(4, dtype=torch.float64)
+    z_up_to_y_down[:3, :3] = torch.from_numpy(Y_DOWN_UP)
+    v = win.viewer
+    path = Path(tempfile.mkdtemp(prefix="y_down_")) / "y_down.ply"
+    write_ply(v.doc.visible_gaussians().transform(z_up_to_y_down), path, kind="3dgs", t=0.0, up="-y")
+    v.camera.reset(v.doc.recon, 0.0)  # the driving scene's chase view, in its z-up navigation frame ...
+    chase = v.camera.nav.copy()
+    v.open(path)
+    settle(win)
+    nav = v.camera.nav  # ... which is the y-down file's navigation frame too: the same view, upright
+    nav.target, nav.yaw, nav.pitch, nav.distance = chase.target, chase.yaw, -0.5, 24.0
+    _mouse_to_view(win)
+    shoot(win, out / "viewer_y_down_ply.png")
+
+
+def _mouse_to_view(win: ViewerWindow) -> None:
+    """Park the X pointer over the 3D view (no tooltip of a panel under it), where xdotool exists."""
+    import shutil
+    import subprocess
+
+    if shutil.which("xdotool") is None:
+        return
+    x, y, w, h = win.viewer.view_rect
+    subprocess.run(["xdotool", "mousemove", "--window", str(win.window._window), str(int(x + w - 20)), str(int(y + 20))], check=True, timeout=20)
 
 
 def depth_preview_shots(win: ViewerWindow, out: Path) -> None:

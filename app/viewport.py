@@ -323,6 +323,10 @@ class Viewport:
         r["seconds"] += seconds
         self.stats.render_ms, self.stats.refining = 1e3 * seconds, r["next"] / max(s.gpu.count, 1)
         if r["next"] < s.gpu.count:
+            if self.target is None:  # nothing on screen yet (a scene just opened): show it as it fills in
+                self.target, self.target_opts = r["target"], opts
+                self._target_name = self._target_name_next
+                return True
             return False
         self.target, self.target_opts, self._refine = r["target"], opts, None
         self._target_name = self._target_name_next

@@ -1,0 +1,69 @@
+"""Time to the first picture in the window: ``python -m drivingscene_view.first_picture SCENE [--runs N]``
+(needs a display: ``xvfb-run -s "-screen 0 1600x900x24" python -m drivingscene_view.first_picture
+assets/demo_scene.npz``). Prints a Markdown table.
+
+From ``open`` of the scene, per run (one window per run, in one process): the model's reconstruction
+done (the background load's result taken by the window), the first picture on screen (the full-quality
+pass shows as its chunks are drawn), and the full-quality picture finished. Two ways to run the
+window's frames while the model works: at the window's pacing (`ViewerWindow.pause_s`: a few frames
+a second while only a load runs) and flat out (what the window did before: frames drawn as fast as
+they go, competing with the model for the cores and the GIL).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+from drivingscene.arguments import positive_int
+from drivingscene.machine import machine_description
+
+
+def time_open(scene: Path, paced: bool, timeout: float = 180.0) -> dict[str, float]:
+    """Seconds from ``open`` to: the model done, the first picture, the full-quality picture."""
+    from drivingscene_view.window import ViewerWindow
+
+    win = ViewerWindow(1600, 900, method="auto")
+    v = win.viewer
+    try:
+        start = time.perf_counter()
+        v.open(scene)
+        marks: dict[str, float] = {}
+        while time.perf_counter() - start < timeout and "full" not in marks:
+            win.step()
+            time.sleep(win.pause_s if paced else 0.0)
+            now = time.perf_counter() - start
+            if v.doc is not None and v.job is None:
+                marks.setdefault("model", now)
+                if v.viewport.target is not None:
+                    marks.setdefault("first", now)
+                if v.viewport.settled:
+                    marks["full"] = now
+        model = v.doc.recon.meta.get("timings", {}).get("total_s", float("nan")) if v.doc else float("nan")
+        return marks | {"reconstruct": model}
+    finally:
+        win.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m drivingscene_view.first_picture", description=__doc__.splitlines()[0])
+    p.add_argument("scene", type=Path, help="scene.npz to open (e.g. assets/demo_scene.npz)")
+    p.add_argument("--runs", type=positive_int, default=3, help="windows opened per way of pacing (default 3; medians)")
+    args = p.parse_args(argv)
+    rows = []
+    for paced, name in ((False, "frames flat out while loading (before)"), (True, "frames paced while loading (now)")):
+        runs = [time_open(args.scene, paced) for _ in range(args.runs)]
+        med = {k: statistics.median(r.get(k, float("nan")) for r in runs) for k in ("reconstruct", "model", "first", "full")}
+        rows.append(f"| {name} | {med['reconstruct']:.2f} | {med['model']:.2f} | {med['first']:.2f} | {med['full']:.2f} |")
+    print(f"Measured with `python -m drivingscene_view.first_picture {args.scene} --runs {args.runs}` under Xvfb (Mesa llvmpipe) "
+          f"on {machine_description()}; medians of {args.runs} windows each, seconds from opening the scene.\n")
+    print("| window frames | the model's reconstruction | model done | first picture | full-quality picture |")
+    print("|---|---|---|---|---|")
+    print("\n".join(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
