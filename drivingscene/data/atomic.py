@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -52,7 +53,7 @@ def _alive(pid: int) -> bool:
 
 
 def clean_stale(path: str | os.PathLike) -> list[Path]:
-    """Remove temporary files of ``path`` left by killed writers (their process is gone and they are
+    """Remove temporary files (and `atomic_folder` folders) of ``path`` left by killed writers (their process is gone and they are
     older than ``STALE_SECONDS``); returns what was removed."""
     path = Path(path)
     removed = []
@@ -66,7 +67,7 @@ def clean_stale(path: str | os.PathLike) -> list[Path]:
             continue
         try:
             if time.time() - tmp.stat().st_mtime > STALE_SECONDS:
-                tmp.unlink()
+                shutil.rmtree(tmp) if tmp.is_dir() and not tmp.is_symlink() else tmp.unlink()
                 removed.append(tmp)
         except OSError:
             continue
@@ -116,6 +117,34 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     finally:
         if tmp is not None:
             tmp.unlink(missing_ok=True)
+    clean_stale(path)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary folder beside ``path`` to write a whole folder into (an exported rig), renamed to
+    ``path`` when the block ends without an error and removed otherwise: a kill at any moment leaves
+    no folder under that name or a complete one. ``path`` must not exist or be an empty folder (a
+    one-line OutputError before anything is written)."""
+    path = Path(path)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        found = "files in it" if path.is_dir() else "a file"
+        raise OutputError(f"{path}: expected a new or empty folder to write into, found {found}")
+    staging = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp", dir=path.parent))
+        yield staging
+        if path.exists():
+            path.rmdir()  # empty (checked above)
+        os.rename(staging, path)
+        staging = None
+        _fsync_dir(path.parent)
+    except OSError as e:
+        raise write_error(path, e) from None
+    finally:
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
     clean_stale(path)
 
 

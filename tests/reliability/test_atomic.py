@@ -145,3 +145,32 @@ def test_append_only_log_tolerates_a_torn_last_line(tmp_path):
     assert [r["step"] for r in _read_jsonl(log)] == [1, 2]
     _truncate_log(log, 1)
     assert log.read_text() == '{"step": 1}\n'
+
+
+def test_rig_export_is_renamed_into_place_whole(tmp_path, monkeypatch):
+    """An exported rig folder appears complete or not at all; it never lands on a folder with files."""
+    import drivingscene.data.importers.rig_export as rig_export
+    from drivingscene.data.importers.rig import import_rig
+    from tests.factories import make_pair
+
+    pair = make_pair(num_views=2, height=12, width=16)
+    calls = {"n": 0}
+    write_png = rig_export._write_png
+
+    def failing(path, image):  # the third image fails, as a full disk or a kill would stop the export
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise OutputError(f"{path}: could not write the PNG")
+        return write_png(path, image)
+
+    monkeypatch.setattr(rig_export, "_write_png", failing)
+    with pytest.raises(OutputError):
+        rig_export.export_rig(pair, tmp_path / "rig")
+    assert list(tmp_path.iterdir()) == []  # no rig, no half-written folder, no staging left
+    monkeypatch.setattr(rig_export, "_write_png", write_png)
+    path = rig_export.export_rig(pair, tmp_path / "rig")
+    assert path == tmp_path / "rig" / "rig.json" and [p.name for p in tmp_path.iterdir()] == ["rig"]
+    assert import_rig(tmp_path / "rig", (0, 1), (), None, "crop").num_views == 2
+    with pytest.raises(OutputError, match="expected a new or empty folder"):
+        rig_export.export_rig(pair, tmp_path / "rig")  # files in it: refused, left as it was
+    assert path.is_file() and [p.name for p in tmp_path.iterdir()] == ["rig"]

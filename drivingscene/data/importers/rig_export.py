@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivingscene.data.atomic import atomic_path, atomic_write_text
+from drivingscene.data.atomic import atomic_folder, atomic_path, atomic_write_text
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.importers.rig_schema import RIG_FILE, RIG_FORMAT, RIG_VERSION
 from drivingscene.errors import OutputError
@@ -108,9 +108,16 @@ def _frames(pair: FramePair) -> list[tuple]:
 
 
 def export_rig(pair: FramePair, folder: str | Path) -> Path:
-    """Write ``pair`` as a rig folder (created if needed); returns the path of its ``rig.json``."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    """Write ``pair`` as a rig folder; returns the path of its ``rig.json``. ``folder`` must be new
+    or empty; the rig is written beside it and renamed into place whole (`atomic_folder`), so a
+    killed export leaves no folder of that name or a complete rig."""
+    target = Path(folder)
+    with atomic_folder(target) as staging:
+        _write_rig(pair, staging)
+    return target / RIG_FILE
+
+
+def _write_rig(pair: FramePair, folder: Path) -> None:
     frames = []
     for f, (seconds, ego_to_world, images, cam_times, cam_poses, depth) in enumerate(_frames(pair)):
         frame = {"timestamp": float(seconds), "ego_to_world": np.asarray(ego_to_world, np.float64).tolist(), "images": {}}
@@ -128,6 +135,4 @@ def export_rig(pair: FramePair, folder: str | Path) -> Path:
             frame["lidar"] = f"lidar/{f:06d}.npy"
         frames.append(frame)
     rig = {"format": RIG_FORMAT, "version": RIG_VERSION, "cameras": _cameras(pair, folder), "frames": frames}
-    path = folder / RIG_FILE
-    atomic_write_text(path, json.dumps(rig, indent=1) + "\n")  # last: a folder without it is no rig
-    return path
+    atomic_write_text(folder / RIG_FILE, json.dumps(rig, indent=1) + "\n")
