@@ -53,8 +53,8 @@ def _alive(pid: int) -> bool:
 
 
 def clean_stale(path: str | os.PathLike) -> list[Path]:
-    """Remove temporary files (and `atomic_folder` folders) of ``path`` left by killed writers (their process is gone and they are
-    older than ``STALE_SECONDS``); returns what was removed."""
+    """Remove temporary files (and `atomic_folder` folders) of ``path`` left by killed writers (their
+    process is gone and they are older than ``STALE_SECONDS``); returns what was removed."""
     path = Path(path)
     removed = []
     try:
@@ -85,6 +85,28 @@ def write_error(path: Path, e: OSError) -> OutputError:
 
 
 @contextlib.contextmanager
+def _staged(path: Path, create: Callable[[], Path], commit: Callable[[Path], None]) -> Iterator[Path]:
+    """The mechanism of `atomic_path` and `atomic_folder`: ``create()`` a temporary file or folder
+    beside ``path`` (its parent made first), yield it, ``commit(tmp)`` (which renames it to ``path``)
+    and make the rename durable; when anything fails the temporary is removed, and an OSError
+    becomes one line naming ``path``. Temporaries of killed writers are cleaned afterwards."""
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = create()
+        yield tmp
+        commit(tmp)
+        tmp = None
+        _fsync_dir(path.parent)
+    except OSError as e:
+        raise write_error(path, e) from None
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
+    clean_stale(path)
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """A temporary path beside ``path`` for writers that need a file name (``cv2.imwrite``,
     ``savefig``, ``np.save``, video writers); renamed to ``path`` when the block ends without an
@@ -92,32 +114,32 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     that such writers choose their format by."""
     path = Path(path)
     suffix = f".tmp{path.suffix}" if suffix is None else suffix
-    tmp = None
     if path.exists() and not path.is_file():  # a device (/dev/full), FIFO or folder: never renamed over
         raise OutputError(f"{path}: could not write it: not a regular file")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+
+    def create() -> Path:
         fd, name = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=suffix, dir=path.parent)
-        tmp = Path(name)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.close(fd)
-        yield tmp
+        try:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
+        except BaseException:
+            Path(name).unlink(missing_ok=True)
+            raise
+        finally:
+            os.close(fd)
+        return Path(name)
+
+    def commit(tmp: Path) -> None:
         fd = os.open(tmp, os.O_RDONLY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
         os.replace(tmp, path)
-        tmp = None
-        _fsync_dir(path.parent)
-    except OSError as e:
-        raise write_error(path, e) from None
-    finally:
-        if tmp is not None:
-            tmp.unlink(missing_ok=True)
-    clean_stale(path)
+
+    with _staged(path, create, commit) as tmp:
+        yield tmp
 
 
 @contextlib.contextmanager
@@ -130,22 +152,17 @@ def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     if path.exists() and (not path.is_dir() or any(path.iterdir())):
         found = "files in it" if path.is_dir() else "a file"
         raise OutputError(f"{path}: expected a new or empty folder to write into, found {found}")
-    staging = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp", dir=path.parent))
-        yield staging
+
+    def commit(staging: Path) -> None:
         if path.exists():
             path.rmdir()  # empty (checked above)
         os.rename(staging, path)
-        staging = None
-        _fsync_dir(path.parent)
-    except OSError as e:
-        raise write_error(path, e) from None
-    finally:
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
-    clean_stale(path)
+
+    def create() -> Path:
+        return Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp", dir=path.parent))
+
+    with _staged(path, create, commit) as staging:
+        yield staging
 
 
 def atomic_write(path: str | os.PathLike, write_fn: Callable, *, suffix: str = ".tmp") -> Path:
