@@ -143,13 +143,19 @@ def y_down_shot(win: ViewerWindow, out: Path) -> None:
 
 def _mouse_to_view(win: ViewerWindow) -> None:
     """Park the X pointer over the 3D view (no tooltip of a panel under it), where xdotool exists."""
+    x, y, w, h = win.viewer.view_rect
+    _pointer_to(win, x + w - 20, y + 20)
+
+
+def _pointer_to(win: ViewerWindow, x: float, y: float) -> bool:
+    """Move the X pointer to window pixel (x, y) with xdotool; False where xdotool is missing."""
     import shutil
     import subprocess
 
     if shutil.which("xdotool") is None:
-        return
-    x, y, w, h = win.viewer.view_rect
-    subprocess.run(["xdotool", "mousemove", "--window", str(win.window._window), str(int(x + w - 20)), str(int(y + 20))], check=True, timeout=20)
+        return False
+    subprocess.run(["xdotool", "mousemove", "--window", str(win.window._window), str(int(x)), str(int(y))], check=True, timeout=20)
+    return True
 
 
 def depth_preview_shots(win: ViewerWindow, out: Path) -> None:
@@ -183,18 +189,14 @@ def benchmark_shot(win: ViewerWindow, out: Path) -> None:
 
 def _click_refine(win: ViewerWindow) -> None:
     """Press the Refine button with real X input where xdotool exists, else call what it calls."""
-    import shutil
     import subprocess
 
     from drivingscene_view.refine_job import start_refine
 
     rect = win.viewer.ui_rects.get("refine_button")
-    if rect is None or shutil.which("xdotool") is None:
+    if rect is None or not _pointer_to(win, (rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2):
         start_refine(win.viewer)
         return
-    wid = str(win.window._window)
-    x, y = (rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2
-    subprocess.run(["xdotool", "mousemove", "--window", wid, str(int(x)), str(int(y))], check=True, timeout=20)
     for _ in range(2):
         win.step()
     subprocess.run(["xdotool", "click", "1"], check=True, timeout=20)
