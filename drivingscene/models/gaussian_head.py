@@ -24,7 +24,7 @@ from drivingscene import kernels
 from drivingscene.gaussians.assembly import FOOTPRINT, MIN_COS, THICKNESS, surfel_frames
 from drivingscene.gaussians.core import SH_C0, num_sh_coeffs, rgb_to_sh0
 from drivingscene.geometry.se3 import quat_multiply
-from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, upsample_to
+from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, conv_input, upsample_to
 
 OPACITY_BIAS = 3.0
 
@@ -80,7 +80,7 @@ class GaussianHead(nn.Module):
             lat = self.lateral[i](enc_features[i])
             x = self.fuse[i](lat if x is None else torch.cat([lat, upsample_to(x, lat)], dim=1))
         log_depth = torch.log(depth.clamp(min=1e-3))[:, None]
-        x = torch.cat([upsample_to(x, images), depth_features, images, (log_depth - 2.5) / 1.5], dim=1)
+        x = conv_input([upsample_to(x, images), depth_features, images, (log_depth - 2.5) / 1.5])
         return self.out(self.full(x)).float().permute(0, 2, 3, 1)  # [B, H, W, C]
 
     def activate(self, raw: Tensor, images: Tensor, depth: Tensor, intrinsics: Tensor) -> PixelGaussians:

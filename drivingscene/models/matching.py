@@ -28,7 +28,7 @@ from torch import Tensor, nn
 
 from drivingscene import kernels
 from drivingscene.geometry.se3 import invert_rigid
-from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, upsample_to
+from drivingscene.models.blocks import ConvELU, ReplicateConv3x3, conv_input, upsample_to
 
 # Source slots per target image: temporal (same camera, other keyframe), left and right neighbour.
 NUM_SLOTS = 3
@@ -298,7 +298,7 @@ class MatchingHead(nn.Module):
         with torch.no_grad():
             patch_cost = slot_mean(sweep_volume(patches, rays, a, b, present, geometry.sources, depths, source_valid)[0], valid)
         learnt = slot_mean(cost, valid)
-        x = torch.cat([cost.flatten(1, 2), patch_cost, share, torch.log1p(parallax), texture, feats], dim=1)
+        x = conv_input([cost.flatten(1, 2), patch_cost, share, torch.log1p(parallax), texture, feats])
         x = self.squeeze(x)
         coarse = self.down(F.avg_pool2d(x, 2, ceil_mode=True))
         x = self.up(torch.cat([x, upsample_to(coarse, x, mode="bilinear")], dim=1))

@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from drivingscene import kernels
 from drivingscene.geometry.flow import backward_warp
+from drivingscene.models.blocks import conv_input
 
 
 @dataclass(frozen=True)
@@ -229,7 +230,7 @@ class ResidualFlowNet(nn.Module):
                     fs, _ = backward_warp(fs, (flow * to_level).permute(0, 2, 3, 1))
                 cost = local_cost_volume(ft, fs, radii[i])
             cost = F.leaky_relu(cost, 0.1)
-            parts = torch.cat([cost, ft, flow / norm, rigid_l / norm] + ([hidden] if hidden is not None else []), dim=1)
+            parts = conv_input([cost, ft, flow / norm, rigid_l / norm] + ([hidden] if hidden is not None else []))
             delta = hidden = None
             for slot, idx in groups:
                 d, hid = self.decoders[slot].levels[i](parts if len(groups) == 1 else parts[idx])

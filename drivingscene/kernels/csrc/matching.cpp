@@ -175,10 +175,16 @@ at::Tensor plane_sweep_correlate_backward(const at::Tensor& features_in, const a
 // for each target pixel and slot, the ray's image a r under the slot's homography part a (K_s R),
 // then per plane d: hom = d (a r) + b, z = hom_z, uv = hom_xy / max(z, 1e-6); valid where
 // z > min_z, uv inside [0, W - 1] x [0, H - 1], and (with masks) the source pixel nearest to uv
-// (rounded half to even, as torch.round) sees the world; the cost as plane_sweep_correlate; the
-// validity; the share of valid planes; the parallax, the summed |uv_{p+1} - uv_p| over
-// consecutive valid planes (models/matching.py: sweep_coordinates, sample_validity,
-// sweep_parallax, correlate).
+// (rounded half to even, as torch.round) sees the world; the costs; the validity; the share of
+// valid planes; the parallax, the summed |uv_{p+1} - uv_p| over consecutive valid planes
+// (models/matching.py: sweep_coordinates, sample_validity, sweep_parallax, correlate).
+//
+// A cost is computed as grid_sample and the torch path do: the source vector interpolated first
+// (taps top-left, top-right, bottom-left, bottom-right), then dotted with the target vector, the
+// dot a vectorised reduction (`omp simd`: the same sum in another order). Taps outside the image
+// have weight 0 (the valid range keeps the top-left tap inside), so they are clamped onto the
+// edge row or column. Every output value is written in the loop (0 where not valid): nothing is
+// zero-filled first.
 std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const at::Tensor& rays_in, const at::Tensor& a_in,
                                            const at::Tensor& b_in, const at::Tensor& sources_in, const at::Tensor& depths_in,
                                            const at::Tensor& source_valid_in, double min_z) {
@@ -197,10 +203,10 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
   const bool masked = source_valid_in.numel() > 0;
   const at::Tensor source_valid = masked ? source_valid_in.to(at::kBool).contiguous() : source_valid_in;
   TORCH_CHECK(!masked || source_valid.sizes() == at::IntArrayRef({batch, height, width}), "plane_sweep_volume: expected masks [B, H, W]");
-  at::Tensor cost = at::zeros({batch, slots, planes, height, width}, features.options());
-  at::Tensor share = at::zeros({batch, slots, height, width}, features.options());
-  at::Tensor parallax = at::zeros({batch, slots, height, width}, features.options());
-  at::Tensor valid = at::zeros({batch, slots, planes, height, width}, features.options().dtype(at::kBool));
+  at::Tensor cost = at::empty({batch, slots, planes, height, width}, features.options());
+  at::Tensor share = at::empty({batch, slots, height, width}, features.options());
+  at::Tensor parallax = at::empty({batch, slots, height, width}, features.options());
+  at::Tensor valid = at::empty({batch, slots, planes, height, width}, features.options().dtype(at::kBool));
   bool* o_valid = valid.data_ptr<bool>();
   const float* feat = features.data_ptr<float>();
   const float* ray = rays.data_ptr<float>();
@@ -215,16 +221,30 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
   const int64_t pixels = height * width, image = pixels * channels;
   const float zmin = static_cast<float>(min_z);
   at::parallel_for(0, batch * slots * height, 1, [&](int64_t begin, int64_t end) {
+    std::vector<float> sampled(channels);
+    float* vec = sampled.data();
     for (int64_t job = begin; job < end; ++job) {
       const int64_t b_ = job / (slots * height), s = (job / height) % slots, row = job % height;
       const int64_t source = src[b_ * slots + s];
-      if (source < 0) continue;
+      if (source < 0) {  // no source: nothing valid, no cost, no parallax
+        for (int64_t col = 0; col < width; ++col) {
+          const int64_t i = row * width + col;
+          for (int64_t p = 0; p < planes; ++p) {
+            o_valid[((b_ * slots + s) * planes + p) * pixels + i] = false;
+            o_cost[((b_ * slots + s) * planes + p) * pixels + i] = 0.0f;
+          }
+          o_share[(b_ * slots + s) * pixels + i] = 0.0f;
+          o_par[(b_ * slots + s) * pixels + i] = 0.0f;
+        }
+        continue;
+      }
       const float* am = pa + (b_ * slots + s) * 9;
       const float* bv = pb + (b_ * slots + s) * 3;
       const float* other = feat + source * image;
       const bool* smask = masked ? mask + source * pixels : nullptr;
       for (int64_t col = 0; col < width; ++col) {
         const int64_t i = row * width + col;
+        float* cost_at = o_cost + (b_ * slots + s) * planes * pixels + i;  // + p * pixels
         const float* r = ray + (b_ * pixels + i) * 3;
         const float ar[3] = {am[0] * r[0] + am[1] * r[1] + am[2] * r[2], am[3] * r[0] + am[4] * r[1] + am[5] * r[2],
                              am[6] * r[0] + am[7] * r[1] + am[8] * r[2]};
@@ -241,14 +261,23 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
             const int64_t cu = static_cast<int64_t>(std::nearbyint(u)), cv = static_cast<int64_t>(std::nearbyint(v));
             ok = smask[cv * width + cu];
           }
-          if (ok) {
+          o_valid[((b_ * slots + s) * planes + p) * pixels + i] = ok;
+          if (!ok) {
+            cost_at[p * pixels] = 0.0f;
+          } else {
             const Taps k = taps_of(u, v);
-            o_valid[((b_ * slots + s) * planes + p) * pixels + i] = true;
-            o_cost[((b_ * slots + s) * planes + p) * pixels + i] =
-                tap(other, t, k.x0, k.y0, height, width, channels, k.w[0]) +
-                tap(other, t, k.x0 + 1, k.y0, height, width, channels, k.w[1]) +
-                tap(other, t, k.x0, k.y0 + 1, height, width, channels, k.w[2]) +
-                tap(other, t, k.x0 + 1, k.y0 + 1, height, width, channels, k.w[3]);
+            const int64_t x1 = std::min(k.x0 + 1, width - 1), y1 = std::min(k.y0 + 1, height - 1);
+            const float* f00 = other + (k.y0 * width + k.x0) * channels;
+            const float* f01 = other + (k.y0 * width + x1) * channels;
+            const float* f10 = other + (y1 * width + k.x0) * channels;
+            const float* f11 = other + (y1 * width + x1) * channels;
+            const float w0 = k.w[0], w1 = k.w[1], w2 = k.w[2], w3 = k.w[3];
+#pragma omp simd
+            for (int64_t c = 0; c < channels; ++c) vec[c] = w0 * f00[c] + w1 * f01[c] + w2 * f10[c] + w3 * f11[c];
+            float dot = 0.0f;
+#pragma omp simd reduction(+ : dot)
+            for (int64_t c = 0; c < channels; ++c) dot += vec[c] * t[c];
+            cost_at[p * pixels] = dot;
             count += 1.0f;
             if (last_ok) path += std::sqrt((u - last_u) * (u - last_u) + (v - last_v) * (v - last_v));
           }
