@@ -236,10 +236,15 @@ def patch_features(images: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tenso
     return patches / (norm + PATCH_EPS), torch.log(norm / PATCH + 1e-3)
 
 
-def slot_mean(cost: Tensor, valid: Tensor) -> Tensor:
-    """``[B, P, H, W]``: per plane the mean cost ``[B, S, P, H, W]`` over the slots where it is valid (0: none)."""
-    count = valid.float().sum(1)
+def slot_mean(cost: Tensor, count: Tensor) -> Tensor:
+    """``[B, P, H, W]``: per plane the mean cost ``[B, S, P, H, W]`` over the slots where it is valid,
+    ``count`` ``[B, P, H, W]`` of them (`valid_slots`; 0: none)."""
     return cost.sum(1) / count.clamp(min=1.0)
+
+
+def valid_slots(valid: Tensor) -> Tensor:
+    """``[B, P, H, W]`` float: how many slots of ``valid`` ``[B, S, P, H, W]`` are valid per plane."""
+    return valid.view(torch.uint8).sum(1, dtype=torch.uint8).float()  # counted in bytes: ~10x faster on CPU than in floats
 
 
 @dataclass
@@ -296,8 +301,9 @@ class MatchingHead(nn.Module):
             source_valid = None if geometry.valid is None else _resize_mask(geometry.valid, (height, width))
         cost, share, parallax, valid = sweep_volume(feats, rays, a, b, present, geometry.sources, depths, source_valid)
         with torch.no_grad():
-            patch_cost = slot_mean(sweep_volume(patches, rays, a, b, present, geometry.sources, depths, source_valid)[0], valid)
-        learnt = slot_mean(cost, valid)
+            count = valid_slots(valid)
+            patch_cost = slot_mean(sweep_volume(patches, rays, a, b, present, geometry.sources, depths, source_valid)[0], count)
+        learnt = slot_mean(cost, count)
         x = conv_input([cost.flatten(1, 2), patch_cost, share, torch.log1p(parallax), texture, feats])
         x = self.squeeze(x)
         coarse = self.down(F.avg_pool2d(x, 2, ceil_mode=True))

@@ -94,6 +94,9 @@ def test_compiled_search_picks_what_the_torch_path_picks(compiled_kernels):
     # Without the proposal, and a window of 1 (no filtering): the same again.
     fast = search_along_rigid(image, other, rigid, scales, 1, backend="cpp")
     assert (fast == search_along_rigid(image, other, rigid, scales, 1, backend="torch")).float().mean() > 0.999
+    # One channel (luma, what inference passes): the kernel's own loop for it picks the same.
+    args = (image[:, :1], other[:, :1], rigid, scales, 5, proposal, 0.002, 0.01)
+    assert (search_along_rigid(*args, backend="cpp") == search_along_rigid(*args, backend="torch")).float().mean() > 0.999
 
 
 def test_static_bonus_keeps_the_static_world_on_ties_and_needs_s_equal_1(kernel_backend):

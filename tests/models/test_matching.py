@@ -226,3 +226,14 @@ def test_compiled_sweep_equals_the_torch_steps(compiled_kernels):
         for got, want in zip(compiled, reference):
             torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
         assert reference[1].min() < 1 and reference[2].max() > 1  # some planes invalid, some parallax
+
+
+def test_valid_slots_counts_the_valid_slots_per_plane():
+    from drivingscene.models.matching import slot_mean, valid_slots
+
+    torch.manual_seed(6)
+    valid = torch.rand(2, 3, 4, 5, 6) > 0.4
+    cost = torch.randn(2, 3, 4, 5, 6) * valid
+    count = valid_slots(valid)
+    assert count.dtype == torch.float32 and torch.equal(count, valid.float().sum(1))
+    torch.testing.assert_close(slot_mean(cost, count), cost.sum(1) / valid.float().sum(1).clamp(min=1.0))

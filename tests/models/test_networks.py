@@ -150,6 +150,30 @@ def test_replicate_pad_equals_torch_and_keeps_gradients_and_layout(dtype, channe
     assert torch.allclose(x.grad.float(), reference.grad.float(), atol=tolerance, rtol=tolerance)
 
 
+@pytest.mark.parametrize("autocast", [False, True])
+def test_conv_input_is_the_concatenation_in_the_layout_and_dtype_the_convolution_reads(autocast):
+    from drivingscene.models.blocks import conv_input
+
+    torch.manual_seed(5)
+    parts = [
+        torch.randn(2, 4, 5, 6).to(torch.bfloat16).contiguous(memory_format=torch.channels_last),  # a network's features
+        torch.randn(2, 3, 5, 6),  # float32, NCHW: an image
+        torch.randn(2, 1, 5, 6, requires_grad=True),  # one channel: log depth
+    ]
+    weight = torch.randn(7, 8, 3, 3)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+        x = conv_input(parts)
+        # what the convolution computes in: its input as autocast casts it, or the promoted dtype
+        expected = torch.cat([p.float() for p in parts], dim=1).to(torch.bfloat16 if autocast else torch.float32)
+        assert x.dtype == expected.dtype and torch.equal(x, expected)
+        assert x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
+        out = F.conv2d(x, weight, padding=1)
+        reference = F.conv2d(torch.cat(parts, dim=1), weight, padding=1)
+    torch.testing.assert_close(out.float(), reference.float(), atol=0.05 if autocast else 1e-5, rtol=0.02 if autocast else 1e-5)
+    out.float().sum().backward()  # the gradient reaches the parts through the copies
+    assert parts[2].grad is not None and parts[2].grad.abs().sum() > 0
+
+
 def test_coarse_radius_widens_only_the_coarsest_cost_volume():
     wide = CameraDecoder(FlowConfig(radius=3, coarse_radius=6))
     assert FlowConfig(radius=3, coarse_radius=6).level_radii == [3, 3, 3, 6]
