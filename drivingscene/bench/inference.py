@@ -43,10 +43,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_match_arguments(p)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    p.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also list the N operations that take the most time in a reconstruction of each pair (torch profiler, "
+        f"self CPU time, mean of {PROFILE_RUNS} reconstructions after the timed runs; the compiled kernels appear as "
+        "drivingscene_render::<op>; OpenCV's matching is outside torch and does not appear)",
+    )
     p.add_argument("-o", "--out", type=Path, default=None, help="also write the markdown table here")
 
 
 WARMUP_RUNS = 2
+PROFILE_RUNS = 3
 
 
 def _pair(size: str):
@@ -101,6 +111,30 @@ def peak_memory_mib(
             return pool.apply(_peak_in_this_process, (weights, device, path, amp, threads, without, match))
 
 
+def profile_ops(model, pair, options, top: int, runs: int = PROFILE_RUNS) -> list[dict]:
+    """The ``top`` operations by self CPU time in ``runs`` reconstructions of ``pair`` (torch
+    profiler, grouped by operation and input shapes): name, shapes, milliseconds and calls per
+    reconstruction. The profiler's own overhead inflates the small operations a little."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from drivingscene.methods.feedforward import reconstruct
+
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        for _ in range(runs):
+            reconstruct(model, pair, options)
+    events = sorted(prof.key_averages(group_by_input_shape=True), key=lambda e: -e.self_cpu_time_total)
+    return [
+        dict(op=e.key, shapes=_shapes(e.input_shapes), ms=e.self_cpu_time_total / 1e3 / runs, calls=e.count / runs)
+        for e in events[:top]
+    ]
+
+
+def _shapes(shapes) -> str:
+    """The tensor inputs' shapes of a profiled operation, e.g. ``12x36x98x178, 16x36x3x3``."""
+    out = ["x".join(str(n) for n in shape) for shape in shapes or [] if isinstance(shape, (list, tuple)) and shape]
+    return ", ".join(s for s in out if s and not s.startswith("["))
+
+
 def measure(
     model,
     sizes: list[str],
@@ -113,6 +147,7 @@ def measure(
     scenes: list[Path] = (),
     match: str = "fallback",
     progress=lambda fraction, message: None,
+    profile: int = 0,
 ) -> list[dict]:
     """One row per size (a generated procedural pair) and per scene file. The timed runs go round
     the pairs in turn, so that a shared machine's slow spells fall on every pair alike, after each
@@ -145,6 +180,10 @@ def measure(
             recon = reconstruct(model, pairs[size], options)
             totals[size].append(time.perf_counter() - tic)
             parts[size].append(recon.meta["timings"])
+    ops = {}
+    for size in sizes if profile > 0 else ():
+        progress(1.0, f"profiling {size}")
+        ops[size] = profile_ops(model, pairs[size], options, profile)
     rows = []
     for size in sizes:
         part = {k: statistics.median(p[k] for p in parts[size]) for k in parts[size][0]}
@@ -158,6 +197,7 @@ def measure(
                 best=min(totals[size]),
                 gaussians=count[size],
                 peak_mib=peak[size],
+                ops=ops.get(size, []),
                 **part,
             )
         )
@@ -184,7 +224,8 @@ def run(args: argparse.Namespace) -> int:
     without = ("search",) if args.no_search else ()
     with Progress("drivingscene bench inference") as progress:  # on stderr once it takes more than a second
         rows = measure(
-            model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes, args.match, progress
+            model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes, args.match, progress,
+            args.profile,
         )
     from drivingscene.kernels import load_extension
 
@@ -194,7 +235,8 @@ def run(args: argparse.Namespace) -> int:
         f"{' --scenes ' + ' '.join(str(p) for p in args.scenes) if args.scenes else ''} --runs {args.runs}"
         f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}"
         f"{'' if args.match == 'fallback' else ' --match ' + args.match}"
-        f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}`"
+        f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}"
+        f"{' --profile ' + str(args.profile) if args.profile else ''}`"
         f" on {machine_description(cpu_flags_summary())}"
         f"{_gpu_name(device)}; precision: {describe_precision(device, args.amp)}; compiled CPU kernels {kernels}; "
         f"median of {args.runs} runs per size, taken in turn across the sizes after {WARMUP_RUNS} warm-up runs each; "
@@ -212,6 +254,17 @@ def run(args: argparse.Namespace) -> int:
             f"| {r['search_s']:.3f} | "
             f"{r['assembly_s']:.3f} | {r['gaussians'] / 1e3:.0f}k | {r['peak_mib'][0]:.0f} / {r['peak_mib'][1]:.0f} MiB |"
         )
+    for r in rows:
+        if r["ops"]:
+            lines += [
+                "",
+                f"Where the time of {r['size']} goes: the {len(r['ops'])} operations with the most self CPU time per "
+                f"reconstruction (torch profiler, mean of {PROFILE_RUNS}, after the timed runs):",
+                "",
+                "| operation | input shapes | ms | calls |",
+                "|---|---|---|---|",
+                *(f"| {o['op']} | {o['shapes']} | {o['ms']:.2f} | {o['calls']:.0f} |" for o in r["ops"]),
+            ]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

@@ -170,6 +170,19 @@ def test_inference_benchmark_times_scene_files_too(tiny_weights, tmp_path):
     assert f"--scenes {scene}" in out.read_text()
 
 
+def test_inference_benchmark_profiles_the_operations_of_each_pair(tiny_weights, tmp_path):
+    out = tmp_path / "inference.md"
+    args = ["bench", "inference", "--sizes", "48x88", "--runs", "1", "--weights", str(tiny_weights), "--profile", "4"]
+    assert main(args + ["--out", str(out)]) == 0
+    text = out.read_text()
+    assert "--profile 4`" in text and "Where the time of 48x88 goes" in text
+    table = text[text.index("| operation |") :].splitlines()[2:]
+    assert len(table) == 4
+    times = [float(line.split(" | ")[2]) for line in table]
+    assert times == sorted(times, reverse=True) and times[0] > 0  # the heaviest first, milliseconds per reconstruction
+    assert all(line.split(" | ")[0].startswith("| aten::") or "::" in line.split(" | ")[0] for line in table)
+
+
 def test_peak_memory_of_a_spawned_process_does_not_inherit_the_parents():
     """``ru_maxrss`` carries the parent's resident memory at the fork into a spawned process; the
     per-size memory figures of `bench inference` come from such processes."""
