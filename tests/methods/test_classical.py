@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -53,6 +54,36 @@ def test_dis_flow_follows_the_gt_flow_convention():
         assert flow.shape == (2, 1, *grey.shape, 2) and flow.dtype == np.float32
         np.testing.assert_allclose(np.median(flow[inner][0], axis=(0, 1)), [3.0, 0.0], atol=0.3)
         np.testing.assert_allclose(np.median(flow[inner][1], axis=(0, 1)), [-3.0, 0.0], atol=0.3)
+
+
+def _flows_in_child(images, queue):
+    queue.put(dis_flows(images, "medium"))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork: Linux")
+def test_dis_flows_in_a_process_forked_after_a_call_gets_its_own_threads():
+    """The DIS threads are one pool per process: a child forked after the parent used the pool
+    inherits the pool object without its threads, and must not wait on them forever."""
+    import multiprocessing
+    from unittest import mock
+
+    grey = _textured(2)
+    images = np.stack([np.stack([grey, np.roll(grey, 2, axis=1)])] * 2, axis=1)[..., None].repeat(3, -1)  # [2, 2, H, W, 3]
+    with mock.patch("cv2.getNumThreads", return_value=2):  # the threaded path even on a one-core machine
+        expected = dis_flows(images, "medium")
+        context = multiprocessing.get_context("fork")
+        queue = context.Queue()
+        child = context.Process(target=_flows_in_child, args=(images, queue))
+        child.start()
+        try:
+            got = queue.get(timeout=60)
+            child.join(timeout=60)
+        finally:
+            if child.is_alive():  # it waited on threads it does not have
+                child.kill()
+                child.join()
+    assert child.exitcode == 0
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_guided_flow_is_composed_with_its_guide():
