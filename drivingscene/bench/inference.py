@@ -49,8 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=0,
         metavar="N",
         help="also list the N operations that take the most time in a reconstruction of each pair (torch profiler, "
-        f"self CPU time, mean of {PROFILE_RUNS} reconstructions after the timed runs; the compiled kernels appear as "
-        "drivingscene_render::<op>; OpenCV's matching is outside torch and does not appear)",
+        f"self CPU time, mean of {PROFILE_RUNS} reconstructions after the timed runs; the compiled kernels appear under "
+        "their op names, those of drivingscene.kernels; OpenCV's matching is outside torch and does not appear)",
     )
     p.add_argument("-o", "--out", type=Path, default=None, help="also write the markdown table here")
 
