@@ -7,6 +7,15 @@ import pytest
 from tests.factories import make_pair
 
 
+@pytest.fixture(autouse=True)
+def _no_stage_lines(monkeypatch):
+    """Commands print stage lines on stderr once they take more than a second (`arguments.Progress`);
+    on a slow or busy machine loading the networks alone can, and many tests count stderr's lines
+    (one line per error): the threshold goes beyond any test's run (subprocesses inherit it). The
+    tests of the stage lines set it to 0 themselves (tests/cli/test_progress.py)."""
+    monkeypatch.setenv("DRIVINGSCENE_PROGRESS_AFTER", "1e6")
+
+
 @pytest.fixture
 def small_pair():
     return make_pair()

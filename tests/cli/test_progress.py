@@ -13,7 +13,8 @@ from tests.factories import make_pair
 from tests.reliability.corpus import tiny_weights
 
 
-def test_progress_is_silent_below_the_threshold_and_prints_the_stage_under_way_after_it():
+def test_progress_is_silent_below_the_threshold_and_prints_the_stage_under_way_after_it(monkeypatch):
+    monkeypatch.delenv("DRIVINGSCENE_PROGRESS_AFTER")  # the thresholds given here, not the suite's (conftest.py)
     stream = io.StringIO()
     with Progress("cmd", after=0.2, stream=stream) as progress:
         progress.stage("quick")
