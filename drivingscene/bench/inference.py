@@ -131,8 +131,8 @@ def profile_ops(model, pair, options, top: int, runs: int = PROFILE_RUNS) -> lis
 
 def _shapes(shapes) -> str:
     """The tensor inputs' shapes of a profiled operation, e.g. ``12x36x98x178, 16x36x3x3``."""
-    out = ["x".join(str(n) for n in shape) for shape in shapes or [] if isinstance(shape, (list, tuple)) and shape]
-    return ", ".join(s for s in out if s and not s.startswith("["))
+    tensors = [shape for shape in shapes or [] if shape and all(isinstance(n, int) for n in shape)]  # not scalars or lists
+    return ", ".join("x".join(str(n) for n in shape) for shape in tensors)
 
 
 def measure(

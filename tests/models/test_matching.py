@@ -108,6 +108,16 @@ def test_compiled_correlation_equals_the_torch_path_with_gradients(compiled_kern
     torch.testing.assert_close(grad_compiled, grad_reference, atol=1e-5, rtol=1e-5)
 
 
+def test_compiled_correlation_counts_taps_outside_the_image_as_zero(compiled_kernels):
+    """Samples within one pixel outside the image, marked valid anyway: the compiled path pads with
+    zeros as grid_sample does (and reads nothing outside the feature maps)."""
+    features, sources, uv, _ = _random_sweep(2)
+    valid = torch.ones(uv.shape[:-1], dtype=torch.bool)
+    valid[0, 2] = False  # no source there
+    reference = correlate_torch(features, sources, uv, valid)
+    torch.testing.assert_close(correlate(features, sources, uv, valid, backend="cpp"), reference, atol=1e-5, rtol=1e-5)
+
+
 def _stopped(pair):
     """The pair with the ego standing still (both keyframes at the same pose)."""
     ego = pair.ego_to_world.copy()

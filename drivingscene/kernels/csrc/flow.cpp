@@ -148,21 +148,6 @@ at::Tensor search_along_rigid(const at::Tensor& image_in, const at::Tensor& othe
         for (int64_t row = 0; row < height; ++row) {
           const float* __restrict__ f = flow + 2 * row * width;
           float* __restrict__ line = cost.data() + row * width;
-          if (channels == 1) {  // luma: the usual case, without the channel loop
-            const float* own_row = own + row * width;
-            for (int64_t col = 0; col < width; ++col) {
-              const float x = static_cast<float>(col) + factor * f[2 * col];
-              const float y = static_cast<float>(row) + factor * f[2 * col + 1];
-              if (!inside_image(x, y, height, width)) {
-                line[col] = outside;
-                continue;
-              }
-              const BilinearTap tap = bilinear_tap(x, y, height, width);
-              const float sample = bilinear(src + tap.y0 * width + tap.x0, tap.right, tap.below * width, tap.wx, tap.wy);
-              line[col] = std::abs(sample - own_row[col]) * inv_channels;
-            }
-            continue;
-          }
           for (int64_t col = 0; col < width; ++col) {
             const float x = static_cast<float>(col) + factor * f[2 * col];
             const float y = static_cast<float>(row) + factor * f[2 * col + 1];
@@ -172,10 +157,15 @@ at::Tensor search_along_rigid(const at::Tensor& image_in, const at::Tensor& othe
             }
             const BilinearTap tap = bilinear_tap(x, y, height, width);
             const int64_t at = tap.y0 * width + tap.x0, i = row * width + col;
-            float total = 0.0f;
-            for (int64_t c = 0; c < channels; ++c) {
-              const float sample = bilinear(src + c * pixels + at, tap.right, tap.below * width, tap.wx, tap.wy);
-              total += std::abs(sample - own[c * pixels + i]);
+            float total;
+            if (channels == 1) {  // luma, what inference passes: without the channel loop (the same sum)
+              total = std::abs(bilinear(src + at, tap.right, tap.below * width, tap.wx, tap.wy) - own[i]);
+            } else {
+              total = 0.0f;
+              for (int64_t c = 0; c < channels; ++c) {
+                const float sample = bilinear(src + c * pixels + at, tap.right, tap.below * width, tap.wx, tap.wy);
+                total += std::abs(sample - own[c * pixels + i]);
+              }
             }
             line[col] = total * inv_channels;
           }

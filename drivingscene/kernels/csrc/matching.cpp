@@ -25,17 +25,6 @@
 
 namespace {
 
-// Adds weight * source[y][x][:] (channels-last row of `channels`) dot `target` to `acc` if
-// (x, y) is inside the image.
-inline float tap(const float* source, const float* target, int64_t x, int64_t y, int64_t height, int64_t width,
-                 int64_t channels, float weight) {
-  if (x < 0 || y < 0 || x >= width || y >= height || weight == 0.0f) return 0.0f;
-  const float* f = source + (y * width + x) * channels;
-  float dot = 0.0f;
-  for (int64_t c = 0; c < channels; ++c) dot += f[c] * target[c];
-  return weight * dot;
-}
-
 // The bilinear taps of (x, y): top-left pixel and the four weights (top-left, top-right,
 // bottom-left, bottom-right).
 struct Taps {
@@ -48,6 +37,31 @@ inline Taps taps_of(float x, float y) {
   const float wx = x - fx, wy = y - fy;
   return {static_cast<int64_t>(fx), static_cast<int64_t>(fy),
           {(1.0f - wx) * (1.0f - wy), wx * (1.0f - wy), (1.0f - wx) * wy, wx * wy}};
+}
+
+// The source feature vector (channels-last rows of `channels`) interpolated bilinearly at the
+// taps `k` into `vec`, then dotted with `target`: the order of grid_sample and the torch path,
+// the dot a vectorised reduction (`omp simd`: the same sum in another order). A tap outside the
+// image counts as 0 (grid_sample's "zeros" padding): its weight is 0 and its index is clamped
+// onto the image.
+inline float interpolated_dot(const float* source, const float* target, const Taps& k, int64_t height, int64_t width,
+                              int64_t channels, float* vec) {
+  const bool left = k.x0 >= 0 && k.x0 < width, right = k.x0 + 1 >= 0 && k.x0 + 1 < width;
+  const bool top = k.y0 >= 0 && k.y0 < height, bottom = k.y0 + 1 >= 0 && k.y0 + 1 < height;
+  const int64_t x0 = std::min(std::max<int64_t>(k.x0, 0), width - 1), x1 = std::min(std::max<int64_t>(k.x0 + 1, 0), width - 1);
+  const int64_t y0 = std::min(std::max<int64_t>(k.y0, 0), height - 1), y1 = std::min(std::max<int64_t>(k.y0 + 1, 0), height - 1);
+  const float* f00 = source + (y0 * width + x0) * channels;
+  const float* f01 = source + (y0 * width + x1) * channels;
+  const float* f10 = source + (y1 * width + x0) * channels;
+  const float* f11 = source + (y1 * width + x1) * channels;
+  const float w0 = left && top ? k.w[0] : 0.0f, w1 = right && top ? k.w[1] : 0.0f;
+  const float w2 = left && bottom ? k.w[2] : 0.0f, w3 = right && bottom ? k.w[3] : 0.0f;
+#pragma omp simd
+  for (int64_t c = 0; c < channels; ++c) vec[c] = w0 * f00[c] + w1 * f01[c] + w2 * f10[c] + w3 * f11[c];
+  float dot = 0.0f;
+#pragma omp simd reduction(+ : dot)
+  for (int64_t c = 0; c < channels; ++c) dot += vec[c] * target[c];
+  return dot;
 }
 
 struct Checked {
@@ -89,6 +103,7 @@ at::Tensor plane_sweep_correlate(const at::Tensor& features_in, const at::Tensor
   float* o = out.data_ptr<float>();
   const int64_t pixels = height * width, image = pixels * channels;
   at::parallel_for(0, c.batch * slots * planes, 1, [&](int64_t begin, int64_t end) {
+    std::vector<float> sampled(channels);
     for (int64_t job = begin; job < end; ++job) {
       const int64_t b = job / (slots * planes), s = (job / planes) % slots;
       const int64_t source = src[b * slots + s];
@@ -100,12 +115,8 @@ at::Tensor plane_sweep_correlate(const at::Tensor& features_in, const at::Tensor
       float* dst = o + job * pixels;
       for (int64_t i = 0; i < pixels; ++i) {
         if (!mask[i]) continue;
-        const Taps k = taps_of(xy[2 * i], xy[2 * i + 1]);
-        const float* t = target + i * channels;
-        dst[i] = tap(other, t, k.x0, k.y0, height, width, channels, k.w[0]) +
-                 tap(other, t, k.x0 + 1, k.y0, height, width, channels, k.w[1]) +
-                 tap(other, t, k.x0, k.y0 + 1, height, width, channels, k.w[2]) +
-                 tap(other, t, k.x0 + 1, k.y0 + 1, height, width, channels, k.w[3]);
+        dst[i] = interpolated_dot(other, target + i * channels, taps_of(xy[2 * i], xy[2 * i + 1]), height, width, channels,
+                                  sampled.data());
       }
     }
   });
@@ -179,12 +190,8 @@ at::Tensor plane_sweep_correlate_backward(const at::Tensor& features_in, const a
 // valid planes; the parallax, the summed |uv_{p+1} - uv_p| over consecutive valid planes
 // (models/matching.py: sweep_coordinates, sample_validity, sweep_parallax, correlate).
 //
-// A cost is computed as grid_sample and the torch path do: the source vector interpolated first
-// (taps top-left, top-right, bottom-left, bottom-right), then dotted with the target vector, the
-// dot a vectorised reduction (`omp simd`: the same sum in another order). Taps outside the image
-// have weight 0 (the valid range keeps the top-left tap inside), so they are clamped onto the
-// edge row or column. Every output value is written in the loop (0 where not valid): nothing is
-// zero-filled first.
+// A cost is `interpolated_dot`, as in plane_sweep_correlate. Every output value is written in the
+// loop (0 where not valid): nothing is zero-filled first.
 std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const at::Tensor& rays_in, const at::Tensor& a_in,
                                            const at::Tensor& b_in, const at::Tensor& sources_in, const at::Tensor& depths_in,
                                            const at::Tensor& source_valid_in, double min_z) {
@@ -265,19 +272,7 @@ std::vector<at::Tensor> plane_sweep_volume(const at::Tensor& features_in, const 
           if (!ok) {
             cost_at[p * pixels] = 0.0f;
           } else {
-            const Taps k = taps_of(u, v);
-            const int64_t x1 = std::min(k.x0 + 1, width - 1), y1 = std::min(k.y0 + 1, height - 1);
-            const float* f00 = other + (k.y0 * width + k.x0) * channels;
-            const float* f01 = other + (k.y0 * width + x1) * channels;
-            const float* f10 = other + (y1 * width + k.x0) * channels;
-            const float* f11 = other + (y1 * width + x1) * channels;
-            const float w0 = k.w[0], w1 = k.w[1], w2 = k.w[2], w3 = k.w[3];
-#pragma omp simd
-            for (int64_t c = 0; c < channels; ++c) vec[c] = w0 * f00[c] + w1 * f01[c] + w2 * f10[c] + w3 * f11[c];
-            float dot = 0.0f;
-#pragma omp simd reduction(+ : dot)
-            for (int64_t c = 0; c < channels; ++c) dot += vec[c] * t[c];
-            cost_at[p * pixels] = dot;
+            cost_at[p * pixels] = interpolated_dot(other, t, taps_of(u, v), height, width, channels, vec);
             count += 1.0f;
             if (last_ok) path += std::sqrt((u - last_u) * (u - last_u) + (v - last_v) * (v - last_v));
           }
