@@ -115,12 +115,12 @@ def wall_hours(recs: list[dict]) -> float:
 def _row(name: str, config: dict, recs: list[dict]) -> str:
     steps = recs[-1]["step"] if recs else 0
     stage = config["stage"]
-    flow_lr = "frozen" if stage in ("static", "gaussians") else config.get("flow_lr") or config["lr"]
-    dp_lr = {"dynamic": "frozen", "gaussians": f"frozen, {config['lr']}"}.get(stage, config["lr"])
+    flow_lr = "frozen" if stage in ("static", "gaussians", "depth") else config.get("flow_lr") or config["lr"]
+    dp_lr = {"dynamic": "frozen", "gaussians": f"frozen, {config['lr']}", "depth": f"{config['lr']}, frozen"}.get(stage, config["lr"])
     weights = config.get("weights", {})
     flow_sup = weights.get("flow_sup", 0.0) if stage in ("dynamic", "joint") else "–"
     search_sup = weights.get("search_sup", 0.0) if stage in ("dynamic", "joint") else "–"
-    depth_sup = weights.get("depth_sup", 0.0) if stage in ("static", "joint") else "–"
+    depth_sup = weights.get("depth_sup", 0.0) if stage in ("static", "joint", "depth") else "–"
     init = f"`{config['init']}`" if config.get("init") else "scratch"
     cells = [name, config["stage"], steps, dp_lr, flow_lr, depth_sup, flow_sup, search_sup, init, f"{wall_hours(recs):.1f} h"]
     return "| " + " | ".join(map(str, cells)) + f" | {config['data']} |"

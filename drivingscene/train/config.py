@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 from drivingscene.models.model import ModelConfig
 
-STAGES = ("static", "dynamic", "joint", "gaussians")
+STAGES = ("static", "dynamic", "joint", "gaussians", "depth")
 # What L_render renders (TrainStep.render_term), in turn: the intermediate frame (when the pair has
 # one), the other keyframe from one keyframe's Gaussians ("cross"), and a keyframe's own input
 # views from both keyframes' Gaussians ("input").

@@ -8,6 +8,8 @@ wrapped in DistributedDataParallel).
 - dynamic: D and P frozen; R on the rigid flow. L_warp and L_consist on the total flow, L_render
   of Gaussians moved by the lifted flow to the intermediate time (or to the other keyframe).
 - joint:   everything trained together from the start (the single-stage ablation).
+- depth:   D alone with stage 1's losses, P and R frozen: more depth training for a shipped model
+  without undoing P's fine-tuning below (not in the paper, docs/training.md).
 - gaussians: D and R frozen; P alone on L_render, with the Gaussians moved by the lifted flow as
   at inference (not in the paper: a fine-tuning of P after stage 2, docs/training.md).
 
@@ -145,7 +147,10 @@ class TrainStep(nn.Module):
             with amp:
                 static = predict_static(self.model, batch)
             terms.update(self.static_terms(static, batch, step))
-        if stage != "static":
+        if stage == "depth":
+            self.model.gaussian_head.eval()
+            self.model.flow_net.eval()
+        if stage not in ("static", "depth"):
             terms.update(self.dynamic_terms(static, batch, step))
         w = self.config.weights
         weight = {

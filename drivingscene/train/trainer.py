@@ -51,6 +51,7 @@ def _trainable(model: DrivingSceneModel, stage: str) -> list[torch.nn.Parameter]
         "dynamic": (model.depth_net, model.gaussian_head),
         "joint": (),
         "gaussians": (model.depth_net, model.flow_net),
+        "depth": (model.gaussian_head, model.flow_net),
     }[stage]
     for module in (model.depth_net, model.gaussian_head, model.flow_net):
         module.requires_grad_(module not in frozen)
@@ -235,8 +236,10 @@ def _record_session(out: Path, start: int, world: int, config: TrainConfig) -> N
     append_jsonl(out / "sessions.jsonl", record)
 
 
-# The validation score that `keep_best` ranks checkpoints by (higher is better).
-BEST_KEY = "psnr"
+# The validation score that `keep_best` ranks checkpoints by, and its sign (+1: higher is better):
+# the in-between frame's PSNR, and for D alone its depth error.
+BEST_KEY = {"depth": ("depth_abs_rel", -1)}
+BEST_DEFAULT = ("psnr", 1)
 
 
 def keep_best(out: Path, model, config, step: int, val: dict, info: dict) -> bool:
@@ -244,13 +247,14 @@ def keep_best(out: Path, model, config, step: int, val: dict, info: dict) -> boo
     when their validation ``BEST_KEY`` beats the one kept so far (also across ``--resume``): the
     rolling step checkpoints keep only the last few, and validation is noisy from one evaluation to
     the next. Returns whether it was kept."""
-    score = val.get(BEST_KEY)
+    key, sign = BEST_KEY.get(config.stage, BEST_DEFAULT)
+    score = val.get(key)
     if score is None or not math.isfinite(score):
         return False
     kept = out / "best.json"
     if kept.exists():
-        previous = json.loads(kept.read_text()).get("val", {}).get(BEST_KEY)
-        if previous is not None and previous >= score:
+        previous = json.loads(kept.read_text()).get("val", {}).get(key)
+        if previous is not None and sign * previous >= sign * score:
             return False
     export_weights(model, config.model.to_dict(), out / "best.safetensors", {**info, "steps": step, "val": val})
     return True

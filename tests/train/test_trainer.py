@@ -300,6 +300,21 @@ def test_gaussian_stage_trains_the_gaussian_head_alone(data_dir, tmp_path):
     assert all(set(r) >= {"render"} and "loc" not in r for r in records)
 
 
+def test_depth_stage_trains_the_depth_network_alone_and_keeps_its_best_depth(data_dir, tmp_path, monkeypatch):
+    from drivingscene.train import trainer
+
+    static = train(_config(data_dir, tmp_path / "s", stage="static", steps=2), show_progress=False)
+    scores = iter([0.30, 0.20, 0.25])  # depth AbsRel: lower is better, so step 1 is kept
+    monkeypatch.setattr(trainer, "validate", lambda model, files, config: {"psnr": 20.0, "depth_abs_rel": next(scores)})
+    out = tmp_path / "d"
+    config = _config(data_dir, out, stage="depth", steps=2, val_every=1, val_data=str(data_dir), init=str(static))
+    tuned = train(replace(config, weights=replace(config.weights, depth_sup=0.1)), show_progress=False)
+    _assert_trained_only(load_file(str(static)), load_file(str(tuned)), "depth_net.", ("gaussian_head.", "flow_net."))
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert all({"loc", "smooth", "depth_sup"} <= set(r) and "warp" not in r for r in records if "loss" in r)
+    assert json.loads((out / "best.json").read_text())["steps"] == 1
+
+
 def test_render_targets_come_in_turn(data_dir, monkeypatch):
     """eval, cross, input, eval, ...: the cross view renders one keyframe's Gaussians ("all"), the
     input view both keyframes' in the configured blend at the keyframe's own time."""
