@@ -116,7 +116,8 @@ def _row(name: str, config: dict, recs: list[dict]) -> str:
     steps = recs[-1]["step"] if recs else 0
     stage = config["stage"]
     flow_lr = "frozen" if stage in ("static", "gaussians", "depth") else config.get("flow_lr") or config["lr"]
-    dp_lr = {"dynamic": "frozen", "gaussians": f"frozen, {config['lr']}", "depth": f"{config['lr']}, frozen"}.get(stage, config["lr"])
+    lr = config["lr"]
+    dp_lr = {"dynamic": "frozen", "gaussians": f"frozen, {lr}", "depth": f"{lr}, frozen"}.get(stage, lr)
     weights = config.get("weights", {})
     flow_sup = weights.get("flow_sup", 0.0) if stage in ("dynamic", "joint") else "–"
     search_sup = weights.get("search_sup", 0.0) if stage in ("dynamic", "joint") else "–"

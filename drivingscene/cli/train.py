@@ -14,7 +14,8 @@ from drivingscene.train.config import RENDER_VIEWS, STAGES
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "train", help="train the model: --stage static, then dynamic (or joint for the ablation); gaussians: P alone after them"
+        "train",
+        help="train the model: --stage static, then dynamic (or joint for the ablation); gaussians: P alone, depth: D alone, after them",
     )
     p.add_argument("--stage", choices=STAGES, required=True, help="which networks train (docs/training.md)")
     p.add_argument(
