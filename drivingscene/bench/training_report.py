@@ -69,27 +69,39 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     terms = [t for t in TERMS if any(t in r for _, _, recs in runs for r in recs)]
-    fig, axes = plt.subplots(1, len(terms) + 1, figsize=(3.2 * (len(terms) + 1), 3.0))
+    panels = [f"L_{t}" for t in terms] + ["validation PSNR (dB)", "validation depth AbsRel"]
+    cols = 4
+    rows = -(-len(panels) // cols)
+    fig, grid = plt.subplots(rows, cols, figsize=(4.0 * cols, 2.9 * rows), squeeze=False)
+    axes = list(grid.flat)
+    for ax in axes[len(panels) :]:
+        ax.set_axis_off()
+    val_axes = {"psnr": axes[len(terms)], "depth_abs_rel": axes[len(terms) + 1]}
     for i, (name, _, recs) in enumerate(runs):
         # one colour per run in every panel: the ten dark tab20 hues first, then their light ones
         color = plt.get_cmap("tab20")((2 * i) % 20 + (2 * i // 20) % 2) if len(runs) > 10 else f"C{i}"
+        style = "-" if i < 20 else "--"  # beyond 20 runs the colours repeat
         stepped = [r for r in recs if "loss" in r]  # not the validation of the starting weights (step 0)
         steps = [r["step"] for r in stepped]
         for ax, term in zip(axes, terms):
             values = [r.get(term, math.nan) for r in stepped]
             if not all(math.isnan(v) for v in values):
-                ax.plot(steps, _smooth(values), label=name, linewidth=1.2, color=color)
-        val = [(r["step"], r["val"].get("psnr", math.nan)) for r in recs if "val" in r]
-        axes[-1].plot(*(zip(*val) if val else ([], [])), marker="o", label=name, linewidth=1.2, color=color)
-    for ax, term in zip(axes, terms):
-        ax.set_title(f"L_{term}")
+                ax.plot(steps, _smooth(values), label=name, linewidth=1.2, color=color, linestyle=style)
+        for key, ax in val_axes.items():
+            val = [(r["step"], r["val"][key]) for r in recs if key in r.get("val", {})]
+            ax.plot(*(zip(*val) if val else ([], [])), marker="o", markersize=3, label=name, linewidth=1.2, color=color, linestyle=style)
+    for ax, title in zip(axes, panels):
+        ax.set_title(title, fontsize=10)
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)
-    axes[-1].set_title("validation PSNR (dB)")
-    axes[-1].set_xlabel("step")
-    axes[-1].grid(alpha=0.3)
-    axes[-1].legend(fontsize=7)
-    fig.tight_layout()
+    handles, labels = val_axes["psnr"].get_legend_handles_labels()
+    spare = axes[len(panels) :]
+    if spare:  # the legend in the grid's empty cells
+        fig.tight_layout()  # before the legend, which spills over the empty cells beside its own
+        spare[0].legend(handles, labels, loc="center left", ncol=2 * len(spare), fontsize=8, frameon=False).set_in_layout(False)
+    else:
+        fig.legend(handles, labels, loc="lower center", ncol=6, fontsize=8, frameon=False)
+        fig.tight_layout(rect=(0, 0.12, 1, 1))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
     plt.close(fig)
