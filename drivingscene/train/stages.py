@@ -144,12 +144,12 @@ class TrainStep(nn.Module):
             with torch.no_grad(), amp:
                 static = predict_static(self.model, batch)
         else:
+            if stage == "depth":  # the frozen networks run as at inference, like the other stages' frozen ones
+                self.model.gaussian_head.eval()
+                self.model.flow_net.eval()
             with amp:
                 static = predict_static(self.model, batch)
             terms.update(self.static_terms(static, batch, step))
-        if stage == "depth":
-            self.model.gaussian_head.eval()
-            self.model.flow_net.eval()
         if stage not in ("static", "depth"):
             terms.update(self.dynamic_terms(static, batch, step))
         w = self.config.weights

@@ -180,7 +180,7 @@ def test_inference_benchmark_profiles_the_operations_of_each_pair(tiny_weights, 
     assert len(table) == 4
     times = [float(line.split(" | ")[2]) for line in table]
     assert times == sorted(times, reverse=True) and times[0] > 0  # the heaviest first, milliseconds per reconstruction
-    assert all(line.split(" | ")[0].startswith("| aten::") or "::" in line.split(" | ")[0] for line in table)
+    assert all("::" in line.split(" | ")[0] for line in table)  # aten:: or the compiled kernels' namespace
 
 
 def test_peak_memory_of_a_spawned_process_does_not_inherit_the_parents():
