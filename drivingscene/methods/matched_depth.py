@@ -225,10 +225,19 @@ def shape_dispersion(d: Tensor, z: Tensor, where: Tensor, min_pixels: int) -> Te
     """``[2, V]``: per image, the median absolute deviation of log(z / d) over the pixels ``where``
     (the scale removed: how far D's *shape* is from the triangulated one); NaN with fewer than
     ``min_pixels`` pixels."""
-    log_ratio = torch.where(where, (z.clamp_min(1e-3) / d.clamp_min(1e-3)).log(), float("nan")).flatten(2)
-    median = log_ratio.nanmedian(-1, keepdim=True).values
-    out = (log_ratio - median).abs().nanmedian(-1).values
-    return torch.where(where.flatten(2).sum(-1) >= min_pixels, out, float("nan"))
+    log_ratio = (z.clamp_min(1e-3) / d.clamp_min(1e-3)).log().flatten(2).numpy()
+    mask = where.flatten(2).numpy()
+    out = np.full(mask.shape[:2], np.nan, np.float32)
+    for k, v in np.argwhere(mask.sum(-1) >= max(min_pixels, 1)):  # the pixels of one image, then two lower medians
+        values = log_ratio[k, v][mask[k, v]]
+        out[k, v] = _lower_median(np.abs(values - _lower_median(values)))
+    return torch.from_numpy(out)
+
+
+def _lower_median(values: np.ndarray) -> np.float32:
+    """The lower of the two middle values for an even count (torch's ``median``), by partition."""
+    middle = (len(values) - 1) // 2
+    return np.partition(values, middle)[middle]
 
 
 @torch.no_grad()

@@ -34,6 +34,7 @@ from drivingscene.geometry.flow import (
     inside_image,
     rigid_flow,
     sample_bilinear,
+    vector_length,
 )
 from drivingscene.geometry.flow_search import flow_from_choice, luma, median_of_choice, search_along_rigid
 from drivingscene.geometry.scene_flow import scene_flow_at_pixels, scene_flow_from_optical_flow
@@ -159,7 +160,7 @@ def epipolar_tests(
     explained = candidates & ok & (off_line <= config.epipolar_px * scale)
     # The depth is only taken where it is well determined; elsewhere the pixel is static at the
     # network's depth (which then moves it by less than the little parallax there is).
-    determined = explained & (parallax.norm(dim=-1) >= config.epipolar_min_parallax * scale)
+    determined = explained & (vector_length(parallax) >= config.epipolar_min_parallax * scale)
     return explained, determined
 
 
@@ -203,7 +204,7 @@ def epipolar_geometry(
     point = z[..., None] * a + t
     proj = torch.einsum("vij,vhwj->vhwi", intrinsics, point)
     proj = proj[..., :2] / proj[..., 2:3].clamp_min(1e-6)
-    off_line = (proj - target[..., :2]).norm(dim=-1)
+    off_line = vector_length(proj - target[..., :2])
     # Parallax: how far along the line the point is from its image at infinite depth. The
     # triangulated depth's relative error is about the flow's error over it (pixels).
     at_infinity = torch.einsum("vij,vhwj->vhwi", intrinsics, a)
@@ -224,7 +225,7 @@ def texture_along(images: Tensor, direction: Tensor, scale: float) -> Tensor:
     gray = F.pad(luma(images), (1, 1, 1, 1), mode="replicate")  # [V, 1, H + 2, W + 2]
     du = 0.5 * (gray[:, 0, 1:-1, 2:] - gray[:, 0, 1:-1, :-2])
     dv = 0.5 * (gray[:, 0, 2:, 1:-1] - gray[:, 0, :-2, 1:-1])
-    norm = direction.norm(dim=-1).clamp_min(1e-12)
+    norm = vector_length(direction).clamp_min(1e-12)
     along = ((du * direction[..., 0] + dv * direction[..., 1]) / norm).abs() * scale
     size = max(1, int(round(5 * scale))) | 1
     if along.device.type != "cpu" or along.dtype != torch.float32:
@@ -540,7 +541,7 @@ def search_motion(
         grid = pixel_grid(*net_size, device=rigid_net.device, dtype=rigid_net.dtype)
         unseen = ~inside_image(grid + rigid_net, *net_size) & (choice < len(scales))
         if config.unseen_residual_px > 0:
-            unseen &= (total_net - rigid_net).norm(dim=-1) < config.unseen_residual_px
+            unseen &= vector_length(total_net - rigid_net) < config.unseen_residual_px
         choice = torch.where(unseen, int((scales - 1.0).abs().argmin()), choice)  # scales() has 1 exactly
     choice = median_of_choice(choice, scales, config.median_window)
     if net_size != size:

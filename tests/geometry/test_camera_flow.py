@@ -13,7 +13,7 @@ from drivingscene.geometry import (
     scale_intrinsics,
     unproject,
 )
-from drivingscene.geometry.flow import cams_to_world
+from drivingscene.geometry.flow import cams_to_world, vector_length
 from tests.factories import make_rig
 
 
@@ -132,3 +132,9 @@ def test_forward_backward_consistency():
     assert ok[0, :, :-1].all() and not ok[0, :, -1].any()  # last column leaves the image
     bw_wrong = fw.clone() * 3
     assert not forward_backward_consistency(fw, bw_wrong).any()
+
+
+def test_vector_length_is_the_norm_of_the_last_axis():
+    v = torch.randn(3, 7, 5, 2) * torch.tensor([1e-3, 1e3])
+    torch.testing.assert_close(vector_length(v), v.norm(dim=-1), rtol=1e-6, atol=0)
+    assert vector_length(torch.zeros(4, 2)).eq(0).all()

@@ -10,7 +10,13 @@ import pytest
 import torch
 
 from drivingscene.data.tensors import pair_to_tensors
-from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth, match_mode, smooth_log_correction
+from drivingscene.methods.matched_depth import (
+    MatchedDepthConfig,
+    match_depth,
+    match_mode,
+    shape_dispersion,
+    smooth_log_correction,
+)
 
 
 def _abs_rel(pred: torch.Tensor, gt: np.ndarray, mask: np.ndarray) -> float:
@@ -162,3 +168,23 @@ def test_every_match_mode_of_the_cli_has_a_config():
     assert set(MATCH_MODES) == {"fallback", "depth", "off"}
     with pytest.raises(ValueError, match="match mode: expected one of fallback, depth, off, found 'nope'"):
         match_mode("nope")
+
+
+def test_shape_dispersion_is_the_median_absolute_deviation_torch_defines():
+    """The numpy partitions give torch's lower medians exactly, NaN where too few pixels count."""
+    g = torch.Generator().manual_seed(0)
+    d = torch.rand(2, 3, 40, 60, generator=g) * 50 + 1
+    z = d * torch.exp(torch.randn(2, 3, 40, 60, generator=g) * 0.2)
+    where = torch.rand(2, 3, 40, 60, generator=g) < 0.3
+    where[0, 1] = False  # none
+    where[1, 2] = False
+    where[1, 2, 0, :9] = True  # 9 pixels: under the minimum
+    where[1, 0, :, :] = False
+    where[1, 0, 0, :50] = True  # exactly the minimum, an even count (two middle values)
+    log_ratio = torch.where(where, (z / d).log(), float("nan")).flatten(2)
+    median = log_ratio.nanmedian(-1, keepdim=True).values
+    expected = (log_ratio - median).abs().nanmedian(-1).values
+    expected = torch.where(where.flatten(2).sum(-1) >= 50, expected, float("nan"))
+    got = shape_dispersion(d, z, where, 50)
+    assert torch.equal(got.isnan(), expected.isnan()) and got.isnan().sum() == 2
+    assert torch.equal(got.nan_to_num(), expected.nan_to_num())
