@@ -56,7 +56,7 @@ from drivingscene.methods.classical import DIS_PRESETS, dis_flows, triangulate
 from drivingscene.models.pipeline import LiftConfig, rigid_flows
 
 GUIDES = ("depth", "prior", "both", "best", "fallback")
-LEVELS = ("none", "image", "rig")
+LEVELS = ("none", "image", "rig", "affine")
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,11 @@ class MatchedDepthConfig:
     full_support: float = 0.1
     # Coarser levels under the windows: "image", the image's median log ratio where at least
     # ``image_share`` of its pixels are determined; "rig", also the median over every image of the
-    # keyframe for the images with fewer; "none": the windows alone.
+    # keyframe for the images with fewer; "affine": "rig", but an image with at least that share
+    # starts from a power law in D's depth instead of one scale (`affine_log_fit`: log z = a +
+    # b log d, robustly fitted to its determined pixels, D's depth clamped to their range, so
+    # that a D whose depth range is too compressed or too stretched is corrected where nothing
+    # matches too), the windows then spreading what the law leaves; "none": the windows alone.
     levels: str = "rig"
     image_share: float = 0.01
     # Determined pixels take their triangulated depth (else only the smooth correction).
@@ -157,11 +161,13 @@ def smooth_log_correction(
     full_support: float,
     image_share: float = 0.0,
     base: np.ndarray | None = None,
+    fitted: np.ndarray | None = None,
 ) -> np.ndarray:
     """``[N, H, W]`` float32: the log ratio spread from the determined pixels by normalised
     Gaussian convolution, coarse to fine, faded out where the support is low (0 there); with
     ``image_share`` > 0, an image with at least that share of determined pixels starts from their
-    median (one scale for the whole image) instead of 0, or instead of ``base[i]`` where given."""
+    median (one scale for the whole image) instead of 0, or instead of ``base[i]`` where given;
+    images ``fitted`` ``[N]`` (a level fitted and removed beforehand) start from 0."""
     out = np.zeros(log_ratio.shape, np.float32)
     if base is not None:
         out += np.asarray(base, np.float32).reshape(-1, 1, 1)
@@ -169,13 +175,58 @@ def smooth_log_correction(
         weight = determined[i].astype(np.float32)
         if not weight.any():
             continue
-        if image_share > 0 and weight.mean() >= image_share:
+        if fitted is not None and fitted[i]:
+            out[i] = 0.0
+        elif image_share > 0 and weight.mean() >= image_share:
             out[i] = np.median(log_ratio[i][determined[i]])
         stack = np.stack([np.where(determined[i], log_ratio[i], 0.0).astype(np.float32) * weight, weight], -1)
         for sigma in sorted(sigmas, reverse=True):
             num, den = _gaussian_blur(stack, sigma).transpose(2, 0, 1)
             ramp = np.clip((den - min_support) / (full_support - min_support), 0.0, 1.0)
             out[i] += ramp * (num / np.maximum(den, 1e-6) - out[i])
+    return out
+
+
+def affine_log_fit(
+    log_d: np.ndarray,  # [2, V, H, W] log of D's depth
+    log_ratio: np.ndarray,  # [2, V, H, W] log(triangulated / D) where determined
+    determined: np.ndarray,  # [2, V, H, W] bool
+    image_share: float,
+    min_pixels: int = 200,
+    iterations: int = 3,
+) -> np.ndarray:
+    """``[2, V, H, W]`` float32: per image with at least ``image_share`` (and ``min_pixels``) of its
+    pixels determined, the log ratio a + (b - 1) log d of the power law log z = a + b log d,
+    fitted to the determined pixels by least squares on the inliers of the previous fit (within
+    2.5 robust standard deviations of its median residual; the first fit is one scale, the
+    median), ``iterations`` times, b clamped to [0.5, 2] and D's
+    log depth clamped to the 2nd-98th percentile of the determined pixels' (no extrapolation
+    beyond what was matched); NaN in the other images."""
+    out = np.full(log_d.shape, np.nan, np.float32)
+    for k, v in np.ndindex(*log_d.shape[:2]):
+        mask = determined[k, v]
+        count = int(mask.sum())
+        if count < max(min_pixels, image_share * mask.size):
+            continue
+        x, y = log_d[k, v][mask].astype(np.float64), log_ratio[k, v][mask].astype(np.float64)
+        lo, hi = np.percentile(x, [2.0, 98.0])
+        x = np.clip(x, lo, hi)
+        centre = float(np.median(x))
+        x = x - centre
+        slope, offset = 0.0, float(np.median(y))
+        for _ in range(iterations):  # from one scale (slope 0): the inliers of each fit make the next
+            residual = y - (offset + slope * x)
+            mad = float(np.median(np.abs(residual - np.median(residual))))
+            inliers = np.abs(residual - np.median(residual)) <= 2.5 * 1.4826 * max(mad, 1e-3)
+            xs, ys = x[inliers], y[inliers]
+            if len(xs) < 10:
+                break
+            spread = float(np.mean(xs * xs) - np.mean(xs) ** 2)
+            if spread < 1e-6:
+                break
+            slope = float(np.clip(np.mean(xs * ys) - np.mean(xs) * np.mean(ys), -0.5 * spread, 1.0 * spread) / spread)
+            offset = float(np.mean(ys) - slope * np.mean(xs))
+        out[k, v] = offset + slope * (np.clip(log_d[k, v], lo, hi) - centre)
     return out
 
 
@@ -354,20 +405,27 @@ def _match(
         t2 = time.perf_counter()
         log_ratio = (triangulated.clamp_min(1e-3) / d.clamp_min(1e-3)).log()
         base = None
-        if config.levels == "rig":  # per keyframe: the median over its images' determined pixels
+        if config.levels in ("rig", "affine"):  # per keyframe: the median over its images' determined pixels
             base = np.zeros(determined.shape[:2], np.float32)
             for k in (0, 1):
                 if determined[k].float().mean() >= config.image_share:
                     base[k] = float(log_ratio[k][determined[k]].median())
+        law = None
+        if config.levels == "affine":
+            law = affine_log_fit(d.clamp_min(1e-3).log().numpy(), log_ratio.numpy(), determined.numpy(), config.image_share)
+        target = log_ratio if law is None else log_ratio - torch.from_numpy(np.nan_to_num(law))
         correction = smooth_log_correction(
-            log_ratio.flatten(0, 1).numpy(),
+            target.flatten(0, 1).numpy(),
             determined.flatten(0, 1).numpy(),
             tuple(s * scale for s in config.sigmas),
             config.min_support,
             config.full_support,
             config.image_share if config.levels != "none" else 0.0,
             None if base is None else base.reshape(-1),
+            fitted=None if law is None else ~np.isnan(law).reshape(-1, *law.shape[2:])[:, 0, 0],
         )
+        if law is not None:  # the law where fitted (the windows spread its residual), else the levels
+            correction = np.where(np.isnan(law).reshape(correction.shape), correction, correction + law.reshape(correction.shape))
         out = torch.where(keep, d * torch.from_numpy(correction).view_as(d).exp(), d)
         if config.replace:
             out = torch.where(determined, triangulated, out)

@@ -12,6 +12,7 @@ import torch
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.methods.matched_depth import (
     MatchedDepthConfig,
+    affine_log_fit,
     match_depth,
     match_mode,
     shape_dispersion,
@@ -188,3 +189,33 @@ def test_shape_dispersion_is_the_median_absolute_deviation_torch_defines():
     got = shape_dispersion(d, z, where, 50)
     assert torch.equal(got.isnan(), expected.isnan()) and got.isnan().sum() == 2
     assert torch.equal(got.nan_to_num(), expected.nan_to_num())
+
+
+def test_the_power_law_level_recovers_a_compressed_depth_range_where_nothing_matched():
+    """D's depth a power law of the truth (d = 3 z^0.6: the range compressed), matched on the
+    near half of the image only: the law fitted there (b = 1/0.6) carries to the far half's
+    range that was matched at least in part; outliers among the matches do not move it."""
+    rng = np.random.default_rng(0)
+    z = np.exp(rng.uniform(np.log(3.0), np.log(60.0), (1, 2, 40, 50))).astype(np.float32)
+    d = (3.0 * z**0.6).astype(np.float32)
+    log_ratio = np.log(z / d).astype(np.float32)
+    determined = z < 25.0
+    noisy = log_ratio.copy()
+    noisy[0, 0, :4] = 2.0  # 10 % gross outliers among the matched rows
+    law = affine_log_fit(np.log(d), noisy, determined, image_share=0.01)
+    fitted = np.log(d) + law
+    inside = determined & (z > 4.0)  # the determined range, away from its clamped ends
+    assert np.abs(fitted - np.log(z))[inside].max() < 0.03
+    assert np.isnan(affine_log_fit(np.log(d), noisy, np.zeros_like(determined), image_share=0.01)).all()
+
+
+def test_the_affine_level_corrects_a_compressed_depth(synth_pair):
+    """End to end: a D whose depth range is compressed around 15 m is corrected at least as well
+    with the power-law level as with one scale per image."""
+    batch, gt, sky = _inputs(synth_pair)
+    world = gt > 0
+    wrong = torch.from_numpy(np.where(world, 15.0 * (np.maximum(gt, 1e-3) / 15.0) ** 0.6, 50.0).astype(np.float32))
+    before = _abs_rel(wrong, gt, world)
+    rig = _abs_rel(match_depth(wrong, sky, synth_pair, batch, MatchedDepthConfig(levels="rig"))[0], gt, world)
+    affine = _abs_rel(match_depth(wrong, sky, synth_pair, batch, MatchedDepthConfig(levels="affine"))[0], gt, world)
+    assert affine < before and affine <= rig + 0.005, (before, rig, affine)
