@@ -249,12 +249,13 @@ def triangulate(
     for k in (0, 1):
         rel = torch.linalg.inv(c2l[1 - k]) @ c2l[k]
         z, off_line, parallax, valid = epipolar_geometry(total[k].float(), batch.intrinsics.float(), rel)
-        explained, determined = epipolar_tests(z, off_line, parallax, valid, candidates[k], lift)
+        parallax_px = vector_length(parallax)
+        explained, determined = epipolar_tests(z, off_line, parallax_px, valid, candidates[k], lift)
         if lift.epipolar_min_texture > 0 and determined.any():
             determined &= texture_along(batch.images[k].float(), parallax, 1.0) >= lift.epipolar_min_texture
         depths.append(torch.where(determined, z, torch.zeros_like(z)))
         explained_all.append(explained)
-        parallaxes.append(vector_length(parallax))
+        parallaxes.append(parallax_px)
     depth, explained = torch.stack(depths), torch.stack(explained_all)
     return (depth, explained, torch.stack(parallaxes)) if with_parallax else (depth, explained)
 

@@ -194,15 +194,17 @@ def affine_log_fit(
     image_share: float,
     min_pixels: int = 200,
     iterations: int = 3,
-) -> np.ndarray:
-    """``[2, V, H, W]`` float32: per image with at least ``image_share`` (and ``min_pixels``) of its
+) -> tuple[np.ndarray, np.ndarray]:
+    """``[2, V, H, W]`` float32 and ``[2, V]`` bool, where fitted: per image with at least
+    ``image_share`` (and ``min_pixels``) of its
     pixels determined, the log ratio a + (b - 1) log d of the power law log z = a + b log d,
     fitted to the determined pixels by least squares on the inliers of the previous fit (within
     2.5 robust standard deviations of its median residual; the first fit is one scale, the
     median), ``iterations`` times, b clamped to [0.5, 2] and D's
     log depth clamped to the 2nd-98th percentile of the determined pixels' (no extrapolation
-    beyond what was matched); NaN in the other images."""
-    out = np.full(log_d.shape, np.nan, np.float32)
+    beyond what was matched); 0 in the other images."""
+    out = np.zeros(log_d.shape, np.float32)
+    fitted = np.zeros(log_d.shape[:2], bool)
     for k, v in np.ndindex(*log_d.shape[:2]):
         mask = determined[k, v]
         count = int(mask.sum())
@@ -227,7 +229,8 @@ def affine_log_fit(
             slope = float(np.clip(np.mean(xs * ys) - np.mean(xs) * np.mean(ys), -0.5 * spread, 1.0 * spread) / spread)
             offset = float(np.mean(ys) - slope * np.mean(xs))
         out[k, v] = offset + slope * (np.clip(log_d[k, v], lo, hi) - centre)
-    return out
+        fitted[k, v] = True
+    return out, fitted
 
 
 def _gaussian_blur(image: np.ndarray, sigma: float) -> np.ndarray:
@@ -410,10 +413,10 @@ def _match(
             for k in (0, 1):
                 if determined[k].float().mean() >= config.image_share:
                     base[k] = float(log_ratio[k][determined[k]].median())
-        law = None
+        law = fitted = None  # "affine": the law is removed before the windows and added after them
         if config.levels == "affine":
-            law = affine_log_fit(d.clamp_min(1e-3).log().numpy(), log_ratio.numpy(), determined.numpy(), config.image_share)
-        target = log_ratio if law is None else log_ratio - torch.from_numpy(np.nan_to_num(law))
+            law, fitted = affine_log_fit(d.clamp_min(1e-3).log().numpy(), log_ratio.numpy(), determined.numpy(), config.image_share)
+        target = log_ratio if law is None else log_ratio - torch.from_numpy(law)
         correction = smooth_log_correction(
             target.flatten(0, 1).numpy(),
             determined.flatten(0, 1).numpy(),
@@ -422,10 +425,10 @@ def _match(
             config.full_support,
             config.image_share if config.levels != "none" else 0.0,
             None if base is None else base.reshape(-1),
-            fitted=None if law is None else ~np.isnan(law).reshape(-1, *law.shape[2:])[:, 0, 0],
+            fitted=None if fitted is None else fitted.reshape(-1),
         )
-        if law is not None:  # the law where fitted (the windows spread its residual), else the levels
-            correction = np.where(np.isnan(law).reshape(correction.shape), correction, correction + law.reshape(correction.shape))
+        if law is not None:  # 0 where not fitted
+            correction = correction + law.reshape(correction.shape)
         out = torch.where(keep, d * torch.from_numpy(correction).view_as(d).exp(), d)
         if config.replace:
             out = torch.where(determined, triangulated, out)

@@ -136,7 +136,7 @@ def explain_by_parallax(
         o = 1 - k
         rel = torch.linalg.inv(c2l[o]) @ c2l[k]  # [V, 4, 4] camera at k -> the same camera at o
         z, off_line, parallax, valid = epipolar_geometry(total[k].float(), batch.intrinsics.float(), rel)
-        explained, determined = epipolar_tests(z, off_line, parallax, valid, candidates[k], config, scale)
+        explained, determined = epipolar_tests(z, off_line, vector_length(parallax), valid, candidates[k], config, scale)
         if config.epipolar_min_texture > 0 and determined.any():
             determined &= texture_along(batch.images[k].float(), parallax, scale) >= config.epipolar_min_texture
         if fixed is not None:
@@ -150,17 +150,18 @@ def explain_by_parallax(
 
 
 def epipolar_tests(
-    z: Tensor, off_line: Tensor, parallax: Tensor, valid: Tensor, candidates: Tensor, config: LiftConfig, scale: float = 1.0
+    z: Tensor, off_line: Tensor, parallax_px: Tensor, valid: Tensor, candidates: Tensor, config: LiftConfig, scale: float = 1.0
 ) -> tuple[Tensor, Tensor]:
     """`explain_by_parallax`'s tests on `epipolar_geometry`'s output: explained (a candidate,
     valid, triangulated within [``epipolar_near``, ``epipolar_far``] and within ``epipolar_px``
     of its epipolar line) and determined (explained with at least ``epipolar_min_parallax``;
-    without the texture test). ``scale``: image pixels per pixel of the thresholds."""
+    without the texture test). ``parallax_px``: the length of the parallax ``[V, H, W]``
+    (`vector_length`). ``scale``: image pixels per pixel of the thresholds."""
     ok = valid & (z >= config.epipolar_near) & (z <= config.epipolar_far)
     explained = candidates & ok & (off_line <= config.epipolar_px * scale)
     # The depth is only taken where it is well determined; elsewhere the pixel is static at the
     # network's depth (which then moves it by less than the little parallax there is).
-    determined = explained & (vector_length(parallax) >= config.epipolar_min_parallax * scale)
+    determined = explained & (parallax_px >= config.epipolar_min_parallax * scale)
     return explained, determined
 
 
