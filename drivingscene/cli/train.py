@@ -66,6 +66,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--render-blend", choices=("layers", "all"), default=None, help="how L_render combines both keyframes' Gaussians (default: layers, as inference)"
     )
+    p.add_argument(
+        "--input-jitter",
+        type=float,
+        default=None,
+        metavar="STRENGTH",
+        help="photometric jitter of D's input images at this strength in [0, 2] (the losses compare the originals; default 0)",
+    )
     p.add_argument("--val-every", type=positive_int, default=None, help="validate every n-th step")
     p.add_argument("--ckpt-every", type=positive_int, default=None, help="write a checkpoint every n-th step")
     p.add_argument(
@@ -130,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
     for name, value in (("--lr", args.lr), ("--flow-lr", args.flow_lr)):
         if value is not None and not value > 0:
             raise InputError(f"{name}: expected a positive learning rate, found {value}")
+    if args.input_jitter is not None and not 0.0 <= args.input_jitter <= 2.0:
+        raise InputError(f"--input-jitter: expected a strength in [0, 2], found {args.input_jitter}")
     for flag, field, value in (
         ("--flow-supervision", "flow_sup", args.flow_supervision),
         ("--depth-supervision", "depth_sup", args.depth_supervision),
@@ -154,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         render_every=args.render_every,
         render_views=tuple(args.render_views) if args.render_views else None,
         render_blend=args.render_blend,
+        input_jitter=args.input_jitter,
         val_every=args.val_every,
         ckpt_every=args.ckpt_every,
         lpips=args.lpips,

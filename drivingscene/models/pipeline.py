@@ -420,12 +420,15 @@ def view_geometry(batch: PairTensors, size: tuple[int, int]) -> ViewGeometry:
     )
 
 
-def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPrediction:
+def predict_static(model: DrivingSceneModel, batch: PairTensors, depth_images: Tensor | None = None) -> StaticPrediction:
     """D and P on both keyframes' V images.
 
     When the model has an ``input_size`` other than the images', the networks run on resized
     images (intrinsics scaled to match) and their outputs come back at full size: depth through
     bilinear inverse depth, P's raw outputs bilinearly, activated with the full-size image and depth.
+
+    ``depth_images`` ``[2, V, 3, H, W]`` (training: photometrically jittered, `train.augment`), when
+    given, are what D sees; P still reads ``batch.images`` (with D's features of the jittered ones).
     """
     num_views = batch.num_views
     size = batch.image_size
@@ -433,6 +436,17 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors) -> StaticPredic
     images = batch.images.flatten(0, 1)
     intrinsics = batch.intrinsics.repeat(2, 1, 1)
     geometry = view_geometry(batch, net_size)
+    if depth_images is not None:
+        if tuple(net_size) != tuple(size) or depth_images.shape != batch.images.shape:
+            raise ValueError(
+                f"predict_static: depth_images {list(depth_images.shape)} must match the images "
+                f"{list(batch.images.shape)} at the networks' input size {list(net_size)}"
+            )
+        depth_out = model.depth_net(depth_images.flatten(0, 1).contiguous(memory_format=torch.channels_last), intrinsics, geometry)
+        params = model.gaussian_head(
+            images.contiguous(memory_format=torch.channels_last), depth_out.depth, intrinsics, depth_out.features, depth_out.decoder_features
+        )
+        return StaticPrediction(depth=depth_out.depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
     if tuple(net_size) == tuple(size):
         depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics, geometry)
         depth = depth_out.depth

@@ -63,6 +63,9 @@ class TrainConfig:
     amp_auto: bool = False  # set by `resolve_precision`: ``amp`` was decided for the machine, not forced
     lpips: str = "auto"  # perceptual metric: auto | lpips | stlpips
     render_every: int = 1  # L_render on every n-th step (it is the most expensive term)
+    # Photometric jitter of D's input (`train.augment`; the losses compare the original images)
+    # at this strength in stages that train D (static, depth, joint); 0: none.
+    input_jitter: float = 0.0
     # L_render's targets (RENDER_VIEWS), rendered in turn, and how both keyframes' Gaussians combine
     # in them: "layers", as every rendered view at inference, or "all" (Gaussians.time_weights).
     render_views: tuple[str, ...] = RENDER_VIEWS
@@ -82,6 +85,8 @@ class TrainConfig:
         unknown = [v for v in self.render_views if v not in RENDER_VIEWS]
         if unknown or not self.render_views:
             raise ValueError(f"render_views: expected some of {RENDER_VIEWS}, found {list(self.render_views)}")
+        if not (self.input_jitter >= 0.0 and self.input_jitter <= 2.0):
+            raise ValueError(f"input_jitter: expected a strength in [0, 2], found {self.input_jitter}")
         if self.render_blend not in ("all", "layers"):
             raise ValueError(f"render_blend: expected 'all' or 'layers', found {self.render_blend!r}")
 

@@ -64,6 +64,7 @@ from drivingscene.models.pipeline import (
 from drivingscene.precision import resolve_amp
 from drivingscene.render.scene import render_gaussians
 from drivingscene.render.sky import fit_sky_from_pixels
+from drivingscene.train.augment import jitter_images
 from drivingscene.train.config import TrainConfig
 
 # Weight of the supervised depth of D's monocular and matching parts (each alone) beside the
@@ -148,7 +149,7 @@ class TrainStep(nn.Module):
                 self.model.gaussian_head.eval()
                 self.model.flow_net.eval()
             with amp:
-                static = predict_static(self.model, batch)
+                static = predict_static(self.model, batch, self.jittered(batch, step))
             terms.update(self.static_terms(static, batch, step))
         if stage not in ("static", "depth"):
             terms.update(self.dynamic_terms(static, batch, step))
@@ -165,6 +166,14 @@ class TrainStep(nn.Module):
         }
         loss = sum(weight[k] * v for k, v in terms.items() if k in weight)
         return loss, terms
+
+    def jittered(self, batch: PairTensors, step: int) -> Tensor | None:
+        """D's input images with the run's photometric jitter (`train.augment`), drawn from the
+        run's seed and the step (a resumed run draws the same); None without jitter."""
+        if self.config.input_jitter <= 0 or not self.training:
+            return None
+        generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + step)
+        return jitter_images(batch.images, self.config.input_jitter, generator)
 
     # -- stage 1 ---------------------------------------------------------------------------
     def static_terms(self, static: StaticPrediction, batch: PairTensors, step: int) -> dict[str, Tensor]:
