@@ -25,6 +25,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.inference",
         "seconds to reconstruct one pair (networks + assembly) per resolution, peak memory",
     ),
+    "looks": (
+        "drivingscene.bench.looks",
+        "depth against ground truth when every image's tone changes (gamma, exposure gain): D alone and matched, per weights",
+    ),
     "oracle": ("drivingscene.bench.oracle", "oracle reconstruction: input-view and intermediate PSNR, budget effect"),
     "training": (
         "drivingscene.bench.training_report",
