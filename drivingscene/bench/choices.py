@@ -59,6 +59,8 @@ class Variant:
     levels: str | None = None  # MatchedDepthConfig.levels
     passes: int | None = None  # MatchedDepthConfig.passes
     mscale: float | None = None  # MatchedDepthConfig.scale
+    pmatch: str | None = None  # MatchedDepthConfig.prior_preset: the fallback's DIS preset
+    fdisp: float | None = None  # MatchedDepthConfig.fallback_dispersion (0: every camera matched again)
     pdepth: str | None = None  # LiftConfig.epipolar_depth
     ptex: float | None = None  # LiftConfig.epipolar_min_texture
 
@@ -73,7 +75,16 @@ class Variant:
         elif self.match is not None:
             match = replace(match or MatchedDepthConfig(), preset=self.match)
         if match is not None:
-            for name, value in (("sigmas", self.windows), ("guide", self.guide), ("levels", self.levels), ("passes", self.passes), ("scale", self.mscale)):
+            changes = (
+                ("sigmas", self.windows),
+                ("guide", self.guide),
+                ("levels", self.levels),
+                ("passes", self.passes),
+                ("scale", self.mscale),
+                ("prior_preset", self.pmatch),
+                ("fallback_dispersion", self.fdisp),
+            )
+            for name, value in changes:
                 if value is not None:
                     match = replace(match, **{name: value})
         lift = base.lift
@@ -117,7 +128,7 @@ def _nanmean(values: list[float]) -> float:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, bonus, region, unseen, unseenpx."""
+    windows, guide, levels, passes, mscale, pmatch, fdisp, bonus, region, unseen, unseenpx."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
     from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
@@ -151,6 +162,10 @@ def parse_variant(text: str) -> Variant:
             values["levels"] = value
         elif key == "mscale" and _is_number(value) and 0 < float(value) <= 1:
             values["mscale"] = float(value)
+        elif key == "pmatch" and value in MATCHES[1:]:
+            values["pmatch"] = value
+        elif key == "fdisp" and _is_number(value) and float(value) >= 0:
+            values["fdisp"] = float(value)
         elif key == "passes" and value.isdigit() and int(value) >= 1:
             values["passes"] = int(value)
         elif key == "windows" and value and all(_is_number(w) and float(w) > 0 for w in value.split("+")):
@@ -161,7 +176,7 @@ def parse_variant(text: str) -> Variant:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
                 f"photo=on|off, parallax=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
-                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
+                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
 

@@ -42,6 +42,12 @@ def test_variant_options_change_only_what_they_name():
     with pytest.raises(InputError, match="'unseen=maybe'"):
         parse_variant("unseen=maybe")
     assert parse_variant("unseenpx=1.5").options(base).search.unseen_residual_px == 1.5
+    forced = parse_variant("fdisp=0,pmatch=fast").options(base).match
+    assert (forced.fallback_dispersion, forced.prior_preset) == (0.0, "fast")
+    assert replace(forced, fallback_dispersion=base.match.fallback_dispersion, prior_preset=base.match.prior_preset) == base.match
+    for bad in ("pmatch=off", "fdisp=-1"):
+        with pytest.raises(InputError, match=f"'{bad}'"):
+            parse_variant(bad)
     with pytest.raises(InputError, match="'unseenpx=-1'"):
         parse_variant("unseenpx=-1")
 
