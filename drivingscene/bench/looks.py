@@ -106,6 +106,14 @@ def run(args: argparse.Namespace) -> int:
         cmd += " --tones " + " ".join(args.tones)
     text = "\n".join(
         [
+            "# Depth and the images' tone",
+            "",
+            "How far D's metric depth follows the brightness of its input: every image of a pair is given one global "
+            "tone change (gamma: out = in ** G; gain: out = G x in, clipped) and reconstructed; D alone is `--match off`, "
+            "matched is the inference default. Ground truth: the generator's depth, or LiDAR on an imported real pair "
+            "(shown, never used to choose). Depth should not follow the tone; what the rows cost at gamma 1 matters as much "
+            "as the spread across the tones. Why this exists and what was tried: [training.md](training.md).",
+            "",
             f"Measured with `{cmd}` on {machine_description()}, {time.strftime('%Y-%m-%d')}. Every image of a pair "
             "given the tone change; depth AbsRel against the ground truth (metric | median-scaled), means over the pairs.",
             "",
