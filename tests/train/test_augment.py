@@ -97,3 +97,36 @@ def test_a_bad_strength_is_a_one_line_cli_error(tmp_path, capsys):
     code = main(["train", "--stage", "depth", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--input-jitter", "5"])
     assert code == 2
     assert "--input-jitter: expected a strength in [0, 2], found 5.0" in capsys.readouterr().err
+
+
+def test_predict_static_reads_depth_images_for_d_only_and_refuses_a_mismatch():
+    """D's depth follows ``depth_images``; P's colours still come from the batch's images; a
+    ``depth_images`` of another shape, or a model that resizes its input, is refused."""
+    from dataclasses import replace
+
+    from drivingscene.data.tensors import pair_to_tensors
+    from drivingscene.models.model import DrivingSceneModel
+    from drivingscene.models.pipeline import predict_static
+    from tests.factories import make_pair
+    from tests.train.test_trainer import TINY_MODEL
+
+    torch.manual_seed(0)
+    model = DrivingSceneModel(TINY_MODEL).eval()
+    batch = pair_to_tensors(make_pair(num_views=3, height=32, width=48, seed=1))
+    with torch.no_grad():
+        plain = predict_static(model, batch)
+        same = predict_static(model, batch, batch.images.clone())
+        dark = predict_static(model, batch, batch.images * 0.3)
+    assert torch.allclose(plain.depth, same.depth) and torch.allclose(plain.params.sh, same.params.sh)
+    assert not torch.allclose(plain.depth, dark.depth)
+    seen = []
+    head = model.gaussian_head.forward
+    model.gaussian_head.forward = lambda images, *rest: seen.append(images.clone()) or head(images, *rest)
+    with torch.no_grad():
+        predict_static(model, batch, batch.images * 0.3)
+    assert len(seen) == 1 and torch.equal(seen[0], batch.images.flatten(0, 1))
+    with pytest.raises(ValueError, match="depth_images"):
+        predict_static(model, batch, batch.images[:, :2])
+    resizing = DrivingSceneModel(replace(TINY_MODEL, input_size=(16, 24))).eval()
+    with pytest.raises(ValueError, match="depth_images"):
+        predict_static(resizing, batch, batch.images)
