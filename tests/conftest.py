@@ -36,6 +36,17 @@ def synth_pair():
     return generate_pair(SynthConfig(height=64, width=112), 200000, renderer)
 
 
+@pytest.fixture
+def synth_pair_folder(synth_pair, tmp_path):
+    """A folder of validation pairs (``--data``) holding `synth_pair` alone, as ``pair_100000.npz``."""
+    from drivingscene.data import save_frame_pair
+
+    folder = tmp_path / "val"
+    folder.mkdir()
+    save_frame_pair(synth_pair, folder / "pair_100000.npz")
+    return folder
+
+
 @pytest.fixture(scope="session")
 def gl_ctx():
     """One offscreen EGL context for the session (skipped cleanly where EGL is missing)."""

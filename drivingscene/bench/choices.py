@@ -209,13 +209,13 @@ def score_variant(model, pair, variant: Variant) -> dict[str, float]:
 def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.methods.feedforward import load_model
-    from drivingscene.train.data import list_pairs
+    from drivingscene.train.data import pair_files
 
     variants = [parse_variant(v) for v in (args.variant or DEFAULT_VARIANTS)]  # errors before any work
     model = load_model(args.weights)
     sections = []
     for folder in args.data:
-        files = [folder] if folder.is_file() else list_pairs(folder)[: args.count]
+        files = pair_files(folder, args.count)
         pairs = [load_frame_pair(f) for f in files]
         moving = np.mean([p.gt_dynamic.mean() for p in pairs if p.gt_dynamic is not None] or [np.nan])
         rows = []

@@ -60,27 +60,14 @@ def toned(images: np.ndarray, kind: str, value: float) -> np.ndarray:
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
-def _pairs(paths: list[Path], count: int) -> list[tuple[str, list[Path]]]:
-    from drivingscene.train.data import list_pairs
-
-    out = []
-    for path in paths:
-        if path.is_dir():
-            out.append((str(path), list_pairs(path)[:count]))
-        elif path.is_file():
-            out.append((str(path), [path]))
-        else:
-            raise InputError(f"{path}: --data: expected a folder of pair_*.npz files or a pair file")
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.eval.reconstruction import score_depth
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
+    from drivingscene.train.data import pair_files
 
     tones = [parse_tone(t) for t in args.tones]  # errors before any work
-    sets = _pairs(args.data, args.count)
+    sets = [(str(path), pair_files(path, args.count)) for path in args.data]
     weights = args.weights or [None]
     models = [(str(w) if w else "shipped", load_model(w)) for w in weights]
     modes = (("D alone", replace(InferenceOptions(), match=None)), ("matched", InferenceOptions()))

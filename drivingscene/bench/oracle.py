@@ -29,12 +29,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here")
 
 
-def _files(path: Path) -> list[Path]:
-    from drivingscene.train.data import list_pairs
-
-    return [path] if path.is_file() else list_pairs(path)
-
-
 def _input_psnr(recon, pair) -> list[float]:
     from drivingscene.eval.metrics import psnr
     from drivingscene.render.scene import render_gaussians
@@ -90,8 +84,9 @@ def _write_image(recon, pair, path: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.methods.oracle import oracle_reconstruction
+    from drivingscene.train.data import pair_files
 
-    files = _files(args.data)[: args.count]
+    files = pair_files(args.data, args.count)
     rows, budget = [], []
     for i, path in enumerate(files):
         pair = load_frame_pair(path)

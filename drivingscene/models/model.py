@@ -59,11 +59,12 @@ class DrivingSceneModel(nn.Module):
         self.flow_net = ResidualFlowNet(config.flow)
 
     def static(
-        self, images: Tensor, intrinsics: Tensor, geometry: ViewGeometry | None = None
+        self, images: Tensor, intrinsics: Tensor, geometry: ViewGeometry | None = None, depth_images: Tensor | None = None
     ) -> tuple[DepthOutput, PixelGaussians]:
         """Stage-1 networks on images ``[B, 3, H, W]`` with intrinsics ``[B, 3, 3]`` taken as
-        ``geometry`` says (D's road prior and matching need it)."""
-        depth = self.depth_net(images, intrinsics, geometry)
+        ``geometry`` says (D's road prior and matching need it). With ``depth_images`` (the same
+        shape), D reads them instead and P still reads ``images`` (training's input jitter)."""
+        depth = self.depth_net(images if depth_images is None else depth_images, intrinsics, geometry)
         params = self.gaussian_head(images, depth.depth, intrinsics, depth.features, depth.decoder_features)
         return depth, params
 

@@ -436,19 +436,14 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors, depth_images: T
     images = batch.images.flatten(0, 1)
     intrinsics = batch.intrinsics.repeat(2, 1, 1)
     geometry = view_geometry(batch, net_size)
-    if depth_images is not None:
-        if tuple(net_size) != tuple(size) or depth_images.shape != batch.images.shape:
-            raise ValueError(
-                f"predict_static: depth_images {list(depth_images.shape)} must match the images "
-                f"{list(batch.images.shape)} at the networks' input size {list(net_size)}"
-            )
-        depth_out = model.depth_net(depth_images.flatten(0, 1).contiguous(memory_format=torch.channels_last), intrinsics, geometry)
-        params = model.gaussian_head(
-            images.contiguous(memory_format=torch.channels_last), depth_out.depth, intrinsics, depth_out.features, depth_out.decoder_features
+    if depth_images is not None and (tuple(net_size) != tuple(size) or depth_images.shape != batch.images.shape):
+        raise ValueError(
+            f"predict_static: depth_images {list(depth_images.shape)} must match the images "
+            f"{list(batch.images.shape)} at the networks' input size {list(net_size)}"
         )
-        return StaticPrediction(depth=depth_out.depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
     if tuple(net_size) == tuple(size):
-        depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics, geometry)
+        channels_last = None if depth_images is None else depth_images.flatten(0, 1).contiguous(memory_format=torch.channels_last)
+        depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics, geometry, channels_last)
         depth = depth_out.depth
     else:
         small = batch.resized_images(net_size).flatten(0, 1).contiguous(memory_format=torch.channels_last)

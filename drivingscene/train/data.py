@@ -23,6 +23,12 @@ def list_pairs(folders: str | Path) -> list[Path]:
     return [files[i] for i in range(longest) for files in per_folder if i < len(files)]
 
 
+def pair_files(path: Path, count: int | None = None) -> list[Path]:
+    """``[path]`` for a pair file, else the pairs of the folder ``path`` (`list_pairs`), the first
+    ``count`` of them (None: all); a path that is neither is an `InputError` naming it."""
+    return [path] if path.is_file() else list_pairs(path)[:count]
+
+
 def _folder_pairs(folder: Path) -> list[Path]:
     if not folder.is_dir():
         raise InputError(f"{folder}: expected a folder of pair_*.npz files (drivingscene synth --split train --out DIR)")

@@ -52,10 +52,8 @@ def test_variant_options_change_only_what_they_name():
         parse_variant("unseenpx=-1")
 
 
-def test_bench_choices_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
-    data = tmp_path / "val"
-    data.mkdir()
-    save_frame_pair(synth_pair, data / "pair_100000.npz")
+def test_bench_choices_report(synth_pair, synth_pair_folder, tiny_weights, tmp_path):  # noqa: F811
+    data = synth_pair_folder
     out = tmp_path / "choices.md"
     args = ["bench", "choices", "--data", str(data), "--count", "1", "--weights", str(tiny_weights), "--out", str(out)]
     assert main([*args, "--variant", "blend=all", "--variant", "blend=layers,carve=all,parallax=on"]) == 0

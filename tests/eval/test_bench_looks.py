@@ -7,7 +7,6 @@ import pytest
 
 from drivingscene.bench.looks import parse_tone, toned
 from drivingscene.cli import main
-from drivingscene.data import save_frame_pair
 from drivingscene.errors import InputError
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
 
@@ -24,10 +23,8 @@ def test_tones_parse_apply_and_bad_ones_are_named():
     assert darker[0, 0] == 0 and darker[0, 3] == 255 and (darker[0, 1:3] < images[0, 1:3]).all()
 
 
-def test_bench_looks_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
-    data = tmp_path / "val"
-    data.mkdir()
-    save_frame_pair(synth_pair, data / "pair_100000.npz")
+def test_bench_looks_report(synth_pair_folder, tiny_weights, tmp_path):  # noqa: F811
+    data = synth_pair_folder
     out = tmp_path / "looks.md"
     args = ["bench", "looks", "--data", str(data), "--count", "1", "--weights", str(tiny_weights), "--out", str(out)]
     assert main([*args, "--tones", "gamma=1", "gain=0.5"]) == 0

@@ -9,16 +9,13 @@ import pytest
 
 from drivingscene.bench.refine_choices import CHOICES
 from drivingscene.cli import main
-from drivingscene.data import save_frame_pair
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
-def test_bench_refine_budgets_and_choices(synth_pair, tiny_weights, tmp_path, monkeypatch):  # noqa: F811
-    data = tmp_path / "val"
-    data.mkdir()
-    save_frame_pair(synth_pair, data / "pair_100000.npz")
+def test_bench_refine_budgets_and_choices(synth_pair_folder, tiny_weights, tmp_path, monkeypatch):  # noqa: F811
+    data = synth_pair_folder
     md, js = tmp_path / "refine.md", tmp_path / "refine.json"
     base = ["bench", "refine", "--data", str(data), "--count", "1", "--weights", str(tiny_weights), "--lpips", "stlpips"]
     assert main([*base, "--budgets", "0", "5", "--depth-scale", "0.5", "--out", str(md), "--json", str(js)]) == 0
