@@ -78,9 +78,10 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{name}: --data: expected pairs with gt_depth (procedural, or imported with LiDAR)")
         for label, model in models:
             for kind, value in tones:
+                inputs = [replace(p, images=toned(p.images, kind, value)) for p in pairs]
                 cells = []
                 for _, options in modes:
-                    scores = [score_depth(reconstruct(model, replace(p, images=toned(p.images, kind, value)), options), p) for p in pairs]
+                    scores = [score_depth(reconstruct(model, toned_pair, options), p) for toned_pair, p in zip(inputs, pairs)]
                     absrel = np.nanmean([s["depth_abs_rel"] for s in scores])
                     scaled = np.nanmean([s["depth_ms_abs_rel"] for s in scores])
                     cells.append(f"{absrel:.3f} | {scaled:.3f}")
