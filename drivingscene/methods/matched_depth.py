@@ -53,6 +53,7 @@ from drivingscene.data.tensors import PairTensors, pair_to_tensors
 from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.geometry.flow import backward_warp
 from drivingscene.methods.classical import DIS_PRESETS, dis_flows, triangulate
+from drivingscene.methods.cross_camera import CrossCameraConfig, cross_camera_depth
 from drivingscene.models.pipeline import LiftConfig, rigid_flows
 
 GUIDES = ("depth", "prior", "both", "best", "fallback")
@@ -120,6 +121,10 @@ class MatchedDepthConfig:
     # Triangulation thresholds (`explain_by_parallax`), in image pixels: within ``epipolar_px``
     # of the epipolar line, ``epipolar_min_parallax`` from the point at infinite depth.
     lift: LiftConfig = field(default_factory=LiftConfig)
+    # Stereo across the rig (`cross_camera.cross_camera_depth`) after the matching over time,
+    # guided by its corrected depth: the pixels it triangulates and the time did not are added to
+    # the determined ones and the correction is computed again. None: off.
+    cross: CrossCameraConfig | None = field(default_factory=CrossCameraConfig)
 
     def __post_init__(self):
         if self.prior_preset is not None and self.prior_preset not in DIS_PRESETS:
@@ -307,7 +312,7 @@ def match_depth(
     device, dtype = depth.device, depth.dtype
     d = depth.detach().float().cpu()
     keep = (~excluded).cpu()
-    timings = dict.fromkeys(("match_flow_s", "match_triangulate_s", "match_correct_s", "match_fallback_views"), 0.0)
+    timings = dict.fromkeys(("match_flow_s", "match_triangulate_s", "match_correct_s", "match_cross_s", "match_fallback_views"), 0.0)
     if config.scale == 1.0:
         cpu = batch.to("cpu") if device.type != "cpu" else batch
         out, determined = _match(d, keep, pair, cpu, config, timings)
@@ -375,7 +380,7 @@ def _match(
     prior = None
     if config.guide in ("prior", "both", "best"):
         prior = triangulated_with(prior_guide(), config.prior_preset or config.preset)
-    for _ in range(config.passes):
+    for step in range(config.passes):
         if config.guide == "prior":
             triangulated, determined, _, _ = prior
         else:
@@ -405,32 +410,59 @@ def _match(
             take_prior = determined_prior & (~determined | (cost_prior < cost))
             triangulated = torch.where(take_prior, z_prior, triangulated)
             determined = determined | determined_prior
+        if config.cross is not None and step == config.passes - 1:
+            # overlapping cameras of each keyframe, guided by this pass's depth: stereo across the
+            # rig where the ego's motion gave no parallax
+            t0 = time.perf_counter()
+            z_cross, _, _ = cross_camera_depth(_rescaled(out, triangulated, determined), keep, pair.images, cpu, config.lift, config.cross)
+            extra = (z_cross > 0) & ~determined
+            triangulated = torch.where(extra, z_cross, triangulated)
+            determined = determined | extra
+            timings["match_cross_s"] += time.perf_counter() - t0
         t2 = time.perf_counter()
-        log_ratio = (triangulated.clamp_min(1e-3) / d.clamp_min(1e-3)).log()
-        base = None
-        if config.levels in ("rig", "affine"):  # per keyframe: the median over its images' determined pixels
-            base = np.zeros(determined.shape[:2], np.float32)
-            for k in (0, 1):
-                if determined[k].float().mean() >= config.image_share:
-                    base[k] = float(log_ratio[k][determined[k]].median())
-        law = fitted = None  # "affine": the law is removed before the windows and added after them
-        if config.levels == "affine":
-            law, fitted = affine_log_fit(d.clamp_min(1e-3).log().numpy(), log_ratio.numpy(), determined.numpy(), config.image_share)
-        target = log_ratio if law is None else log_ratio - torch.from_numpy(law)
-        correction = smooth_log_correction(
-            target.flatten(0, 1).numpy(),
-            determined.flatten(0, 1).numpy(),
-            tuple(s * scale for s in config.sigmas),
-            config.min_support,
-            config.full_support,
-            config.image_share if config.levels != "none" else 0.0,
-            None if base is None else base.reshape(-1),
-            fitted=None if fitted is None else fitted.reshape(-1),
-        )
-        if law is not None:  # 0 where not fitted
-            correction = correction + law.reshape(correction.shape)
-        out = torch.where(keep, d * torch.from_numpy(correction).view_as(d).exp(), d)
-        if config.replace:
-            out = torch.where(determined, triangulated, out)
+        out = _corrected(d, keep, triangulated, determined, config, scale)
         timings["match_correct_s"] += time.perf_counter() - t2
     return out, determined
+
+
+def _corrected(d: Tensor, keep: Tensor, triangulated: Tensor, determined: Tensor, config: MatchedDepthConfig, scale: float) -> Tensor:
+    """D's depth ``d`` times the smooth correction field that the triangulated depth of the
+    determined pixels gives (see `MatchedDepthConfig`), and the triangulated depth itself where
+    determined (``replace``)."""
+    log_ratio = (triangulated.clamp_min(1e-3) / d.clamp_min(1e-3)).log()
+    base = None
+    if config.levels in ("rig", "affine"):  # per keyframe: the median over its images' determined pixels
+        base = np.zeros(determined.shape[:2], np.float32)
+        for k in (0, 1):
+            if determined[k].float().mean() >= config.image_share:
+                base[k] = float(log_ratio[k][determined[k]].median())
+    law = fitted = None  # "affine": the law is removed before the windows and added after them
+    if config.levels == "affine":
+        law, fitted = affine_log_fit(d.clamp_min(1e-3).log().numpy(), log_ratio.numpy(), determined.numpy(), config.image_share)
+    target = log_ratio if law is None else log_ratio - torch.from_numpy(law)
+    correction = smooth_log_correction(
+        target.flatten(0, 1).numpy(),
+        determined.flatten(0, 1).numpy(),
+        tuple(s * scale for s in config.sigmas),
+        config.min_support,
+        config.full_support,
+        config.image_share if config.levels != "none" else 0.0,
+        None if base is None else base.reshape(-1),
+        fitted=None if fitted is None else fitted.reshape(-1),
+    )
+    if law is not None:  # 0 where not fitted
+        correction = correction + law.reshape(correction.shape)
+    out = torch.where(keep, d * torch.from_numpy(correction).view_as(d).exp(), d)
+    if config.replace:
+        out = torch.where(determined, triangulated, out)
+    return out
+
+
+def _rescaled(depth: Tensor, triangulated: Tensor, determined: Tensor) -> Tensor:
+    """``depth`` ``[2, V, H, W]`` times, per keyframe, the median ratio of the triangulated depth to
+    it over the determined pixels (as it is where none are)."""
+    out = depth.clone()
+    for k in (0, 1):
+        if determined[k].any():
+            out[k] *= float((triangulated[k][determined[k]] / depth[k][determined[k]].clamp_min(1e-3)).median())
+    return out
