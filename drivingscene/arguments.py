@@ -91,19 +91,20 @@ def parse_resolution(text: str) -> tuple[int, int]:
     return int(match.group(1)), int(match.group(2))
 
 
-MATCH_MODES = ("fallback", "depth", "off")  # `matched_depth.match_mode` gives each its config
+MATCH_MODES = ("fallback", "time", "depth", "off")  # `matched_depth.match_mode` gives each its config
 
 
 def add_match_arguments(p: argparse.ArgumentParser) -> None:
-    """``--match fallback|depth|off`` (and ``--no-match``, the same as ``--match off``)."""
+    """``--match fallback|time|depth|off`` (and ``--no-match``, the same as ``--match off``)."""
     group = p.add_mutually_exclusive_group()
     group.add_argument(
         "--match",
         choices=MATCH_MODES,
         default="fallback",
-        help="how D's depth is corrected by matching the keyframes with classical flow (docs/depth.md): fallback "
-        "(default: guided by D, and where D's shape is off again by the road plane), depth (guided by D only: "
-        "faster on real frames), off (D's depth as it is: fastest)",
+        help="how D's depth is corrected by matching with classical flow (docs/depth.md): fallback (default: "
+        "the keyframes guided by D, and where D's shape is off again by the road plane; then overlapping cameras "
+        "of each keyframe as stereo pairs), time (the same without the stereo across the rig: faster), depth "
+        "(the keyframes guided by D only: faster still on real frames), off (D's depth as it is: fastest)",
     )
     group.add_argument("--no-match", dest="match", action="store_const", const="off", help="the same as --match off")
 

@@ -186,6 +186,8 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
     # D's depth as it is (no classical matching at inference), and matching guided by D alone (no
     # road-plane fallback): the same model, faster
     out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
+    over_time = InferenceOptions(match=match_mode("time"))
+    out.append(Method(FULL, "matching over time only", FULL, lambda p: reconstruct(model, p, over_time)))
     depth_guided = InferenceOptions(match=match_mode("depth"))
     out.append(Method(FULL, "matching guided by D only", FULL, lambda p: reconstruct(model, p, depth_guided)))
     out.append(Method(STATIC, "native", STATIC, lambda p: reconstruct(model, p, InferenceOptions(use_residual=False))))

@@ -150,9 +150,16 @@ class MatchedDepthConfig:
 
 def match_mode(mode: str) -> MatchedDepthConfig | None:
     """The config of a ``--match`` mode (`drivingscene reconstruct`; the CLI lists the modes
-    without importing torch): ``fallback`` the defaults, ``depth`` guided by D only (no road-plane
-    fallback), ``off`` None (D's depth as it is)."""
-    modes = {"fallback": MatchedDepthConfig(), "depth": MatchedDepthConfig(guide="depth"), "off": None}
+    without importing torch): ``fallback`` the defaults (over time with the road-plane fallback,
+    then stereo across the rig), ``time`` the same without the stereo across the rig, ``depth``
+    over time guided by D only (no road-plane fallback, no stereo), ``off`` None (D's depth as it
+    is)."""
+    modes = {
+        "fallback": MatchedDepthConfig(),
+        "time": MatchedDepthConfig(cross=None),
+        "depth": MatchedDepthConfig(guide="depth", cross=None),
+        "off": None,
+    }
     if mode not in modes:
         raise ValueError(f"match mode: expected one of {', '.join(modes)}, found {mode!r}")
     return modes[mode]
