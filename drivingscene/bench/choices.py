@@ -61,11 +61,13 @@ class Variant:
     mscale: float | None = None  # MatchedDepthConfig.scale
     pmatch: str | None = None  # MatchedDepthConfig.prior_preset: the fallback's DIS preset
     fdisp: float | None = None  # MatchedDepthConfig.fallback_dispersion (0: every camera matched again)
+    rig: bool | None = None  # MatchedDepthConfig.cross: the stereo across the rig on (the default) or off
     pdepth: str | None = None  # LiftConfig.epipolar_depth
     ptex: float | None = None  # LiftConfig.epipolar_min_texture
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
+        from drivingscene.methods.cross_camera import CrossCameraConfig
         from drivingscene.methods.matched_depth import MatchedDepthConfig
 
         carve = None if self.carve == "off" else CarveConfig(voters=self.carve)
@@ -87,6 +89,8 @@ class Variant:
             for name, value in changes:
                 if value is not None:
                     match = replace(match, **{name: value})
+            if self.rig is not None:
+                match = replace(match, cross=CrossCameraConfig() if self.rig else None)
         lift = base.lift
         if self.region is not None:
             lift = replace(lift, min_dynamic_region=self.region)
@@ -127,7 +131,7 @@ def _nanmean(values: list[float]) -> float:
 
 
 def parse_variant(text: str) -> Variant:
-    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, pdepth, ptex, head, match,
+    """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, bonus, region, unseen, unseenpx."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import GUIDES, LEVELS
@@ -148,7 +152,7 @@ def parse_variant(text: str) -> Variant:
             values["unseen"] = value == "static"
         elif key == "unseenpx" and _is_number(value) and float(value) >= 0:
             values["unseen_px"] = float(value)
-        elif key in ("photo", "parallax", "head") and value in ("on", "off"):
+        elif key in ("photo", "parallax", "head", "rig") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
             values["match"] = value
@@ -175,7 +179,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

@@ -45,7 +45,9 @@ def test_variant_options_change_only_what_they_name():
     forced = parse_variant("fdisp=0,pmatch=fast").options(base).match
     assert (forced.fallback_dispersion, forced.prior_preset) == (0.0, "fast")
     assert replace(forced, fallback_dispersion=base.match.fallback_dispersion, prior_preset=base.match.prior_preset) == base.match
-    for bad in ("pmatch=off", "fdisp=-1"):
+    assert parse_variant("rig=off").options(base).match == replace(base.match, cross=None)
+    assert parse_variant("rig=on").options(base).match == base.match and base.match.cross is not None
+    for bad in ("pmatch=off", "fdisp=-1", "rig=maybe"):
         with pytest.raises(InputError, match=f"'{bad}'"):
             parse_variant(bad)
     with pytest.raises(InputError, match="'unseenpx=-1'"):
