@@ -31,6 +31,7 @@ from drivingscene.kernels.flow import (
     fb_consistent,
     lift_dense,
     local_cost_volume,
+    rig_stereo,
     rigid_flow_dense,
     search_along_rigid,
 )
@@ -61,6 +62,7 @@ __all__ = [
     "plane_sweep_correlate",
     "plane_sweep_correlate_backward",
     "plane_sweep_volume",
+    "rig_stereo",
     "rigid_flow_dense",
     "search_along_rigid",
     "see_through_votes",

@@ -105,3 +105,33 @@ def fb_consistent(
     bilinearly (border-clamped) and p + f inside the image (UnFlow's test). Reference path: the
     torch branch of ``drivingscene.geometry.flow.forward_backward_consistency`` (identical masks)."""
     return call("fb_consistent", flow, flow_back, alpha, beta)
+
+
+@compiled
+def rig_stereo(
+    end: Tensor,  # [h, w, 2] float32: the matches in camera b of camera a's box pixels (pixels of b)
+    back: Tensor,  # [hb, wb, 2] float32: b's box pixels' matches in a (pixels of a)
+    world_a: Tensor,  # [h, w] bool: a's world pixels in its box
+    world_b: Tensor,  # [H, W] bool: b's world pixels
+    geometry: Tensor,  # [30] float32: M = R K_a^-1 (9, row-major), t (3), K_b (9), K_b^-1 (9)
+    x0: int,  # a's box corner in a's image
+    y0: int,
+    back_x0: int,  # b's box corner in b's image
+    back_y0: int,
+    consistency_px: float,
+    epipolar_px: float,
+    min_parallax: float,
+    z_near: float,
+    z_far: float,
+    near_z: float,
+) -> tuple[Tensor, Tensor]:
+    """Triangulated z-depth ``[h, w]`` of a's box pixels and their parallax (pixels of b), 0 where
+    not determined (consistent both ways within ``consistency_px``, on b's world pixels, within
+    ``epipolar_px`` of the epipolar line, at least ``min_parallax`` from the point at infinity,
+    within [``z_near``, ``z_far``], in front of both cameras by ``near_z``), one pass per pixel.
+    Reference path: ``drivingscene.methods.cross_camera._stereo_numpy`` (the same float32
+    arithmetic in another order)."""
+    return call(
+        "rig_stereo", end, back, world_a, world_b, geometry, x0, y0, back_x0, back_y0,
+        consistency_px, epipolar_px, min_parallax, z_near, z_far, near_z,
+    )

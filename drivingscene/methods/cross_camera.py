@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.data.tensors import PairTensors
 from drivingscene.methods.classical import DIS_PRESETS, _calc, _pool
 from drivingscene.models.pipeline import LiftConfig
@@ -148,7 +149,23 @@ def _box_grid(box: tuple[int, int, int, int]) -> np.ndarray:
 
 
 # The overlap test runs on every OVERLAP_STEP-th row and column.
-OVERLAP_STEP = 4
+OVERLAP_STEP = 8
+
+
+def _guide(
+    depth: np.ndarray, grid: np.ndarray, k_a: np.ndarray, k_b: np.ndarray, a_to_b: np.ndarray, k_a_inv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where a box of camera a's pixels (``grid`` ``[h, w, 2]``, at z-depth ``depth``) land in b
+    ``[h, w, 2]`` and b's z-depth of them: the compiled rigid flow (`kernels.rigid_flow_dense`,
+    a's principal point moved to the box's corner) where it is available, else numpy."""
+    shifted = k_a.copy()
+    shifted[:2, 2] -= grid[0, 0]
+    tensors = [torch.from_numpy(np.ascontiguousarray(x, np.float32))[None] for x in (depth, shifted, a_to_b, k_b)]
+    if kernels.available(kernels.rigid_flow_dense, "auto", *tensors):
+        flow, z = kernels.rigid_flow_dense(*tensors)
+        return flow[0].numpy() + (grid - grid[0, 0]), z[0].numpy()
+    rays = grid @ k_a_inv[:, :2].T.astype(np.float32) + k_a_inv[:, 2].astype(np.float32)
+    return _project(rays * depth[..., None], k_b, a_to_b)
 
 
 def _jobs(depth: np.ndarray, world: np.ndarray, intrinsics: np.ndarray, cam_to_local: np.ndarray, config: CrossCameraConfig) -> list[_Job]:
@@ -185,8 +202,7 @@ def _jobs(depth: np.ndarray, world: np.ndarray, intrinsics: np.ndarray, cam_to_l
                 x0, x1 = max(int(cols.min()) * step - m, 0), min(int(cols.max()) * step + m + 1, width)
                 box = (y0, y1, x0, x1)
                 grid = _box_grid(box)
-                rays = grid @ k_inv[a, :, :2].T + k_inv[a, :, 2]
-                uv, z = _project(rays * depth[k, a, y0:y1, x0:x1, None], intrinsics[b], a_to_b[a, b])
+                uv, z = _guide(depth[k, a, y0:y1, x0:x1], grid, intrinsics[a], intrinsics[b], a_to_b[a, b], k_inv[a])
                 lands = _lands(uv, z, world[k, b]) & world[k, a, y0:y1, x0:x1]
                 jobs.append(_Job(k, a, b, a_to_b[a, b], box, grid, np.ascontiguousarray(uv), lands.astype(np.uint8)))
     return jobs
@@ -215,6 +231,58 @@ def _match(jobs: list[_Job], images: np.ndarray, preset: str) -> None:
         list(_pool(workers, os.getpid()).map(run, [jobs[i::workers] for i in range(workers)]))
 
 
+def _geometry(job: _Job, intrinsics: np.ndarray) -> np.ndarray:
+    """`kernels.rig_stereo`'s camera pair: M = R K_a^-1, t, K_b, K_b^-1, float32 ``[30]``."""
+    k_b = intrinsics[job.b]
+    m = job.a_to_b[:3, :3] @ np.linalg.inv(intrinsics[job.a])
+    return np.concatenate([m.ravel(), job.a_to_b[:3, 3], k_b.ravel(), np.linalg.inv(k_b).ravel()]).astype(np.float32)
+
+
+def _stereo_numpy(
+    job: _Job, back: _Job, world_a: np.ndarray, world_b: np.ndarray, intrinsics: np.ndarray, lift: LiftConfig, config: CrossCameraConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """The reference path of `kernels.rig_stereo`: z-depth and parallax ``[h, w]`` of the job's
+    box, 0 where not determined."""
+    end = job.end
+    z_out, parallax_out = np.zeros(end.shape[:2], np.float32), np.zeros(end.shape[:2], np.float32)
+    height, width = world_b.shape
+    with np.errstate(invalid="ignore"):
+        col, row = np.rint(end[..., 0]), np.rint(end[..., 1])
+        onto = (col >= 0) & (col < width) & (row >= 0) & (row < height) & world_a
+    onto[onto] = world_b[row[onto].astype(np.int64), col[onto].astype(np.int64)]
+    by0, bx0 = back.box[0], back.box[2]
+    hb, wb = back.end.shape[:2]
+    cx, cy = col - bx0, row - by0
+    onto &= (cx >= 0) & (cx < wb) & (cy >= 0) & (cy < hb)
+    rows, cols = np.nonzero(onto)
+    returned = back.end[cy[rows, cols].astype(np.int64), cx[rows, cols].astype(np.int64)]
+    start = job.grid[rows, cols]
+    consistent = np.square(returned - start).sum(1) <= config.consistency_px**2
+    rows, cols, start = rows[consistent], cols[consistent], start[consistent]
+    z, off_line, parallax = rig_triangulate(end[rows, cols], start, intrinsics[job.a], intrinsics[job.b], job.a_to_b)
+    ok = (off_line <= lift.epipolar_px) & (parallax >= lift.epipolar_min_parallax)
+    ok &= (z >= lift.epipolar_near) & (z <= lift.epipolar_far)
+    z_out[rows[ok], cols[ok]] = z[ok]
+    parallax_out[rows[ok], cols[ok]] = parallax[ok]
+    return z_out, parallax_out
+
+
+def _stereo(
+    job: _Job, back: _Job, world_a: np.ndarray, world_b: np.ndarray, intrinsics: np.ndarray, lift: LiftConfig,
+    config: CrossCameraConfig, backend: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`kernels.rig_stereo` where it is available, else `_stereo_numpy`."""
+    tensors = (torch.from_numpy(job.end), torch.from_numpy(back.end))
+    if kernels.available(kernels.rig_stereo, backend, *tensors):
+        z, parallax = kernels.rig_stereo(
+            *tensors, torch.from_numpy(world_a), torch.from_numpy(world_b), torch.from_numpy(_geometry(job, intrinsics)),
+            job.box[2], job.box[0], back.box[2], back.box[0], config.consistency_px, lift.epipolar_px,
+            lift.epipolar_min_parallax, lift.epipolar_near, lift.epipolar_far, NEAR_Z,
+        )
+        return z.numpy(), parallax.numpy()
+    return _stereo_numpy(job, back, world_a, world_b, intrinsics, lift, config)
+
+
 def cross_camera_depth(
     depth: Tensor,  # [2, V, H, W] guide z-depth (metres)
     keep: Tensor,  # [2, V, H, W] bool: world pixels (not sky, not the ego body)
@@ -222,55 +290,28 @@ def cross_camera_depth(
     batch: PairTensors,
     lift: LiftConfig,
     config: CrossCameraConfig = CrossCameraConfig(),
+    backend: str = "auto",
 ) -> tuple[Tensor, Tensor, int]:
     """Triangulated z-depth ``[2, V, H, W]`` float32 (0 where not determined), each determined
     pixel's parallax (pixels of the partner camera; 0 elsewhere), and how many ordered camera
-    pairs were matched. CPU tensors; see the module docstring."""
+    pairs were matched. CPU tensors; see the module docstring. ``backend``: the checks and the
+    triangulation in one compiled pass per pixel (`drivingscene.kernels.rig_stereo`; "auto" or
+    "cpp") or in numpy ("torch": the reference path, `_stereo_numpy`)."""
     d = depth.detach().float().cpu().numpy()
     world = keep.cpu().numpy()
     intrinsics = batch.intrinsics.double().cpu().numpy()
     jobs = _jobs(d, world, intrinsics, batch.cam_to_local.double().cpu().numpy(), config)
     _match(jobs, images, config.preset)
     by_pair = {(job.key, job.a, job.b): job for job in jobs}
-    found = []  # per job: (index, rows, cols) of the consistent matches
-    for i, job in enumerate(jobs):
+    out, best = np.zeros_like(d), np.zeros_like(d)
+    for job in jobs:
         back = by_pair.get((job.key, job.b, job.a))
         if back is None:  # b's overlap with a fell short of min_overlap: no way back to check
             continue
         y0, y1, x0, x1 = job.box
-        # where b's match of each end point lands back in a (NaN outside b's box)
-        returned = cv2.remap(
-            back.end, job.end - np.array([back.box[2], back.box[0]], np.float32), None, cv2.INTER_NEAREST,
-            borderMode=cv2.BORDER_CONSTANT, borderValue=(np.nan, np.nan, np.nan, np.nan),
-        )
-        with np.errstate(invalid="ignore"):
-            consistent = np.hypot(*cv2.subtract(returned, job.grid).transpose(2, 0, 1)) <= config.consistency_px
-        consistent &= world[job.key, job.a, y0:y1, x0:x1]
-        consistent &= _lands(job.end, np.ones(job.end.shape[:2], np.float32), world[job.key, job.b])
-        rows, cols = np.nonzero(consistent)
-        found.append((i, rows, cols))
-    out, best = np.zeros_like(d), np.zeros_like(d)
-    if not found:
-        return torch.from_numpy(out), torch.from_numpy(best), len(jobs)
-    index = np.concatenate([np.full(len(rows), i) for i, rows, _ in found])
-    start = np.concatenate([jobs[i].grid[rows, cols] for i, rows, cols in found])
-    z, off_line, parallax = (
-        np.concatenate(x)
-        for x in zip(
-            *(
-                rig_triangulate(jobs[i].end[rows, cols], jobs[i].grid[rows, cols], intrinsics[jobs[i].a], intrinsics[jobs[i].b], jobs[i].a_to_b)
-                for i, rows, cols in found
-            )
-        )
-    )
-    cams = np.array([(job.key, job.a) for job in jobs])[index]
-    ok = (off_line <= lift.epipolar_px) & (parallax >= lift.epipolar_min_parallax)
-    ok &= (z >= lift.epipolar_near) & (z <= lift.epipolar_far)
-    # of several partners, the most parallax: write in increasing order, the last write wins
-    order = np.nonzero(ok)[0]
-    order = order[np.argsort(parallax[order], kind="stable")]
-    key, view = cams[order, 0], cams[order, 1]
-    row, col = start[order, 1].astype(np.int64), start[order, 0].astype(np.int64)
-    out[key, view, row, col] = z[order]
-    best[key, view, row, col] = parallax[order]
+        z, parallax = _stereo(job, back, world[job.key, job.a, y0:y1, x0:x1], world[job.key, job.b], intrinsics, lift, config, backend)
+        # of several partners, the one with the most parallax
+        better = parallax > best[job.key, job.a, y0:y1, x0:x1]
+        out[job.key, job.a, y0:y1, x0:x1][better] = z[better]
+        best[job.key, job.a, y0:y1, x0:x1][better] = parallax[better]
     return torch.from_numpy(out), torch.from_numpy(best), len(jobs)

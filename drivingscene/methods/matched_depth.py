@@ -468,8 +468,9 @@ def _corrected(d: Tensor, keep: Tensor, triangulated: Tensor, determined: Tensor
 def _rescaled(depth: Tensor, triangulated: Tensor, determined: Tensor) -> Tensor:
     """``depth`` ``[2, V, H, W]`` times, per keyframe, the median ratio of the triangulated depth to
     it over the determined pixels (as it is where none are)."""
-    out = depth.clone()
+    scales = torch.ones(2)
     for k in (0, 1):
-        if determined[k].any():
-            out[k] *= float((triangulated[k][determined[k]] / depth[k][determined[k]].clamp_min(1e-3)).median())
-    return out
+        where = determined[k].numpy()
+        if where.any():
+            scales[k] = float(_lower_median(triangulated[k].numpy()[where] / np.maximum(depth[k].numpy()[where], 1e-3)))
+    return depth * scales.view(2, 1, 1, 1)

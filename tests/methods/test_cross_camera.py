@@ -90,3 +90,14 @@ def test_a_stricter_overlap_matches_fewer_pairs_and_config_is_checked(synth_pair
     for field, value in (("preset", "slow"), ("min_overlap", 0.0), ("margin", -1), ("consistency_px", 0.0)):
         with pytest.raises(ValueError, match=field):
             CrossCameraConfig(**{field: value})
+
+
+def test_the_compiled_checks_and_triangulation_equal_the_numpy_path(synth_pair, compiled_kernels):
+    guide, world, batch = _inputs(synth_pair, 1.3)
+    z_cpp, parallax_cpp, _ = cross_camera_depth(guide, world, synth_pair.images, batch, LiftConfig(), backend="cpp")
+    z_np, parallax_np, _ = cross_camera_depth(guide, world, synth_pair.images, batch, LiftConfig(), backend="torch")
+    assert (z_cpp > 0).sum() > 100
+    # the same pixels; the same depth and parallax up to float rounding
+    assert torch.equal(z_cpp > 0, z_np > 0)
+    torch.testing.assert_close(z_cpp, z_np, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(parallax_cpp, parallax_np, rtol=1e-4, atol=1e-4)

@@ -41,6 +41,18 @@
 // (camera.project, z clamped at 1e-6); the same float32 operations in the same order as the torch
 // path, one pass per pixel.
 //
+// rig_stereo: the checks and the triangulation of one pair of overlapping cameras a, b of one keyframe
+// (drivingscene.methods.cross_camera, the numpy path `_stereo_numpy`), per pixel p of a's box:
+// q = end(p), its match in b; consistent: b's match back at q's nearest pixel of b's box (rounded
+// half to even, as numpy.rint) lands within `consistency_px` of p; q's nearest pixel inside b and one
+// of b's world pixels; p one of a's world pixels; then two-camera triangulation with each camera's
+// intrinsics: the ray a = M (p, 1) in b's axes (M = R K_a^-1), the end point x = K_b^-1 (q, 1), the
+// depth z along the ray whose image is nearest x (least squares over both image axes), its image
+// proj = K_b (z a + t), off the line |proj - q|, parallax |proj - K_b a| (the point at infinite depth);
+// determined: in front (z a + t beyond near_z, a_z > 0, z finite), off the line at most epipolar_px,
+// parallax at least min_parallax, z within [z_near, z_far]. Output: z and the parallax, 0 where not
+// determined. Float32 like the numpy path, in another order: the same up to float rounding (tests).
+//
 // fb_consistent: forward/backward consistency (geometry.flow.forward_backward_consistency), the test
 // of lift_dense above on its own: b sampled bilinearly at q = p + f(p) (border-clamped),
 // |f + b(q)|^2 < alpha (|f|^2 + |b(q)|^2) + beta and q inside [-0.5, W - 0.5] x [-0.5, H - 0.5].
@@ -476,6 +488,77 @@ at::Tensor fb_consistent(const at::Tensor& flow_in, const at::Tensor& flow_back_
   return out;
 }
 
+std::tuple<at::Tensor, at::Tensor> rig_stereo(const at::Tensor& end_in, const at::Tensor& back_in, const at::Tensor& world_a_in,
+                                              const at::Tensor& world_b_in, const at::Tensor& geometry_in, int64_t x0, int64_t y0,
+                                              int64_t back_x0, int64_t back_y0, double consistency_px, double epipolar_px,
+                                              double min_parallax, double z_near, double z_far, double near_z) {
+  TORCH_CHECK(end_in.dim() == 3 && end_in.size(2) == 2, "rig_stereo: expected end [h, w, 2]");
+  TORCH_CHECK(back_in.dim() == 3 && back_in.size(2) == 2, "rig_stereo: expected back [hb, wb, 2]");
+  TORCH_CHECK(world_a_in.dim() == 2 && world_a_in.size(0) == end_in.size(0) && world_a_in.size(1) == end_in.size(1),
+              "rig_stereo: expected world_a [h, w] like end");
+  TORCH_CHECK(world_b_in.dim() == 2, "rig_stereo: expected world_b [H, W]");
+  TORCH_CHECK(geometry_in.numel() == 30, "rig_stereo: expected geometry of 30 values (M, t, K_b, K_b^-1)");
+  const at::Tensor end = end_in.to(at::kFloat).contiguous(), back = back_in.to(at::kFloat).contiguous();
+  const at::Tensor world_a = world_a_in.to(at::kBool).contiguous(), world_b = world_b_in.to(at::kBool).contiguous();
+  const at::Tensor geometry = geometry_in.to(at::kFloat).contiguous();
+  const int64_t h = end.size(0), w = end.size(1), hb = back.size(0), wb = back.size(1);
+  const int64_t height = world_b.size(0), width = world_b.size(1);
+  at::Tensor z_out = at::zeros({h, w}, end.options()), parallax_out = at::zeros({h, w}, end.options());
+  const float* e = end.data_ptr<float>();
+  const float* bk = back.data_ptr<float>();
+  const bool* wa = world_a.data_ptr<bool>();
+  const bool* wbp = world_b.data_ptr<bool>();
+  const float* g = geometry.data_ptr<float>();
+  const float* m = g;        // M = R K_a^-1, row-major
+  const float* t = g + 9;    // translation a -> b
+  const float* k = g + 12;   // K_b
+  const float* ki = g + 21;  // K_b^-1
+  float* zo = z_out.data_ptr<float>();
+  float* po = parallax_out.data_ptr<float>();
+  const float consistency2 = static_cast<float>(consistency_px * consistency_px);
+  const float max_off = static_cast<float>(epipolar_px), least = static_cast<float>(min_parallax);
+  const float lo = static_cast<float>(z_near), hi = static_cast<float>(z_far), nz = static_cast<float>(near_z);
+  at::parallel_for(0, h, 8, [&](int64_t begin, int64_t stop) {
+    for (int64_t i = begin; i < stop; ++i) {
+      for (int64_t j = 0; j < w; ++j) {
+        const int64_t idx = i * w + j;
+        if (!wa[idx]) continue;
+        const float px = static_cast<float>(x0 + j), py = static_cast<float>(y0 + i);
+        const float qx = e[2 * idx], qy = e[2 * idx + 1];
+        if (!std::isfinite(qx) || !std::isfinite(qy)) continue;
+        const float rx = std::nearbyint(qx), ry = std::nearbyint(qy);
+        // on one of b's world pixels
+        if (!(rx >= 0.0f && rx < static_cast<float>(width) && ry >= 0.0f && ry < static_cast<float>(height))) continue;
+        if (!wbp[static_cast<int64_t>(ry) * width + static_cast<int64_t>(rx)]) continue;
+        // b's match back lands near p
+        const float cx = rx - static_cast<float>(back_x0), cy = ry - static_cast<float>(back_y0);
+        if (!(cx >= 0.0f && cx < static_cast<float>(wb) && cy >= 0.0f && cy < static_cast<float>(hb))) continue;
+        const float* r = bk + 2 * (static_cast<int64_t>(cy) * wb + static_cast<int64_t>(cx));
+        const float dx = r[0] - px, dy = r[1] - py;
+        if (!(dx * dx + dy * dy <= consistency2)) continue;
+        // triangulation
+        const float a0 = m[0] * px + m[1] * py + m[2], a1 = m[3] * px + m[4] * py + m[5], a2 = m[6] * px + m[7] * py + m[8];
+        const float xn = ki[0] * qx + ki[1] * qy + ki[2], yn = ki[4] * qy + ki[3] * qx + ki[5];
+        const float c0 = a0 - xn * a2, c1 = a1 - yn * a2;
+        const float r0 = xn * t[2] - t[0], r1 = yn * t[2] - t[1];
+        const float z = (c0 * r0 + c1 * r1) / std::max(c0 * c0 + c1 * c1, 1e-12f);
+        const float p0 = z * a0 + t[0], p1 = z * a1 + t[1], p2 = z * a2 + t[2];
+        if (!(std::isfinite(z) && p2 > nz && a2 > 0.0f)) continue;
+        const float pz = std::max(k[6] * p0 + k[7] * p1 + k[8] * p2, 1e-6f);
+        const float pu = (k[0] * p0 + k[1] * p1 + k[2] * p2) / pz, pv = (k[3] * p0 + k[4] * p1 + k[5] * p2) / pz;
+        const float iz = std::max(k[6] * a0 + k[7] * a1 + k[8] * a2, 1e-6f);
+        const float iu = (k[0] * a0 + k[1] * a1 + k[2] * a2) / iz, iv = (k[3] * a0 + k[4] * a1 + k[5] * a2) / iz;
+        const float off = std::hypot(pu - qx, pv - qy), parallax = std::hypot(pu - iu, pv - iv);
+        if (off <= max_off && parallax >= least && z >= lo && z <= hi) {
+          zo[idx] = z;
+          po[idx] = parallax;
+        }
+      }
+    }
+  });
+  return {z_out, parallax_out};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
@@ -492,4 +575,8 @@ TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
   m.def("rigid_flow_dense(Tensor depth, Tensor intrinsics, Tensor src_to_dst, Tensor dst_intrinsics) -> (Tensor, Tensor)",
         &rigid_flow_dense);
   m.def("fb_consistent(Tensor flow, Tensor flow_back, float alpha, float beta) -> Tensor", &fb_consistent);
+  m.def("rig_stereo(Tensor end, Tensor back, Tensor world_a, Tensor world_b, Tensor geometry, int x0, int y0, int back_x0, "
+        "int back_y0, float consistency_px, float epipolar_px, float min_parallax, float z_near, float z_far, float near_z) "
+        "-> (Tensor, Tensor)",
+        &rig_stereo);
 }
