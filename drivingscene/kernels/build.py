@@ -4,7 +4,8 @@ the torch paths.
 The four sources register their ops in one torch library, ``torch.ops.drivingscene_render``:
 the rasterizer's pair finding (``csrc/find_pairs.cpp``), the per-pixel surfel frames of the
 Gaussian assembly (``csrc/surfels.cpp``), the inference-time search along the rigid flow,
-residual-flow cost volume and dense lift (``csrc/flow.cpp``), and the plane-sweep correlation of
+residual-flow cost volume, dense lift and the checks of the stereo across the rig
+(``csrc/flow.cpp``), and the plane-sweep correlation of
 the depth network's matching (``csrc/matching.cpp``). Callers use the typed wrappers of
 ``drivingscene.kernels`` (one per op), never the op names.
 
@@ -12,7 +13,7 @@ Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenM
 ``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
 ``DRIVINGSCENE_BUILD_DIR``); later processes reuse the build (~15 s on 2 cores the first time).
 Any failure (no compiler, no ninja, missing source, compile error) is logged once as a warning and
-``load_extension`` returns False, so callers fall back to the pure-torch path. Setting
+``load_extension`` returns False, so callers fall back to the pure-torch (or numpy) path. Setting
 ``DRIVINGSCENE_NO_CPP=1`` disables the compiled path.
 """
 
