@@ -48,6 +48,7 @@ from __future__ import annotations
 import functools
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -162,21 +163,28 @@ def dis_flows(images: np.ndarray, preset: str = "medium", guide: np.ndarray | No
         dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
         for k, v in part:
             if guide is None:
-                out[k, v] = _calc(dis, grey[k][v], grey[1 - k][v])
+                out[k, v] = dis_calc(dis, grey[k][v], grey[1 - k][v])
                 continue
             g = np.ascontiguousarray(guide[k, v], dtype=np.float32)
             warped = cv2.remap(grey[1 - k][v], grid + g, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            r = _calc(dis, grey[k][v], warped)
+            r = dis_calc(dis, grey[k][v], warped)
             out[k, v] = r + cv2.remap(g, grid + r, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
+    in_dis_threads(run, jobs)
+    if not np.isfinite(out).all():  # DIS's flow is finite on any image; the check costs 0.1 ms, the copy 5
+        np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    return out
+
+
+def in_dis_threads(run: Callable[[list], None], jobs: list) -> None:
+    """``run`` over ``jobs`` split into ``cv2.getNumThreads()`` interleaved parts, one per thread
+    of the process's DIS pool (`_pool`; ``run`` should spend its time in OpenCV calls, which
+    release the GIL), or in this thread where one part is all there is."""
     workers = max(1, min(cv2.getNumThreads(), len(jobs)))
     if workers == 1:
         run(jobs)
     else:
         list(_pool(workers, os.getpid()).map(run, [jobs[i::workers] for i in range(workers)]))
-    if not np.isfinite(out).all():  # DIS's flow is finite on any image; the check costs 0.1 ms, the copy 5
-        np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    return out
 
 
 @functools.lru_cache(maxsize=4)
@@ -191,7 +199,7 @@ def _pool(workers: int, pid: int) -> ThreadPoolExecutor:
 DIS_MIN_SIZE = 16
 
 
-def _calc(dis, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+def dis_calc(dis, first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """DIS flow ``[H, W, 2]`` from grey ``first`` to ``second`` ``[H, W]``, any size."""
     height, width = first.shape
     pad_y, pad_x = max(0, DIS_MIN_SIZE - height), max(0, DIS_MIN_SIZE - width)

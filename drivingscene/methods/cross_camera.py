@@ -23,7 +23,6 @@ For each keyframe and each ordered pair of cameras (a, b) whose views overlap un
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import cv2
@@ -33,7 +32,7 @@ from torch import Tensor
 
 from drivingscene import kernels
 from drivingscene.data.tensors import PairTensors
-from drivingscene.methods.classical import DIS_PRESETS, _calc, _pool
+from drivingscene.methods.classical import DIS_PRESETS, dis_calc, in_dis_threads
 from drivingscene.models.pipeline import LiftConfig
 
 
@@ -219,16 +218,12 @@ def _match(jobs: list[_Job], images: np.ndarray, preset: str) -> None:
             y0, y1, x0, x1 = job.box
             first = grey[job.key][job.a][y0:y1, x0:x1]
             warped = cv2.remap(grey[job.key][job.b], job.guide, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            r = _calc(dis, np.ascontiguousarray(first), _normalised(warped, first, job.overlap))
+            r = dis_calc(dis, np.ascontiguousarray(first), _normalised(warped, first, job.overlap))
             # the residual r composed with the guide: p + r(p) lands at guide(p + r(p)) in b
             local = cv2.add(job.grid, r) - np.array([x0, y0], np.float32)
             job.end = cv2.remap(job.guide, local, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    workers = max(1, min(cv2.getNumThreads(), len(jobs)))
-    if workers == 1:
-        run(jobs)
-    elif jobs:
-        list(_pool(workers, os.getpid()).map(run, [jobs[i::workers] for i in range(workers)]))
+    in_dis_threads(run, jobs)
 
 
 def _geometry(job: _Job, intrinsics: np.ndarray) -> np.ndarray:
