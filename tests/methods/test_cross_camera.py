@@ -101,3 +101,14 @@ def test_the_compiled_checks_and_triangulation_equal_the_numpy_path(synth_pair, 
     assert torch.equal(z_cpp > 0, z_np > 0)
     torch.testing.assert_close(z_cpp, z_np, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(parallax_cpp, parallax_np, rtol=1e-4, atol=1e-4)
+
+
+def test_cameras_at_one_point_have_no_baseline_and_determine_nothing(synth_pair):
+    """A rig whose cameras share one centre (rotations only) sees no parallax between them:
+    nothing is triangulated, rather than noise."""
+    cam_to_ego = synth_pair.cam_to_ego.copy()
+    cam_to_ego[:, :3, 3] = cam_to_ego[0, :3, 3]
+    pair = replace(synth_pair, cam_to_ego=cam_to_ego)
+    guide, world, batch = _inputs(pair)
+    z, _, pairs = cross_camera_depth(guide, world, pair.images, batch, LiftConfig())
+    assert pairs > 0 and not z.any()
