@@ -439,10 +439,7 @@ def _corrected(d: Tensor, keep: Tensor, triangulated: Tensor, determined: Tensor
     log_ratio = (triangulated.clamp_min(1e-3) / d.clamp_min(1e-3)).log()
     base = None
     if config.levels in ("rig", "affine"):  # per keyframe: the median over its images' determined pixels
-        base = np.zeros(determined.shape[:2], np.float32)
-        for k in (0, 1):
-            if determined[k].float().mean() >= config.image_share:
-                base[k] = float(log_ratio[k][determined[k]].median())
+        base = np.repeat(_keyframe_log_scales(log_ratio, determined, config.image_share)[:, None], determined.shape[1], 1)
     law = fitted = None  # "affine": the law is removed before the windows and added after them
     if config.levels == "affine":
         law, fitted = affine_log_fit(d.clamp_min(1e-3).log().numpy(), log_ratio.numpy(), determined.numpy(), config.image_share)
@@ -465,12 +462,20 @@ def _corrected(d: Tensor, keep: Tensor, triangulated: Tensor, determined: Tensor
     return out
 
 
+def _keyframe_log_scales(log_ratio: Tensor, determined: Tensor, min_share: float) -> np.ndarray:
+    """``[2]`` float32: per keyframe, the (lower) median of ``log_ratio`` ``[2, V, H, W]`` over its
+    determined pixels, where they are at least ``min_share`` of its pixels (and any), else 0."""
+    out = np.zeros(2, np.float32)
+    for k in (0, 1):
+        where = determined[k].numpy()
+        if where.any() and where.mean() >= min_share:
+            out[k] = _lower_median(log_ratio[k].numpy()[where])
+    return out
+
+
 def _rescaled(depth: Tensor, triangulated: Tensor, determined: Tensor) -> Tensor:
     """``depth`` ``[2, V, H, W]`` times, per keyframe, the median ratio of the triangulated depth to
     it over the determined pixels (as it is where none are)."""
-    scales = torch.ones(2)
-    for k in (0, 1):
-        where = determined[k].numpy()
-        if where.any():
-            scales[k] = float(_lower_median(triangulated[k].numpy()[where] / np.maximum(depth[k].numpy()[where], 1e-3)))
+    log_ratio = (triangulated.clamp_min(1e-3) / depth.clamp_min(1e-3)).log()
+    scales = torch.from_numpy(np.exp(_keyframe_log_scales(log_ratio, determined, 0.0)))
     return depth * scales.view(2, 1, 1, 1)
