@@ -100,8 +100,9 @@ class MatchedDepthConfig:
     passes: int = 1
     # Gaussian windows of the correction field (standard deviations, pixels at ``reference_width``
     # image columns, scaled with the width), applied coarse to fine: a finer window overrides a
-    # coarser one in proportion to its support.
-    sigmas: tuple[float, ...] = (10.0,)
+    # coarser one in proportion to its support. 30 + 10 + 3 (docs/choices-matching.md run 8): the
+    # 3 px window follows D's shape errors between nearby matches where a 10 px one averages them.
+    sigmas: tuple[float, ...] = (30.0, 10.0, 3.0)
     reference_width: int = 320
     # Support (the window's weighted share of determined pixels) below ``min_support``: no
     # correction from that window; from there to ``full_support``: a linear ramp to all of it.
