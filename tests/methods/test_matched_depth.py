@@ -46,6 +46,27 @@ def test_correction_spreads_from_determined_pixels_and_fades_without_support():
     assert not nothing.any()
 
 
+def test_finer_windows_follow_a_local_change_that_one_window_averages():
+    """The default windows (30, 10, 3 px): an unmatched pixel 6 px from where D's error changes
+    (log ratio log 2 on the left, log 4 on the right) takes nearly its own side's ratio, where one
+    10 px window mixes in the other side's; far from every match only the coarse window reaches."""
+    log_ratio = np.zeros((1, 60, 200), np.float32)
+    determined = np.zeros((1, 60, 200), bool)
+    determined[0, 10:50, 10:90] = True
+    log_ratio[0, :, :50] = np.log(2.0)
+    log_ratio[0, :, 50:] = np.log(4.0)
+    determined[0, 30, 44] = False  # the unmatched pixel, on the left side
+    single = smooth_log_correction(log_ratio, determined, (10.0,), 0.02, 0.1)[0, 30, 44]
+    windows = MatchedDepthConfig().sigmas
+    fine = smooth_log_correction(log_ratio, determined, windows, 0.02, 0.1)[0, 30, 44]
+    step = np.log(4.0) - np.log(2.0)
+    assert abs(fine - np.log(2.0)) < 0.1 * step  # about 3 % of the step
+    assert abs(single - np.log(2.0)) > 0.2 * step  # about 30 %
+    far = smooth_log_correction(log_ratio, determined, windows, 0.02, 0.1)[0, 30, 125]
+    assert np.log(2.0) < far < np.log(4.0)  # 35 px past the matches: the 30 px window's blend
+    assert smooth_log_correction(log_ratio, determined, (10.0,), 0.02, 0.1)[0, 30, 125] == 0.0
+
+
 def test_a_wrong_scale_is_corrected_towards_the_ground_truth(synth_pair):
     """D 1.6x too far everywhere: matching the keyframes brings it much nearer the truth."""
     batch, gt, sky = _inputs(synth_pair)
