@@ -62,6 +62,7 @@ class Variant:
     pmatch: str | None = None  # MatchedDepthConfig.prior_preset: the fallback's DIS preset
     fdisp: float | None = None  # MatchedDepthConfig.fallback_dispersion (0: every camera matched again)
     rig: bool | None = None  # MatchedDepthConfig.cross: the stereo across the rig on (the default) or off
+    fuse: str | None = None  # MatchedDepthConfig.fuse
     pdepth: str | None = None  # LiftConfig.epipolar_depth
     ptex: float | None = None  # LiftConfig.epipolar_min_texture
 
@@ -85,6 +86,7 @@ class Variant:
                 ("scale", self.mscale),
                 ("prior_preset", self.pmatch),
                 ("fallback_dispersion", self.fdisp),
+                ("fuse", self.fuse),
             )
             for name, value in changes:
                 if value is not None:
@@ -132,9 +134,9 @@ def _nanmean(values: list[float]) -> float:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, pmatch, fdisp, bonus, region, unseen, unseenpx."""
+    windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, bonus, region, unseen, unseenpx."""
     from drivingscene.gaussians.timing import BLEND_MODES
-    from drivingscene.methods.matched_depth import GUIDES, LEVELS
+    from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
 
     values: dict = {"name": text}
@@ -162,6 +164,8 @@ def parse_variant(text: str) -> Variant:
             values["pdepth"] = value
         elif key == "guide" and value in GUIDES:
             values["guide"] = value
+        elif key == "fuse" and value in FUSES:
+            values["fuse"] = value
         elif key == "levels" and value in LEVELS:
             values["levels"] = value
         elif key == "mscale" and _is_number(value) and 0 < float(value) <= 1:
@@ -180,7 +184,7 @@ def parse_variant(text: str) -> Variant:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
                 f"photo=on|off, parallax=on|off, rig=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
-                f"levels={'|'.join(LEVELS)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
+                f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
 

@@ -58,6 +58,7 @@ from drivingscene.models.pipeline import LiftConfig, rigid_flows
 
 GUIDES = ("depth", "prior", "both", "best", "fallback")
 LEVELS = ("none", "image", "rig", "affine")
+FUSES = ("time", "weighted")
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,10 @@ class MatchedDepthConfig:
     # guided by its corrected depth: the pixels it triangulates and the time did not are added to
     # the determined ones and the correction is computed again. None: off.
     cross: CrossCameraConfig | None = field(default_factory=CrossCameraConfig)
+    # Where both the time and the rig triangulate a pixel: "time" keeps the time's depth; "weighted"
+    # takes the mean of the two log depths weighted by their parallax squared (a pixel of match
+    # error moves log depth by about 1 / parallax: inverse-variance weights).
+    fuse: str = "time"
 
     def __post_init__(self):
         if self.prior_preset is not None and self.prior_preset not in DIS_PRESETS:
@@ -134,6 +139,8 @@ class MatchedDepthConfig:
             raise ValueError(f"MatchedDepthConfig.preset: expected one of {sorted(DIS_PRESETS)}, found {self.preset!r}")
         if self.guide not in GUIDES:
             raise ValueError(f"MatchedDepthConfig.guide: expected one of {GUIDES}, found {self.guide!r}")
+        if self.fuse not in FUSES:
+            raise ValueError(f"MatchedDepthConfig.fuse: expected one of {FUSES}, found {self.fuse!r}")
         if self.levels not in LEVELS:
             raise ValueError(f"MatchedDepthConfig.levels: expected one of {LEVELS}, found {self.levels!r}")
         if not 0.0 < self.scale <= 1.0:
@@ -350,10 +357,10 @@ def _match(
 
     def triangulated_with(
         guide_depth: Tensor, preset: str, views: list[int] | None = None
-    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
-        """Triangulated depth, determined mask, (``guide="best"``) patch costs and (``guide="fallback"``)
-        the well-determined mask; with ``views``, only those cameras are matched (the others
-        determine nothing)."""
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+        """Triangulated depth, determined mask, (``guide="best"``) patch costs, (``guide="fallback"``)
+        the well-determined mask and (``guide="fallback"`` or ``fuse="weighted"``) each pixel's
+        parallax; with ``views``, only those cameras are matched (the others determine nothing)."""
         t0 = time.perf_counter()
         sub, images, world, depth_sub = cpu, pair.images, keep, d
         if views is not None:
@@ -362,10 +369,11 @@ def _match(
         guide = rigid_flows(guide_depth, sub).float()
         total = torch.from_numpy(dis_flows(images, preset, guide.numpy()))
         t1 = time.perf_counter()
-        well = None
-        if config.guide == "fallback":
+        well = parallax = None
+        if config.guide == "fallback" or config.fuse == "weighted":
             z, _, parallax = triangulate(total, world, sub, config.lift, with_parallax=True)
-            well = (z > 0) & (parallax >= config.fallback_parallax)
+            if config.guide == "fallback":
+                well = (z > 0) & (parallax >= config.fallback_parallax)
         else:
             z, _ = triangulate(total, world, sub, config.lift)
         cost = None
@@ -377,9 +385,10 @@ def _match(
             z = torch.zeros_like(d).index_copy_(1, index, z)
             determined = torch.zeros_like(keep).index_copy_(1, index, determined)
             well = None if well is None else torch.zeros_like(keep).index_copy_(1, index, well)
+            parallax = None if parallax is None else torch.zeros_like(d).index_copy_(1, index, parallax.float())
         timings["match_flow_s"] += t1 - t0
         timings["match_triangulate_s"] += time.perf_counter() - t1
-        return z, determined, cost, well
+        return z, determined, cost, well, parallax
 
     def prior_guide() -> Tensor:
         road = torch.from_numpy(road_plane_depth(pair, far=config.lift.epipolar_far))
@@ -390,11 +399,11 @@ def _match(
         prior = triangulated_with(prior_guide(), config.prior_preset or config.preset)
     for step in range(config.passes):
         if config.guide == "prior":
-            triangulated, determined, _, _ = prior
+            triangulated, determined, _, _, parallax = prior
         else:
-            triangulated, determined, cost, well = triangulated_with(out, config.preset)
+            triangulated, determined, cost, well, parallax = triangulated_with(out, config.preset)
         if config.guide == "both":
-            z_prior, determined_prior, _, _ = prior
+            z_prior, determined_prior, _, _, _ = prior
             agree = (triangulated.clamp_min(1e-3) / z_prior.clamp_min(1e-3)).log().abs() <= np.log1p(config.agree)
             determined = determined & determined_prior & agree
             triangulated = torch.where(determined, (triangulated * z_prior).sqrt(), torch.zeros_like(triangulated))
@@ -406,23 +415,30 @@ def _match(
             if views:
                 if prior is None:
                     prior = triangulated_with(prior_guide(), config.prior_preset or config.preset, views)
-                z_prior, determined_prior, _, _ = prior
+                z_prior, determined_prior, _, _, parallax_prior = prior
                 agree = well & determined_prior & _agree(triangulated, z_prior, config.agree)
                 dispersion = shape_dispersion(d, triangulated, agree, config.fallback_min_pixels)
                 unreliable = dispersion.isnan() | (dispersion >= config.fallback_dispersion)
                 extra = determined_prior & ~determined & unreliable[..., None, None]
                 triangulated = torch.where(extra, z_prior, triangulated)
+                parallax = torch.where(extra, parallax_prior, parallax)
                 determined = determined | extra
         elif config.guide == "best":
-            z_prior, determined_prior, cost_prior, _ = prior
+            z_prior, determined_prior, cost_prior, _, parallax_prior = prior
             take_prior = determined_prior & (~determined | (cost_prior < cost))
             triangulated = torch.where(take_prior, z_prior, triangulated)
+            if parallax is not None:
+                parallax = torch.where(take_prior, parallax_prior, parallax)
             determined = determined | determined_prior
         if config.cross is not None and step == config.passes - 1:
             # overlapping cameras of each keyframe, guided by this pass's depth: stereo across the
             # rig where the ego's motion gave no parallax
             t0 = time.perf_counter()
-            z_cross, _, _ = cross_camera_depth(_rescaled(out, triangulated, determined), keep, pair.images, cpu, config.lift, config.cross)
+            z_cross, parallax_cross, _ = cross_camera_depth(
+                _rescaled(out, triangulated, determined), keep, pair.images, cpu, config.lift, config.cross
+            )
+            if config.fuse == "weighted" and parallax is not None:
+                triangulated = _fused(triangulated, parallax, z_cross, parallax_cross, determined & (z_cross > 0))
             extra = (z_cross > 0) & ~determined
             triangulated = torch.where(extra, z_cross, triangulated)
             determined = determined | extra
@@ -461,6 +477,14 @@ def _corrected(d: Tensor, keep: Tensor, triangulated: Tensor, determined: Tensor
     if config.replace:
         out = torch.where(determined, triangulated, out)
     return out
+
+
+def _fused(z: Tensor, parallax: Tensor, z_other: Tensor, parallax_other: Tensor, both: Tensor) -> Tensor:
+    """``z`` where not ``both``; there, the mean of log ``z`` and log ``z_other`` weighted by their
+    parallax squared."""
+    w, w_other = parallax.float().square(), parallax_other.float().square()
+    log_mean = (w * z.clamp_min(1e-3).log() + w_other * z_other.clamp_min(1e-3).log()) / (w + w_other).clamp_min(1e-12)
+    return torch.where(both & (w + w_other > 0), log_mean.exp(), z)
 
 
 def _keyframe_log_scales(log_ratio: Tensor, determined: Tensor, min_share: float) -> np.ndarray:

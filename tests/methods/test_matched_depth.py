@@ -12,6 +12,7 @@ import torch
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.methods.matched_depth import (
     MatchedDepthConfig,
+    _fused,
     affine_log_fit,
     match_depth,
     match_mode,
@@ -197,6 +198,19 @@ def test_config_is_checked():
         MatchedDepthConfig(prior_preset="slow")
     with pytest.raises(ValueError, match="min_support"):
         MatchedDepthConfig(min_support=0.2, full_support=0.1)
+    with pytest.raises(ValueError, match="fuse"):
+        MatchedDepthConfig(fuse="mean")
+
+
+def test_fused_depth_weighs_each_triangulation_by_its_parallax_squared():
+    z, other = torch.tensor([10.0, 10.0, 10.0, 10.0]), torch.tensor([40.0, 40.0, 40.0, 40.0])
+    parallax, parallax_other = torch.tensor([6.0, 6.0, 0.0, 6.0]), torch.tensor([6.0, 12.0, 6.0, 6.0])
+    both = torch.tensor([True, True, True, False])
+    out = _fused(z, parallax, other, parallax_other, both)
+    assert out[0] == pytest.approx(20.0, rel=1e-5)  # equal parallax: the geometric mean
+    assert out[1] == pytest.approx(float(np.exp((np.log(10.0) + 4 * np.log(40.0)) / 5)), rel=1e-5)  # 4x the weight
+    assert out[2] == pytest.approx(40.0, rel=1e-5)  # no parallax of its own: the other's depth
+    assert out[3] == 10.0  # only one triangulated it: as it was
 
 
 def test_every_match_mode_of_the_cli_has_a_config():
