@@ -129,8 +129,9 @@ class MatchedDepthConfig:
     cross: CrossCameraConfig | None = field(default_factory=CrossCameraConfig)
     # Where both the time and the rig triangulate a pixel: "time" keeps the time's depth; "weighted"
     # takes the mean of the two log depths weighted by their parallax squared (a pixel of match
-    # error moves log depth by about 1 / parallax: inverse-variance weights).
-    fuse: str = "time"
+    # error moves log depth by about 1 / parallax: inverse-variance weights; docs/choices-matching.md
+    # run 9).
+    fuse: str = "weighted"
 
     def __post_init__(self):
         if self.prior_preset is not None and self.prior_preset not in DIS_PRESETS:
