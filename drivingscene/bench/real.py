@@ -444,7 +444,7 @@ def run(args: argparse.Namespace) -> int:
     command = "drivingscene bench real " + " ".join(str(p) for p in args.scenes)
     if args.refine:
         command += " --refine " + " ".join(f"{v:g}" for v in args.refine) + (" --lidar" if args.lidar else "")
-        command += f" --adapt {args.adapt}" if args.adapt else ""
+        command += f" --adapt {args.adapt}" if args.adapt is not None else ""
     text = report(scenes, perceptual.name, command, machine_description(), precision)
     if notes:
         text += "\n" + notes

@@ -33,7 +33,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="also score the model's reconstruction refined for these budgets (docs/refinement.md)",
     )
     p.add_argument("--lidar", action="store_true", help="with --refine: also refine against half of the LiDAR, score on the rest")
-    p.add_argument("--adapt", type=non_negative_int, default=0, metavar="K", help="with --refine: adapt D for K steps first")
+    p.add_argument(
+        "--adapt",
+        type=non_negative_int,
+        default=None,
+        metavar="K",
+        help="with --refine: adapt D for K steps first (default: refinement's default, 15; 0: not at all)",
+    )
 
 
 def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
@@ -45,10 +51,10 @@ def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, 
     return np.where(fit, gt_depth, 0).astype(np.float32), np.where(fit, 0, gt_depth).astype(np.float32)
 
 
-def method_name(seconds: float, lidar: bool = False, adapt: int = 0) -> str:
+def method_name(seconds: float, lidar: bool = False, adapt: int | None = None) -> str:
     name = f"DrivingScene + refine {seconds:g} s"
-    if adapt:
-        name += f" (adapt {adapt})"
+    if adapt is not None:  # the default's rows carry no label
+        name += f" (adapt {adapt})" if adapt else " (no adaptation)"
     return name + (" + LiDAR (half)" if lidar else "")
 
 
@@ -58,7 +64,7 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import RefineConfig, refine
 
-    if (args.lidar or args.adapt) and not args.refine:
+    if (args.lidar or args.adapt is not None) and not args.refine:
         from drivingscene.errors import InputError
 
         raise InputError("--lidar/--adapt: only with --refine SECONDS")

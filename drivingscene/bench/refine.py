@@ -26,7 +26,7 @@ from drivingscene.machine import machine_description
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from drivingscene.arguments import non_negative_seconds
+    from drivingscene.arguments import non_negative_int, non_negative_seconds
 
     p.add_argument("--data", type=Path, required=True, help="folder of pair_*.npz (e.g. data/val176r)")
     p.add_argument("--count", type=int, default=4, help="pairs to use (default 4)")
@@ -40,6 +40,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--depth-scale", type=float, default=1.0, help="start from the model's depth times this (default 1)")
     p.add_argument("--lidar", action="store_true", help="refine against gt_depth too (it is then also what depth is scored on)")
+    p.add_argument(
+        "--adapt",
+        type=non_negative_int,
+        default=None,
+        metavar="K",
+        help="adapt D for K steps first in every budget (default: refinement's default, 15; 0: not at all)",
+    )
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
     p.add_argument("--choices", action="store_true", help="compare the settings' variants at --steps steps instead")
@@ -100,13 +107,15 @@ def score_pair(model, pair, args, perceptual) -> dict:
     out["blend the two keyframes"] = score_frames(blend_frames(pair), pair, perceptual)
     base = scaled_depth(reconstruct(model, pair), pair, args.depth_scale)
     for seconds in args.budgets:
-        recon = base if seconds == 0 else refine(model, pair, base, RefineConfig(seconds=seconds, lidar=args.lidar))
+        config = RefineConfig(seconds=seconds, lidar=args.lidar, adapt_steps=args.adapt)
+        recon = base if seconds == 0 else refine(model, pair, base, config)
         meta = recon.meta.get("refinement", {})
         row = score_novel_views(recon, pair, perceptual)
         row.update(score_depth(recon, pair))
         row.update(
             keyframes_psnr=keyframe_psnr(recon, pair),
             steps=meta.get("steps", 0),
+            adapt_steps=meta.get("adapt", {}).get("steps", 0),
             step_s=meta.get("step_s"),
             seconds=meta.get("total_s", 0.0),
         )
@@ -160,6 +169,7 @@ def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
     per += [f"| {n} | " + " | ".join(_fmt(scores[n][m].get("psnr", math.nan), "{:.2f}") for m in methods) + " |" for n in names]
     flags = f" --depth-scale {args.depth_scale:g}" if args.depth_scale != 1 else ""
     flags += " --lidar" if args.lidar else ""
+    flags += f" --adapt {args.adapt}" if args.adapt is not None else ""
     budgets = " ".join(f"{b:g}" for b in args.budgets)
     return (
         f"`drivingscene bench refine --data {args.data} --count {args.count} --budgets {budgets}{flags}` on {machine}, "

@@ -30,7 +30,11 @@ def add_refine_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--lidar", action="store_true", help="with --refine: also fit the scene's LiDAR depth (gt_depth)")
     p.add_argument(
-        "--adapt", type=non_negative_int, default=0, metavar="K", help="with --refine: first adapt D to the pair for K steps"
+        "--adapt",
+        type=non_negative_int,
+        default=None,
+        metavar="K",
+        help="with --refine: first adapt D to the pair for K steps (default 15; 0: not at all)",
     )
     p.add_argument(
         "--refine-steps", type=positive_int, default=None, metavar="N", help="with --refine: at most N gradient steps"
@@ -72,7 +76,7 @@ def refine_config(args: argparse.Namespace):
     from drivingscene.methods.refine import RefineConfig
 
     if args.refine is None:
-        for flag, given in (("--lidar", args.lidar), ("--adapt", args.adapt), ("--refine-steps", args.refine_steps)):
+        for flag, given in (("--lidar", args.lidar), ("--adapt", args.adapt is not None), ("--refine-steps", args.refine_steps)):
             if given:
                 raise InputError(f"{flag}: only with --refine SECONDS")
         return None

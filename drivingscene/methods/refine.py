@@ -4,8 +4,9 @@
 
 From a feed-forward reconstruction, within a budget of seconds:
 
-1. (optional, ``adapt_steps`` > 0, needs the model) a copy of D and P is adapted to the pair for K
-   self-supervised steps (L_loc + L_smooth, `refine_adapt`) and the pair is reconstructed again;
+1. (where the model is given; ``adapt_steps``, by default `DEFAULT_ADAPT_STEPS`) a copy of D is
+   adapted to the pair for K self-supervised steps (L_loc + L_smooth, `refine_adapt`) and the
+   pair is reconstructed again;
 2. (``sweep``) the depth of every pixel is corrected by a plane sweep over depth, checked across
    images, and LiDAR with ``lidar`` (`depth_sweep`): the Gaussians slide along their rays, and the
    dynamic ones' flows are lifted again with the corrected depth;
@@ -26,7 +27,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -41,6 +42,12 @@ from drivingscene.methods.refine_params import GROUPS, RefineParams, gaussian_ra
 log = logging.getLogger(__name__)
 
 Progress = Callable[[float | None, str], None]  # (fraction of the budget or None, message), as the viewer's loader
+
+
+# Steps of test-time adaptation of D where the model is given: at a 30 s budget 15 beat 5 and none
+# in in-between PSNR, SSIM, ST-LPIPS and depth on two procedural validation sets
+# (docs/refinement.md, *Adapting D first*).
+DEFAULT_ADAPT_STEPS = 15
 
 
 @dataclass(frozen=True)
@@ -71,7 +78,10 @@ class RefineConfig:
     # Gaussians): on these shared 2-core machines two threads stall on each other whenever another
     # job holds a core (measured: 19-28 s per step with 2 threads against 2.4 s with 1, load 4).
     threads: int | None = None
-    adapt_steps: int = 0  # self-supervised steps on D and P before rebuilding (needs the model)
+    # Self-supervised steps on D before rebuilding (`refine_adapt`). None: `DEFAULT_ADAPT_STEPS`
+    # where the model is given, none where it is not (a saved reconstruction refined on its own);
+    # 0: never. An explicit K needs the model.
+    adapt_steps: int | None = None
     adapt_lr: float = 5e-5
     seed: int = 0
 
@@ -87,7 +97,7 @@ class RefineConfig:
             raise InputError(f"views_per_step: expected >= 1, found {self.views_per_step}")
         if self.threads is not None and self.threads < 1:
             raise InputError(f"--threads: expected a positive number of threads, found {self.threads}")
-        if self.adapt_steps < 0:
+        if self.adapt_steps is not None and self.adapt_steps < 0:
             raise InputError(f"--adapt: expected a number of steps >= 0, found {self.adapt_steps}")
         if not 0 <= self.sweep_share <= 1:
             raise InputError(f"sweep_share: expected a share of the budget in [0, 1], found {self.sweep_share}")
@@ -151,11 +161,13 @@ def refine(
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
 ) -> Reconstruction:
-    """The refined reconstruction (module docstring); ``model`` is needed only for ``adapt_steps``."""
+    """The refined reconstruction (module docstring); ``model`` (or None) is used only to adapt D."""
     _check(pair, recon)
     check_reconstruct_memory(pair.num_views, *pair.image_size, source="refine", refine=True)
     if config.adapt_steps and model is None:
-        raise InputError("--adapt: adapting D and P needs the model's weights")
+        raise InputError("--adapt: adapting D needs the model's weights")
+    if config.adapt_steps is None:
+        config = replace(config, adapt_steps=DEFAULT_ADAPT_STEPS if model is not None else 0)
     threads = torch.get_num_threads()
     torch.set_num_threads(refine_threads(config))
     try:
@@ -181,7 +193,8 @@ def _refine(model, pair: FramePair, recon: Reconstruction, config: RefineConfig,
     inputs = refine_inputs(pair, config.lidar)
     meta: dict = {"budget_s": config.seconds, "steps": 0, "step_s": None, "threads": torch.get_num_threads()}
     if config.adapt_steps and clock.fits():
-        recon = adapt_and_rebuild(model, pair, inputs, config, clock, report, meta)
+        rebuild_s = float(recon.meta.get("timings", {}).get("total_s", 1.0))  # the feed-forward pass's time
+        recon = adapt_and_rebuild(model, pair, inputs, config, clock, report, meta, rebuild_s)
     local = recon.gaussians.transform(inputs.world_to_local)
     rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
     if config.sweep is not None and clock.fits():

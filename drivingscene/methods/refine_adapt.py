@@ -81,8 +81,9 @@ def _lidar_term(depth: Tensor, inputs: RefineInputs) -> Tensor:
     return (torch.log(depth.clamp(min=1e-3)) - torch.log(inputs.lidar.clamp(min=1e-3)))[has].abs().mean()
 
 
-def adapt_model(model, inputs: RefineInputs, config, clock, report) -> tuple[object, dict]:
-    """A copy of ``model`` with D adapted for at most ``config.adapt_steps`` steps within the budget."""
+def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: float = 0.0) -> tuple[object, dict]:
+    """A copy of ``model`` with D adapted for at most ``config.adapt_steps`` steps, each begun only
+    where it and ``reserve_s`` more still fit in the budget."""
     adapted = copy.deepcopy(model).eval()  # eval: batch norm keeps its training statistics
     for p in adapted.parameters():
         p.requires_grad_(False)
@@ -94,7 +95,7 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report) -> tuple[obj
     amp = resolve_amp(None, "cpu")
     times, losses = [], []
     for step in range(config.adapt_steps):
-        if not clock.fits(statistics.median(times) if times else 0.0):
+        if not clock.fits((statistics.median(times) if times else 0.0) + reserve_s):
             break
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):

@@ -31,12 +31,15 @@ NEAR_Z = 0.5  # as the model's rigid flow: a static point nearer than this to th
 RELIFT_THRESHOLD = 1.0 / 176  # of the image width: the model's dynamic gate, 1 px at its 96x176 input
 
 
-def adapt_and_rebuild(model, pair, inputs: RefineInputs, config, clock, report, meta: dict) -> Reconstruction:
-    """Adapt a copy of D and P to the pair (`refine_adapt`), then reconstruct it again."""
+def adapt_and_rebuild(
+    model, pair, inputs: RefineInputs, config, clock, report, meta: dict, rebuild_s: float = 1.0
+) -> Reconstruction:
+    """Adapt a copy of D to the pair (`refine_adapt`; ``rebuild_s`` of the budget kept for the
+    reconstruction after it), then reconstruct the pair again."""
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine_adapt import adapt_model
 
-    adapted, info = adapt_model(model, inputs, config, clock, report)
+    adapted, info = adapt_model(model, inputs, config, clock, report, reserve_s=rebuild_s)
     meta["adapt"] = info
     report(clock.fraction, "rebuilding the reconstruction with the adapted networks")
     return reconstruct(adapted, pair)

@@ -202,7 +202,7 @@ def test_flows_are_lifted_again_with_the_corrected_depth(synth_pair):
     assert made_static == 0 and torch.equal(untouched.flows, local.flows)
 
 
-def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair):
+def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
     from drivingscene.models import DrivingSceneModel, ModelConfig
     from drivingscene.models.depth import DepthConfig
     from drivingscene.models.residual_flow import FlowConfig
@@ -222,3 +222,10 @@ def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair):
     assert all(torch.equal(v, model.state_dict()[k]) for k, v in before.items())  # the model itself is not touched
     assert not np.array_equal(out.depth, start.depth)  # rebuilt from the adapted D
     assert validate_recon_arrays(recon_to_arrays(out)) == []
+    # the default adapts where the model is given and skips it, without an error, where it is not
+    monkeypatch.setattr("drivingscene.methods.refine.DEFAULT_ADAPT_STEPS", 1)
+    config = RefineConfig(max_steps=1, **FAST)
+    assert config.adapt_steps is None
+    assert refine(model, synth_pair, start, config).meta["refinement"]["adapt"]["steps"] == 1
+    assert "adapt" not in refine(None, synth_pair, start, config).meta["refinement"]
+    assert "adapt" not in refine(model, synth_pair, start, replace(config, adapt_steps=0)).meta["refinement"]
