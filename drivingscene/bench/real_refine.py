@@ -38,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=non_negative_int,
         default=None,
         metavar="K",
-        help="with --refine: adapt D for K steps first (default: refinement's default, 15; 0: not at all)",
+        help="with --refine: adapt D for K steps first (default: refinement's, 15 and none with --lidar; 0: not at all)",
     )
 
 

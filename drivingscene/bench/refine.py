@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=non_negative_int,
         default=None,
         metavar="K",
-        help="adapt D for K steps first in every budget (default: refinement's default, 15; 0: not at all)",
+        help="adapt D for K steps first in every budget (default: refinement's, 15 and none with --lidar; 0: not at all)",
     )
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")

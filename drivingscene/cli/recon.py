@@ -34,7 +34,7 @@ def add_refine_arguments(p: argparse.ArgumentParser) -> None:
         type=non_negative_int,
         default=None,
         metavar="K",
-        help="with --refine: first adapt D to the pair for K steps (default 15; 0: not at all)",
+        help="with --refine: first adapt D to the pair for K steps (default 15, none with --lidar; 0: not at all)",
     )
     p.add_argument(
         "--refine-steps", type=positive_int, default=None, metavar="N", help="with --refine: at most N gradient steps"

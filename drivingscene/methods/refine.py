@@ -4,9 +4,9 @@
 
 From a feed-forward reconstruction, within a budget of seconds:
 
-1. (where the model is given; ``adapt_steps``, by default `DEFAULT_ADAPT_STEPS`) a copy of D is
-   adapted to the pair for K self-supervised steps (L_loc + L_smooth, `refine_adapt`) and the
-   pair is reconstructed again;
+1. (where the model is given; ``adapt_steps``, by default `DEFAULT_ADAPT_STEPS` without LiDAR) a
+   copy of D is adapted to the pair for K self-supervised steps (L_loc + L_smooth,
+   `refine_adapt`) and the pair is reconstructed again;
 2. (``sweep``) the depth of every pixel is corrected by a plane sweep over depth, checked across
    images, and LiDAR with ``lidar`` (`depth_sweep`): the Gaussians slide along their rays, and the
    dynamic ones' flows are lifted again with the corrected depth;
@@ -44,8 +44,9 @@ log = logging.getLogger(__name__)
 Progress = Callable[[float | None, str], None]  # (fraction of the budget or None, message), as the viewer's loader
 
 
-# Steps of test-time adaptation of D where the model is given: at a 30 s budget 15 beat 5 and none
-# in in-between PSNR, SSIM, ST-LPIPS and depth on two procedural validation sets
+# Steps of test-time adaptation of D where the model is given and no LiDAR is fitted: at a 30 s
+# budget 15 beat 5 and none in in-between PSNR, SSIM, ST-LPIPS and depth on two procedural
+# validation sets; with LiDAR the gradient steps it leaves no room for are worth more
 # (docs/refinement.md, *Adapting D first*).
 DEFAULT_ADAPT_STEPS = 15
 
@@ -79,8 +80,8 @@ class RefineConfig:
     # job holds a core (measured: 19-28 s per step with 2 threads against 2.4 s with 1, load 4).
     threads: int | None = None
     # Self-supervised steps on D before rebuilding (`refine_adapt`). None: `DEFAULT_ADAPT_STEPS`
-    # where the model is given, none where it is not (a saved reconstruction refined on its own);
-    # 0: never. An explicit K needs the model.
+    # where the model is given and ``lidar`` is off, else none (a saved reconstruction refined on
+    # its own; fitting LiDAR); 0: never. An explicit K needs the model.
     adapt_steps: int | None = None
     adapt_lr: float = 5e-5
     seed: int = 0
@@ -167,7 +168,7 @@ def refine(
     if config.adapt_steps and model is None:
         raise InputError("--adapt: adapting D needs the model's weights")
     if config.adapt_steps is None:
-        config = replace(config, adapt_steps=DEFAULT_ADAPT_STEPS if model is not None else 0)
+        config = replace(config, adapt_steps=DEFAULT_ADAPT_STEPS if model is not None and not config.lidar else 0)
     threads = torch.get_num_threads()
     torch.set_num_threads(refine_threads(config))
     try:

@@ -229,3 +229,4 @@ def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
     assert refine(model, synth_pair, start, config).meta["refinement"]["adapt"]["steps"] == 1
     assert "adapt" not in refine(None, synth_pair, start, config).meta["refinement"]
     assert "adapt" not in refine(model, synth_pair, start, replace(config, adapt_steps=0)).meta["refinement"]
+    assert "adapt" not in refine(model, synth_pair, start, replace(config, lidar=True)).meta["refinement"]  # LiDAR: steps first
