@@ -10,8 +10,7 @@ the depth network's matching (``csrc/matching.cpp``). Callers use the typed wrap
 ``drivingscene.kernels`` (one per op), never the op names.
 
 Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenMP, ninja) into
-``~/.cache/drivingscene/torch_extensions/<python>-<torch>-<cpu>/``, for this CPU (`HOST_CFLAGS`;
-``DRIVINGSCENE_NATIVE=0`` for a portable build; override the directory with the environment variable
+``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
 ``DRIVINGSCENE_BUILD_DIR``); later processes reuse the build (~15 s on 2 cores the first time).
 Any failure (no compiler, no ninja, missing source, compile error) is logged once as a warning and
 ``load_extension`` returns False, so callers fall back to the pure-torch (or numpy) path. Setting
@@ -22,10 +21,8 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import hashlib
 import logging
 import os
-import platform
 import sys
 from pathlib import Path
 from typing import Callable, TypeVar
@@ -41,40 +38,13 @@ SOURCES = tuple(Path(__file__).parent / "csrc" / name for name in ("find_pairs.c
 # from sqrt and no trapping floating-point exceptions (neither changes a result) let the compiler
 # vectorise branch-free per-pixel loops (the surfel frames: ~2x).
 CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math")
-# Built for the CPU that runs them (AVX-512 where it has it; the surfel activation ~1.5x faster
-# than with the compiler's baseline SSE2), so the build directory is also per CPU (`cpu_tag`): a
-# home shared by machines with other CPUs gets one build each. A compiler that refuses the flag
-# builds without it, and so does ``DRIVINGSCENE_NATIVE=0`` (a portable build, in a directory of
-# its own: ``-generic`` in place of the CPU's tag).
-HOST_CFLAGS = ("-march=native",)
-
-
-def host_cflags() -> tuple[str, ...]:
-    """`HOST_CFLAGS`, or none where ``DRIVINGSCENE_NATIVE=0``."""
-    return () if os.environ.get("DRIVINGSCENE_NATIVE", "") == "0" else HOST_CFLAGS
-
-
-def cpu_tag(cpuinfo: str | os.PathLike = "/proc/cpuinfo") -> str:
-    """8 hex digits naming this CPU: the first processor's lines of ``cpuinfo`` that describe the
-    model and its instruction sets (x86 ``flags``, ARM ``Features``), or the platform's words for
-    the processor where the file is unreadable."""
-    keys = ("model name", "flags", "cpu implementer", "cpu part", "features", "isa")
-    try:
-        with open(cpuinfo) as f:
-            first = f.read().split("\n\n")[0]
-        text = "\n".join(line for line in first.splitlines() if line.split(":")[0].strip().lower() in keys)
-    except OSError:
-        text = ""
-    text = text or f"{platform.machine()}|{platform.processor()}"
-    return hashlib.sha1(text.encode()).hexdigest()[:8]
 
 
 def default_build_dir() -> Path:
-    """Per-python, per-torch, per-CPU build directory under ``~/.cache/drivingscene``."""
+    """Per-python, per-torch build directory under ``~/.cache/drivingscene``."""
     if os.environ.get("DRIVINGSCENE_BUILD_DIR"):
         return Path(os.environ["DRIVINGSCENE_BUILD_DIR"])
-    cpu = f"cpu{cpu_tag()}" if host_cflags() else "generic"
-    tag = f"py{sys.version_info.major}{sys.version_info.minor}-torch{torch.__version__.replace('+', '_')}-{cpu}"
+    tag = f"py{sys.version_info.major}{sys.version_info.minor}-torch{torch.__version__.replace('+', '_')}"
     return Path.home() / ".cache" / "drivingscene" / "torch_extensions" / tag
 
 
@@ -141,31 +111,20 @@ def build_extension(build_dir: Path | None = None, *, verbose: bool = False) -> 
             raise FileNotFoundError(f"C++ source not installed: {', '.join(missing)}")
         build_dir.mkdir(parents=True, exist_ok=True)
         with build_guard(build_dir):
-            host = host_cflags()
-            try:
-                _load(cpp_extension, build_dir, CFLAGS + host, verbose)
-            except Exception as e:  # e.g. a compiler without -march=native: the baseline flags
-                if not host:
-                    raise
-                log.info("C++ kernels: the build for this CPU failed (%s); building without %s", _first_line(e), " ".join(host))
-                _load(cpp_extension, build_dir, CFLAGS, verbose)
+            cpp_extension.load(
+                name=EXTENSION_NAME,
+                sources=[str(s) for s in SOURCES],
+                extra_cflags=list(CFLAGS),
+                extra_ldflags=["-fopenmp"],
+                build_directory=str(build_dir),
+                is_python_module=False,
+                verbose=verbose,
+            )
         torch.ops.drivingscene_render.find_pairs  # raises if the library did not register its ops
         return True
     except Exception as e:  # any build/load failure means "use the torch path"
         log.warning("C++ kernels unavailable, using the pure-torch paths (same results, slower): %s", _first_line(e))
         return False
-
-
-def _load(cpp_extension, build_dir: Path, cflags: tuple[str, ...], verbose: bool) -> None:
-    cpp_extension.load(
-        name=EXTENSION_NAME,
-        sources=[str(s) for s in SOURCES],
-        extra_cflags=list(cflags),
-        extra_ldflags=["-fopenmp"],
-        build_directory=str(build_dir),
-        is_python_module=False,
-        verbose=verbose,
-    )
 
 
 @functools.lru_cache(maxsize=1)

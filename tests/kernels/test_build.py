@@ -82,36 +82,3 @@ def test_a_lock_left_by_a_process_killed_during_a_load_does_not_stall_the_next(t
     with build.build_guard(tmp_path):
         assert not (tmp_path / "lock").exists()
     assert time.monotonic() - start < 30.0  # not the 600 s age rule, nor forever
-
-
-def test_the_build_directory_is_per_cpu_and_a_refused_host_flag_builds_without_it(tmp_path, monkeypatch, caplog):
-    monkeypatch.delenv("DRIVINGSCENE_BUILD_DIR", raising=False)
-    monkeypatch.delenv("DRIVINGSCENE_NATIVE", raising=False)
-    tag = build.cpu_tag()
-    assert len(tag) == 8 and build.default_build_dir().name.endswith(f"-cpu{tag}")
-    calls = []
-
-    def load(cpp_extension, build_dir, cflags, verbose):
-        calls.append(cflags)
-        if "-march=native" in cflags:
-            raise RuntimeError("g++: error: unrecognized command-line option '-march=native'")
-
-    monkeypatch.setattr(build, "_load", load)
-    with caplog.at_level(logging.INFO, logger="drivingscene.kernels.build"):
-        build.build_extension(tmp_path / "build")  # True where the ops are already registered
-    assert calls == [build.CFLAGS + build.HOST_CFLAGS, build.CFLAGS]
-    assert "building without -march=native" in caplog.text
-    monkeypatch.setenv("DRIVINGSCENE_NATIVE", "0")  # a portable build: baseline flags, a directory of its own
-    assert build.default_build_dir().name.endswith("-generic")
-    calls.clear()
-    build.build_extension(tmp_path / "generic")
-    assert calls == [build.CFLAGS]
-
-
-def test_the_cpu_tag_follows_the_instruction_sets(tmp_path):
-    info = "processor\t: 0\nmodel name\t: Some CPU\nflags\t\t: fpu sse2 avx2\ncpu MHz\t\t: {mhz}\n\nprocessor\t: 1\n"
-    (tmp_path / "a").write_text(info.format(mhz="2000.0"))
-    (tmp_path / "b").write_text(info.format(mhz="3100.5"))  # the clock changes, the CPU does not
-    (tmp_path / "c").write_text(info.format(mhz="2000.0").replace("avx2", "avx2 avx512f"))
-    assert build.cpu_tag(tmp_path / "a") == build.cpu_tag(tmp_path / "b") != build.cpu_tag(tmp_path / "c")
-    assert len(build.cpu_tag(tmp_path / "missing")) == 8
