@@ -184,8 +184,12 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
     visible = None if recon.hidden is None else ~recon.hidden
     cache: dict[float, object] = {}
     times, losses = [], []
+    # Before any step is timed, the adaptation's step (a forward and backward pass over the pair
+    # too, about as long) says whether one fits: without it the first step overran 30 s budgets by
+    # up to 3 s once the adaptation had used most of them.
+    first = float((meta.get("adapt") or {}).get("step_s") or 0.0)
     while config.max_steps is None or len(times) < config.max_steps:
-        estimate = statistics.median(times) if times else 0.0
+        estimate = statistics.median(times) if times else first
         if not clock.fits(estimate):
             break
         start = time.perf_counter()

@@ -230,3 +230,23 @@ def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
     assert "adapt" not in refine(None, synth_pair, start, config).meta["refinement"]
     assert "adapt" not in refine(model, synth_pair, start, replace(config, adapt_steps=0)).meta["refinement"]
     assert "adapt" not in refine(model, synth_pair, start, replace(config, lidar=True)).meta["refinement"]  # LiDAR: steps first
+
+
+def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pair, start):
+    from drivingscene.methods.refine_loop import gradient_steps
+
+    class OneSecondLeft:
+        fraction = 0.9
+
+        def fits(self, step_s: float = 0.0) -> bool:
+            return step_s <= 1.0
+
+    inputs = refine_inputs(synth_pair)
+    local = start.gaussians.transform(inputs.world_to_local)
+    rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
+    config = RefineConfig(max_steps=1, **FAST)
+    for adapt_step_s, steps in ((2.0, 0), (0.5, 1), (None, 1)):  # no adaptation: the first step always starts
+        meta = {} if adapt_step_s is None else {"adapt": {"steps": 3, "step_s": adapt_step_s}}
+        params = RefineParams(local, rays, tuple(config.groups))
+        gradient_steps(params, inputs, start, config, OneSecondLeft(), lambda fraction, message: None, meta)
+        assert meta["steps"] == steps
