@@ -18,7 +18,8 @@ def test_bench_refine_budgets_and_choices(synth_pair_folder, tiny_weights, tmp_p
     data = synth_pair_folder
     md, js = tmp_path / "refine.md", tmp_path / "refine.json"
     base = ["bench", "refine", "--data", str(data), "--count", "1", "--weights", str(tiny_weights), "--lpips", "stlpips"]
-    assert main([*base, "--budgets", "0", "5", "--depth-scale", "0.5", "--out", str(md), "--json", str(js)]) == 0
+    # --adapt 0: the budget goes to the depth sweep and the gradient steps (the adaptation is run below)
+    assert main([*base, "--budgets", "0", "5", "--adapt", "0", "--depth-scale", "0.5", "--out", str(md), "--json", str(js)]) == 0
     text = md.read_text()
     for needle in ("feed-forward + refine 5 s", "| feed-forward |", "blend the two keyframes", "--depth-scale 0.5", "bf16"):
         assert needle in text
