@@ -81,7 +81,7 @@ def _lidar_term(depth: Tensor, inputs: RefineInputs) -> Tensor:
     return (torch.log(depth.clamp(min=1e-3)) - torch.log(inputs.lidar.clamp(min=1e-3)))[has].abs().mean()
 
 
-def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: float = 0.0) -> tuple[object, dict]:
+def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: float) -> tuple[object, dict]:
     """A copy of ``model`` with D adapted for at most ``config.adapt_steps`` steps, each begun only
     where it and ``reserve_s`` more still fit in the budget."""
     adapted = copy.deepcopy(model).eval()  # eval: batch norm keeps its training statistics

@@ -31,9 +31,7 @@ NEAR_Z = 0.5  # as the model's rigid flow: a static point nearer than this to th
 RELIFT_THRESHOLD = 1.0 / 176  # of the image width: the model's dynamic gate, 1 px at its 96x176 input
 
 
-def adapt_and_rebuild(
-    model, pair, inputs: RefineInputs, config, clock, report, meta: dict, rebuild_s: float = 1.0
-) -> Reconstruction:
+def adapt_and_rebuild(model, pair, inputs: RefineInputs, config, clock, report, meta: dict, rebuild_s: float) -> Reconstruction:
     """Adapt a copy of D to the pair (`refine_adapt`; ``rebuild_s`` of the budget kept for the
     reconstruction after it), then reconstruct the pair again."""
     from drivingscene.methods.feedforward import reconstruct
