@@ -445,6 +445,7 @@ def run(args: argparse.Namespace) -> int:
     if args.refine:
         command += " --refine " + " ".join(f"{v:g}" for v in args.refine) + (" --lidar" if args.lidar else "")
         command += f" --adapt {args.adapt}" if args.adapt is not None else ""
+        command += f" --blend {args.blend}" if args.blend else ""
     text = report(scenes, perceptual.name, command, machine_description(), precision)
     if notes:
         text += "\n" + notes

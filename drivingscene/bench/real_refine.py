@@ -1,4 +1,4 @@
-"""Refinement rows of ``drivingscene bench real`` (``--refine SECONDS ...``, ``--lidar``, ``--adapt K``).
+"""Refinement rows of ``drivingscene bench real`` (``--refine SECONDS ...``, ``--lidar``, ``--adapt K``, ``--blend``).
 
 Each budget adds a method "DrivingScene + refine S s": the shipped model's reconstruction refined
 for S seconds (`methods.refine`), scored like the others (depth against LiDAR, input views
@@ -40,6 +40,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="with --refine: adapt D for K steps first (default: refinement's, 15 and none with --lidar; 0: not at all)",
     )
+    add_blend_argument(p)
+
+
+def add_blend_argument(p: argparse.ArgumentParser) -> None:
+    """``--blend``: the blend refinement's gradient steps render with (`RefineConfig.blend`)."""
+    from drivingscene.gaussians.timing import BLEND_MODES
+
+    blend_help = "the blend the gradient steps render with (default: refinement's, the blend the output is shown with)"
+    p.add_argument("--blend", choices=BLEND_MODES, default=None, help=blend_help)
 
 
 def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
@@ -51,10 +60,12 @@ def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, 
     return np.where(fit, gt_depth, 0).astype(np.float32), np.where(fit, 0, gt_depth).astype(np.float32)
 
 
-def method_name(seconds: float, lidar: bool = False, adapt: int | None = None) -> str:
+def method_name(seconds: float, lidar: bool = False, adapt: int | None = None, blend: str | None = None) -> str:
     name = f"DrivingScene + refine {seconds:g} s"
     if adapt is not None:  # the default's rows carry no label
         name += f" (adapt {adapt})" if adapt else " (no adaptation)"
+    if blend is not None:
+        name += f" (steps in the {blend} blend)"
     return name + (" + LiDAR (half)" if lidar else "")
 
 
@@ -64,14 +75,16 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import RefineConfig, refine
 
-    if (args.lidar or args.adapt is not None) and not args.refine:
+    if (args.lidar or args.adapt is not None or getattr(args, "blend", None)) and not args.refine:
         from drivingscene.errors import InputError
 
-        raise InputError("--lidar/--adapt: only with --refine SECONDS")
+        raise InputError("--lidar/--adapt/--blend: only with --refine SECONDS")
     out = []
     for seconds in args.refine:
         for lidar in (False, True) if args.lidar else (False,):
             config = RefineConfig(seconds=seconds, lidar=lidar, adapt_steps=args.adapt)
+            if getattr(args, "blend", None):
+                config = replace(config, blend=args.blend)
 
             def run(pair, config=config):
                 fit = replace(pair, gt_depth=lidar_halves(pair.gt_depth)[0]) if config.lidar else pair
@@ -80,7 +93,7 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
             extra = {"repeats": 1, "refine": True}
             if lidar:
                 extra["depth_pair"] = lambda pair: replace(pair, gt_depth=lidar_halves(pair.gt_depth)[1])
-            out.append((method_name(seconds, lidar, args.adapt), run, extra))
+            out.append((method_name(seconds, lidar, args.adapt, getattr(args, "blend", None)), run, extra))
     return out
 
 

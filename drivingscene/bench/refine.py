@@ -8,6 +8,7 @@ depth against ``gt_depth``, and the input views re-rendered; with the steps each
 the seconds per step. ``--depth-scale F`` first slides every Gaussian along its ray to F times its
 depth (the model's failure on real frames, 2-5x too near, reproduced where the truth is known).
 Budgets are wall-clock seconds: on a loaded machine they buy fewer steps (the table says how many).
+``--adapt K``, ``--no-sweep``, ``--no-steps`` and ``--blend`` take refinement apart stage by stage.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from drivingscene.machine import machine_description
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from drivingscene.arguments import non_negative_int, non_negative_seconds
+    from drivingscene.bench.real_refine import add_blend_argument
 
     p.add_argument("--data", type=Path, required=True, help="folder of pair_*.npz (e.g. data/val176r)")
     p.add_argument("--count", type=int, default=4, help="pairs to use (default 4)")
@@ -47,6 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="adapt D for K steps first in every budget (default: refinement's, 15 and none with --lidar; 0: not at all)",
     )
+    p.add_argument("--no-sweep", action="store_true", help="without the depth sweep (refinement's stages one by one)")
+    p.add_argument("--no-steps", action="store_true", help="without the gradient steps (refinement's stages one by one)")
+    add_blend_argument(p)
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
     p.add_argument("--choices", action="store_true", help="compare the settings' variants at --steps steps instead")
@@ -101,13 +106,13 @@ def score_pair(model, pair, args, perceptual) -> dict:
     from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
     from drivingscene.eval.reconstruction import score_depth, score_frames, score_novel_views
     from drivingscene.methods.feedforward import reconstruct
-    from drivingscene.methods.refine import RefineConfig, refine
+    from drivingscene.methods.refine import refine
 
     out = {"copy the nearest keyframe": score_frames(copy_nearest_frames(pair), pair, perceptual)}
     out["blend the two keyframes"] = score_frames(blend_frames(pair), pair, perceptual)
     base = scaled_depth(reconstruct(model, pair), pair, args.depth_scale)
     for seconds in args.budgets:
-        config = RefineConfig(seconds=seconds, lidar=args.lidar, adapt_steps=args.adapt)
+        config = stage_config(args, seconds)
         recon = base if seconds == 0 else refine(model, pair, base, config)
         meta = recon.meta.get("refinement", {})
         row = score_novel_views(recon, pair, perceptual)
@@ -121,6 +126,22 @@ def score_pair(model, pair, args, perceptual) -> dict:
         )
         out[f"{seconds:g}"] = row
     return out
+
+
+def stage_config(args, seconds: float):
+    """The refinement of one budget with the stages and blend the arguments choose."""
+    from dataclasses import replace
+
+    from drivingscene.methods.refine import RefineConfig
+
+    config = RefineConfig(seconds=seconds, lidar=args.lidar, adapt_steps=args.adapt)
+    if getattr(args, "no_sweep", False):
+        config = replace(config, sweep=None)
+    if getattr(args, "no_steps", False):
+        config = replace(config, groups=())
+    if getattr(args, "blend", None):
+        config = replace(config, blend=args.blend)
+    return config
 
 
 def _mean(rows: list[dict], key: str) -> float:
@@ -170,6 +191,9 @@ def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
     flags = f" --depth-scale {args.depth_scale:g}" if args.depth_scale != 1 else ""
     flags += " --lidar" if args.lidar else ""
     flags += f" --adapt {args.adapt}" if args.adapt is not None else ""
+    flags += " --no-sweep" if getattr(args, "no_sweep", False) else ""
+    flags += " --no-steps" if getattr(args, "no_steps", False) else ""
+    flags += f" --blend {args.blend}" if getattr(args, "blend", None) else ""
     budgets = " ".join(f"{b:g}" for b in args.budgets)
     return (
         f"`drivingscene bench refine --data {args.data} --count {args.count} --budgets {budgets}{flags}` on {machine}, "

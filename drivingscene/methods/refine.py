@@ -13,7 +13,8 @@ From a feed-forward reconstruction, within a budget of seconds:
 3. Adam on the Gaussians' depth along their rays, colours, opacities, scales and the dynamic
    Gaussians' flow, against the input images with the paper's rendering loss (L2 + 0.05 LPIPS)
    and, with ``lidar``, rendered depth against LiDAR (`refine_render`). Each step renders a few
-   input views (all Gaussians, both keyframes) at one image scale.
+   input views (all Gaussians, both keyframes) at one image scale, in the blend the output is
+   shown with (``blend``).
 
 Anytime: the budget, ``should_stop()`` or ``max_steps`` end it after any step, and what comes back
 is a valid reconstruction of the last step whose values were all finite. The held-out frames
@@ -34,6 +35,7 @@ import torch
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.gaussians.timing import BLEND_MODES, DEFAULT_BLEND
 from drivingscene.methods.depth_sweep import SweepConfig
 from drivingscene.methods.memory import check_reconstruct_memory
 from drivingscene.methods.refine_inputs import refine_inputs
@@ -69,6 +71,10 @@ class RefineConfig:
     # (fraction of the budget from which it applies, image scale): coarse to fine
     scales: tuple[tuple[float, float], ...] = ((0.0, 1.0),)
     max_layers: int = 16  # Gaussians composited per pixel while refining (rendering uses 32)
+    # How the steps combine the Gaussians into an image: the blend the reconstruction is shown with
+    # (`DEFAULT_BLEND`, one layer per input image), so that they fit what the user sees. "all" (one
+    # layer) was the rule before 2026-11-27 and fitted a rendering no output used (docs/refinement.md).
+    blend: str = DEFAULT_BLEND
     lpips_weight: float = 0.05  # the paper's rendering loss: L2 + 0.05 LPIPS
     lidar: bool = False  # also fit LiDAR depth (gt_depth), in the sweep and the loss
     lidar_weight: float = 0.1  # weight of the relative L1 depth term
@@ -102,6 +108,8 @@ class RefineConfig:
             raise InputError(f"--adapt: expected a number of steps >= 0, found {self.adapt_steps}")
         if not 0 <= self.sweep_share <= 1:
             raise InputError(f"sweep_share: expected a share of the budget in [0, 1], found {self.sweep_share}")
+        if self.blend not in BLEND_MODES:
+            raise InputError(f"blend: expected one of {', '.join(BLEND_MODES)}, found {self.blend!r}")
         if not self.scales or any(not 0 < s <= 1 for _, s in self.scales):
             raise InputError(f"scales: expected image scales in (0, 1], found {self.scales}")
 

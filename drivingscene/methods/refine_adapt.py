@@ -6,8 +6,8 @@ neighbouring cameras at the same keyframe with the predicted depth (per-pixel mi
 sources, monodepth2's auto-mask), and L_smooth (edge-aware smoothness of the mean-normalised
 disparity), weighted 1 : 0.01 as in stage 1 (0.1 : 0.001); with LiDAR also the mean |log depth -
 log LiDAR| where there is a return. Batch-norm statistics stay those of training (one pair is no
-batch). These losses reach D; P is not trained by them, but its Gaussians follow D's new depth
-when the pair is reconstructed again. The original model is not modified.
+batch). These losses reach D only, so only D runs in the steps (`predict_depth`); P is not trained
+by them, but its Gaussians follow D's new depth when the pair is reconstructed again. The original model is not modified.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from drivingscene.geometry.flow import backward_warp, rigid_flow
 from drivingscene.methods.depth_sweep import neighbour_cameras
 from drivingscene.methods.refine_inputs import RefineInputs
 from drivingscene.models.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
-from drivingscene.models.pipeline import predict_static
+from drivingscene.models.pipeline import predict_depth
 from drivingscene.precision import resolve_amp
 
 SMOOTH_WEIGHT = 0.01  # L_smooth relative to L_loc (stage 1: 0.001 / 0.1)
@@ -99,8 +99,7 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
             break
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
-            static = predict_static(adapted, batch)
-        depth = static.depth.float()
+            depth = predict_depth(adapted, batch).float()  # D alone: the losses do not reach P
         targets = inputs.images.flatten(0, 1)
         world = None if inputs.valid is None else inputs.valid.repeat(2, 1, 1)
         loss = location_loss(depth, inputs) + SMOOTH_WEIGHT * smoothness_loss(1.0 / depth.flatten(0, 1)[:, None], targets, world)

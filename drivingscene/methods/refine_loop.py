@@ -24,11 +24,16 @@ from drivingscene.methods.depth_sweep import corrected_depth
 from drivingscene.methods.refine_inputs import RefineInputs
 from drivingscene.methods.refine_params import GaussianRays, RefineParams
 from drivingscene.methods.refine_render import view_set, views_loss
+from drivingscene.render.scene import source_axes
 
 log = logging.getLogger(__name__)
 
 NEAR_Z = 0.5  # as the model's rigid flow: a static point nearer than this to the other camera has none
 RELIFT_THRESHOLD = 1.0 / 176  # of the image width: the model's dynamic gate, 1 px at its 96x176 input
+# A gradient step in the `cameras` blend (a rasterisation per input image's layer) took 2.5-2.9
+# times as long as an adaptation step (D alone) on 176x320 procedural pairs, with 1 and 2 threads
+# (AMD EPYC, 2026-11-27): the first step's estimate before any step is timed.
+STEP_PER_ADAPT_STEP = 3.0
 
 
 def adapt_and_rebuild(model, pair, inputs: RefineInputs, config, clock, report, meta: dict, rebuild_s: float) -> Reconstruction:
@@ -182,10 +187,10 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
     visible = None if recon.hidden is None else ~recon.hidden
     cache: dict[float, object] = {}
     times, losses = [], []
-    # Before any step is timed, the adaptation's step (a forward and backward pass over the pair
-    # too, about as long) says whether one fits: without it the first step overran 30 s budgets by
-    # up to 3 s once the adaptation had used most of them.
-    first = float((meta.get("adapt") or {}).get("step_s") or 0.0)
+    # Before any step is timed, the adaptation's step (a forward and backward pass over the pair)
+    # scaled by `STEP_PER_ADAPT_STEP` says whether one fits: without it the first step overran 30 s
+    # budgets by up to 3 s once the adaptation had used most of them.
+    first = STEP_PER_ADAPT_STEP * float((meta.get("adapt") or {}).get("step_s") or 0.0)
     while config.max_steps is None or len(times) < config.max_steps:
         estimate = statistics.median(times) if times else first
         if not clock.fits(estimate):
@@ -198,7 +203,7 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
                 group["lr"] = factor * config.learning_rate(name)
         scale = config.scale_at(clock.fraction)
         if scale not in cache:
-            cache[scale] = view_set(inputs, recon.sky_sh, scale)
+            cache[scale] = view_set(inputs, recon.sky_sh, scale, config.blend, local_axes(recon, inputs))
         index = next(batches)
         gaussians = params.gaussians()
         if visible is not None:
@@ -231,6 +236,12 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
         losses=[round(v, 5) for v in losses],
         views_per_step=config.views_per_step,
     )
+
+
+def local_axes(recon, inputs: RefineInputs) -> Tensor:
+    """``[2, V, 3]`` the input cameras' optical axes in the pair's local frame (the "cameras" blend)."""
+    rotation = inputs.world_to_local[:3, :3].float()
+    return source_axes(recon) @ rotation.T
 
 
 def _rigid_flow_maps(depth: Tensor, inputs: RefineInputs) -> Tensor:

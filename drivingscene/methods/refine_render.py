@@ -3,7 +3,10 @@
 Each input image (keyframe k, camera v) is rendered at its own capture pose and time from *all*
 Gaussians: its own keyframe's where they are, the other keyframe's moved there by their flow. That
 is what ties depth and flow across time and cameras: a Gaussian at the wrong depth, or with the
-wrong flow, lands on the wrong pixel of the other keyframe's images.
+wrong flow, lands on the wrong pixel of the other keyframe's images. They are combined with the
+blend the reconstruction is shown with (``RefineConfig.blend``, by default `DEFAULT_BLEND`: one
+layer per input image, weighed by time and by the angle between the cameras' axes), so that the
+steps fit the pictures the user sees, not another rendering of the same Gaussians.
 
 Loss per rendered image, the paper's rendering loss (`models.losses.render_loss`):
 L2 + 0.05 LPIPS over the pixels that see the world (``valid_mask``), and with LiDAR
@@ -45,15 +48,20 @@ class ViewSet:
     sky: Tensor  # [2V, 3, h, w] background colour
     valid: Tensor | None  # [2V, h, w] bool
     lidar: Tensor | None  # [2V, h, w] LiDAR depth, 0 where none
+    blend: str = "all"  # how both keyframes' Gaussians combine (`render_gaussians`)
+    axes: Tensor | None = None  # [2, V, 3] input cameras' optical axes, local frame (blend "cameras")
 
     @property
     def size(self) -> tuple[int, int]:
         return int(self.images.shape[-2]), int(self.images.shape[-1])
 
 
-def view_set(inputs: RefineInputs, sky_sh: Tensor | None, scale: float = 1.0) -> ViewSet:
+def view_set(
+    inputs: RefineInputs, sky_sh: Tensor | None, scale: float = 1.0, blend: str = "all", axes: Tensor | None = None
+) -> ViewSet:
     """The input views at ``scale`` of their size (area-resized; a pixel is valid where every pixel
-    it covers is; a LiDAR return is kept at the nearest return within the pixel)."""
+    it covers is; a LiDAR return is kept at the nearest return within the pixel), rendered with
+    ``blend`` (``axes``: the input cameras' optical axes in the local frame, for "cameras")."""
     height, width = inputs.image_size
     size = (max(4, round(height * scale)), max(4, round(width * scale)))
     images = inputs.images.flatten(0, 1)
@@ -75,7 +83,7 @@ def view_set(inputs: RefineInputs, sky_sh: Tensor | None, scale: float = 1.0) ->
     else:
         c2w = (inputs.local_to_world[None] @ c2l.double()).float()
         sky = sky_colors(sky_sh.float(), ray_directions(c2w, k, *size)).permute(0, 3, 1, 2)
-    return ViewSet(images, k, invert_rigid(c2l.double()).float(), inputs.times.flatten(), sky, valid, lidar)
+    return ViewSet(images, k, invert_rigid(c2l.double()).float(), inputs.times.flatten(), sky, valid, lidar, blend, axes)
 
 
 def render_views(gaussians: Gaussians, views: ViewSet, index: list[int], max_layers: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -87,7 +95,10 @@ def render_views(gaussians: Gaussians, views: ViewSet, index: list[int], max_lay
     for t in times.unique().tolist():
         group = [i for i, ti in enumerate(times.tolist()) if ti == t]
         idx = [index[i] for i in group]
-        out = render_gaussians(gaussians, t, views.world_to_cam[idx], views.intrinsics[idx], height, width, max_layers=max_layers)
+        out = render_gaussians(
+            gaussians, t, views.world_to_cam[idx], views.intrinsics[idx], height, width,
+            blend=views.blend, source_axes=views.axes, max_layers=max_layers,
+        )
         rgb = out.colors.permute(0, 3, 1, 2) + (1 - out.alphas[:, None]) * views.sky[idx]
         for j, i in enumerate(group):
             colors[i], depths[i], alphas[i] = rgb[j], out.depths[j], out.alphas[j]

@@ -456,6 +456,22 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors, depth_images: T
     return StaticPrediction(depth=depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
 
 
+def predict_depth(model: DrivingSceneModel, batch: PairTensors) -> Tensor:
+    """D alone on both keyframes' V images: ``[2, V, H, W]`` z-depth, what `predict_static` returns
+    as ``depth`` without running P (test-time adaptation trains D on depth losses only)."""
+    size = batch.image_size
+    net_size = model.config.input_size or size
+    intrinsics = batch.intrinsics.repeat(2, 1, 1)
+    geometry = view_geometry(batch, net_size)
+    if tuple(net_size) == tuple(size):
+        depth = model.depth_net(batch.images.flatten(0, 1).contiguous(memory_format=torch.channels_last), intrinsics, geometry).depth
+    else:
+        small = batch.resized_images(net_size).flatten(0, 1).contiguous(memory_format=torch.channels_last)
+        depth = model.depth_net(small, _scaled_intrinsics(intrinsics, size, net_size), geometry).depth
+        depth = 1.0 / _resize(1.0 / depth.float()[:, None], size, "bilinear")[:, 0]
+    return depth.unflatten(0, (2, batch.num_views))
+
+
 def bound_flow(flow: Tensor) -> Tensor:
     """Clamp flow ``[..., H, W, 2]`` so that its destinations stay within one image size of the image.
 

@@ -75,5 +75,10 @@ def test_bench_real_scores_refined_reconstructions(synth_pair, tiny_weights, tmp
     assert {plain, lidar} <= set(scores["novel"]) and {plain, lidar} <= set(scores["refine"])
     assert scores["refine"][plain]["budget_s"] == 2.0
     assert all(math.isfinite(x) for x in scores["depths"][lidar]["metric"]["abs_rel"])
+    # the steps in another blend: a row of its own, named and in the recorded command
+    assert main([*args, "--refine", "1", "--adapt", "0", "--blend", "all", "--out", str(md), "--json", str(js), "--force"]) == 0
+    assert "--refine 1 --adapt 0 --blend all" in md.read_text()
+    assert method_name(1.0, adapt=0, blend="all") in json.loads(js.read_text())["tiny"]["refine"]
+    assert main([*args, "--blend", "all", "--out", str(md), "--force"]) == 2  # --blend needs --refine
     fit, held = lidar_halves(_real_like(synth_pair).gt_depth)
     assert not ((fit > 0) & (held > 0)).any() and np.array_equal(np.maximum(fit, held), _real_like(synth_pair).gt_depth)

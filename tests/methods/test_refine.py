@@ -13,11 +13,14 @@ import torch
 from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import load_reconstruction, recon_to_arrays, save_reconstruction, validate_recon_arrays
+from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.methods.oracle import oracle_reconstruction
 from drivingscene.methods.refine import RefineConfig, refine
 from drivingscene.methods.refine_inputs import refine_inputs
+from drivingscene.methods.refine_loop import local_axes
 from drivingscene.methods.refine_params import RefineParams, gaussian_rays
-from drivingscene.methods.refine_render import view_set, views_loss
+from drivingscene.methods.refine_render import render_views, view_set, views_loss
+from drivingscene.render.scene import render_input_views
 
 FAST = dict(seconds=600.0, sweep=None, lpips_weight=0.0, views_per_step=2, threads=1)  # one thread: bit-exact reruns
 
@@ -48,9 +51,10 @@ def start(synth_pair):
 
 
 def _loss(recon, pair) -> float:
+    """The steps' loss (the default blend) on all input views."""
     inputs = refine_inputs(pair)
     local = recon.gaussians.transform(inputs.world_to_local)
-    views = view_set(inputs, recon.sky_sh)
+    views = view_set(inputs, recon.sky_sh, 1.0, RefineConfig().blend, local_axes(recon, inputs))
     with torch.no_grad():
         loss, _ = views_loss(
             local, views, list(range(2 * pair.num_views)), None, lpips_weight=0.0, lidar_weight=0.0, max_layers=16
@@ -91,6 +95,23 @@ def test_gaussian_pixels_are_their_source_pixels(synth_pair):
     expected = valid.flatten().nonzero().squeeze(1)
     assert torch.equal(rays.pixels, expected)
     torch.testing.assert_close(rays.depths, torch.from_numpy(synth_pair.gt_depth).flatten()[expected], rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("blend", ["cameras", "all"])
+def test_the_steps_render_what_the_reconstruction_shows(synth_pair, start, blend):
+    """Refinement fits its renders of the input views to the images: they must be the pictures the
+    output shows (`render_input_views` in the same blend), not another rendering of the Gaussians."""
+    inputs = refine_inputs(synth_pair)
+    local = start.visible().transform(inputs.world_to_local)
+    views = view_set(inputs, start.sky_sh, 1.0, blend, local_axes(start, inputs))
+    with torch.no_grad():
+        colors, _, _ = render_views(local, views, list(range(2 * synth_pair.num_views)), max_layers=32)
+    steps = colors.clamp(0, 1).permute(0, 2, 3, 1).reshape(2, synth_pair.num_views, *synth_pair.image_size, 3)
+    shown = render_input_views(start, synth_pair, blend=blend)
+    other = render_input_views(start, synth_pair, blend="all" if blend == "cameras" else "cameras")
+    error = (steps - shown).abs().mean()
+    assert error < 2e-3 and error < 0.1 * (steps - other).abs().mean()  # the blends differ; the steps follow theirs
+    assert RefineConfig().blend == DEFAULT_BLEND  # by default the blend the output is shown with
 
 
 def test_refinement_lowers_the_loss_on_the_input_views(synth_pair, start):
@@ -233,7 +254,9 @@ def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
 
 
 def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pair, start):
-    from drivingscene.methods.refine_loop import gradient_steps
+    """Before any step is timed, the first must fit in what is left as the adaptation's step times
+    `STEP_PER_ADAPT_STEP` (a gradient step renders every layer of the blend)."""
+    from drivingscene.methods.refine_loop import STEP_PER_ADAPT_STEP, gradient_steps
 
     class OneSecondLeft:
         fraction = 0.9
@@ -245,7 +268,8 @@ def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pa
     local = start.gaussians.transform(inputs.world_to_local)
     rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
     config = RefineConfig(max_steps=1, **FAST)
-    for adapt_step_s, steps in ((2.0, 0), (0.5, 1), (None, 1)):  # no adaptation: the first step always starts
+    cases = ((2.0, 0), (0.9 / STEP_PER_ADAPT_STEP, 1), (1.1 / STEP_PER_ADAPT_STEP, 0), (None, 1))
+    for adapt_step_s, steps in cases:  # no adaptation: the first step always starts
         meta = {} if adapt_step_s is None else {"adapt": {"steps": 3, "step_s": adapt_step_s}}
         params = RefineParams(local, rays, tuple(config.groups))
         gradient_steps(params, inputs, start, config, OneSecondLeft(), lambda fraction, message: None, meta)

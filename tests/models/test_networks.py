@@ -18,6 +18,7 @@ from drivingscene.models.pipeline import (
     LiftConfig,
     assemble,
     lift_scene_flow,
+    predict_depth,
     predict_flow,
     predict_static,
     rigid_flows,
@@ -45,6 +46,20 @@ def test_static_shapes_for_odd_sizes(model, height, width):
     assert [d.shape[-2:] == (height, width) for d in depth.depths] == [True] * 4
     assert params.log_scales.shape == (3, height, width, 3) and params.sh.shape == (3, height, width, 1, 3)
     assert (depth.depth > 0).all()
+
+
+@pytest.mark.parametrize("input_size", [None, (24, 40)])
+def test_d_alone_gives_the_depth_of_both_networks(input_size):
+    """Test-time adaptation runs D alone (`predict_depth`): the same depth as `predict_static`'s,
+    at the images' size and through a smaller network input size."""
+    torch.manual_seed(0)
+    net = DrivingSceneModel(replace(SMALL, input_size=input_size)).eval()
+    batch = pair_to_tensors(make_pair(num_views=3, height=32, width=48), with_gt=False, with_eval=False)
+    with torch.no_grad():
+        expected = predict_static(net, batch).depth
+        depth = predict_depth(net, batch)
+    assert depth.shape == (2, 3, 32, 48)
+    torch.testing.assert_close(depth, expected, rtol=0, atol=0)
 
 
 def test_depth_scales_with_normalised_focal_length(model):
