@@ -183,6 +183,12 @@ class Gaussians:
         """A subset by bool mask or integer indices."""
         return Gaussians(**{f.name: getattr(self, f.name)[selector] for f in fields(self)})
 
+    def split(self, sizes: Sequence[int]) -> list[Gaussians]:
+        """Consecutive runs of ``sizes`` Gaussians (``torch.split`` of every field: differentiable,
+        its backward one concatenation where indexing each run would scatter into a full copy)."""
+        parts = {f.name: torch.split(getattr(self, f.name), list(sizes)) for f in fields(self)}
+        return [Gaussians(**{name: chunks[i] for name, chunks in parts.items()}) for i in range(len(sizes))]
+
     def with_sh_degree(self, degree: int) -> Gaussians:
         """Truncate or zero-pad the SH coefficients to ``degree``."""
         k = num_sh_coeffs(degree)

@@ -160,9 +160,23 @@ def _render_sets(
     if not sets:
         return render_gaussians(gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **kwargs)
     black = torch.zeros(3, device=world_to_cam.device)
-    layers = [render_gaussians(gaussians.index(mask), t, world_to_cam, intrinsics, height, width, background=black, **kwargs) for mask, _ in sets]
+    layers = [
+        render_gaussians(part, t, world_to_cam, intrinsics, height, width, background=black, **kwargs)
+        for part in _layer_parts(gaussians, [mask for mask, _ in sets])
+    ]
     weights = torch.stack([w for _, w in sets])
     return _compose(layers, weights, _background(world_to_cam, intrinsics, height, width, sky_sh, background))
+
+
+def _layer_parts(gaussians: Gaussians, masks: list[Tensor]) -> list[Gaussians]:
+    """The Gaussians of each mask, in their order (as ``gaussians.index(mask)``): one gather of all
+    the masks' Gaussians into layer order (none where they already are, as a reconstruction's
+    are: by keyframe, then camera) and a split, instead of a gather per layer whose backward
+    scatters each layer into a copy of all the Gaussians."""
+    order = torch.cat([mask.nonzero().squeeze(1) for mask in masks])
+    if not torch.equal(order, torch.arange(len(gaussians), device=order.device)):
+        gaussians = gaussians.index(order)
+    return gaussians.split([int(mask.sum()) for mask in masks])
 
 
 def _compose(layers: list[RenderOutput], weights: Tensor, background: Tensor) -> RenderOutput:

@@ -137,3 +137,28 @@ def test_input_views_render_each_keyframe_at_its_own_time(synth_pair, blend):
     inputs = torch.from_numpy(pair.images).flatten(0, 1).permute(0, 3, 1, 2).float() / 255
     scores = psnr(views, inputs).view(2, -1).mean(1)
     assert scores.min() > 22 and abs(float(scores[0] - scores[1])) < 3
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_layers_are_each_masks_gaussians_in_order_with_their_gradients(shuffled):
+    """The layered blends take each layer's Gaussians by one gather and a split (`_layer_parts`):
+    the same Gaussians, in the same order, as indexing by each mask, and the same gradients."""
+    from drivingscene.render.scene import _layer_parts
+
+    walls = [_wall(5.0 + k + c, (0.2, 0.4, 0.6), keyframe=k, camera=c) for k in (0, 1) for c in (0, 1, 2)]
+    g = Gaussians(**{f.name: torch.cat([getattr(w, f.name) for w in walls]) for f in dataclasses.fields(Gaussians)})
+    if shuffled:
+        g = g.index(torch.randperm(len(g), generator=torch.Generator().manual_seed(0)))
+    masks = [(g.keyframes == k) & (g.cameras == c) for k in (0, 1) for c in (0, 1, 2)] + [g.cameras > 9]  # one empty
+    grads = []
+    for split in (True, False):
+        means = g.means.clone().requires_grad_(True)
+        base = dataclasses.replace(g, means=means)
+        parts = _layer_parts(base, masks) if split else [base.index(mask) for mask in masks]
+        assert [len(p) for p in parts] == [int(m.sum()) for m in masks]
+        for part, mask in zip(parts, masks):
+            for f in dataclasses.fields(Gaussians):
+                assert torch.equal(getattr(part, f.name), getattr(g.index(mask), f.name))
+        sum((i + 1.0) * (p.means**2).sum() for i, p in enumerate(parts)).backward()
+        grads.append(means.grad)
+    assert torch.equal(grads[0], grads[1])
