@@ -52,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-sweep", action="store_true", help="without the depth sweep (refinement's stages one by one)")
     p.add_argument("--no-steps", action="store_true", help="without the gradient steps (refinement's stages one by one)")
     add_blend_argument(p)
+    p.add_argument(
+        "--lpips-weight", type=float, default=None, metavar="W", help="the steps' perceptual loss weight (default: refinement's)"
+    )
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
     p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
     p.add_argument("--choices", action="store_true", help="compare the settings' variants at --steps steps instead")
@@ -141,6 +144,8 @@ def stage_config(args, seconds: float):
         config = replace(config, groups=())
     if getattr(args, "blend", None):
         config = replace(config, blend=args.blend)
+    if getattr(args, "lpips_weight", None) is not None:
+        config = replace(config, lpips_weight=args.lpips_weight)
     return config
 
 
@@ -194,6 +199,7 @@ def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
     flags += " --no-sweep" if getattr(args, "no_sweep", False) else ""
     flags += " --no-steps" if getattr(args, "no_steps", False) else ""
     flags += f" --blend {args.blend}" if getattr(args, "blend", None) else ""
+    flags += f" --lpips-weight {args.lpips_weight:g}" if getattr(args, "lpips_weight", None) is not None else ""
     budgets = " ".join(f"{b:g}" for b in args.budgets)
     return (
         f"`drivingscene bench refine --data {args.data} --count {args.count} --budgets {budgets}{flags}` on {machine}, "

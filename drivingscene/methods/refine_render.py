@@ -8,8 +8,9 @@ blend the reconstruction is shown with (``RefineConfig.blend``, by default `DEFA
 layer per input image, weighed by time and by the angle between the cameras' axes), so that the
 steps fit the pictures the user sees, not another rendering of the same Gaussians.
 
-Loss per rendered image, the paper's rendering loss (`models.losses.render_loss`):
-L2 + 0.05 LPIPS over the pixels that see the world (``valid_mask``), and with LiDAR
+Loss per rendered image, the paper's rendering loss (`models.losses.render_loss`) with
+``RefineConfig.lpips_weight`` (by default 0: L2 alone) over the pixels that see the world
+(``valid_mask``), and with LiDAR
 ``lidar_weight`` times the mean |rendered depth - LiDAR depth| / LiDAR depth where there is a
 return (a relative L1: near and far returns count alike).
 

@@ -29,9 +29,9 @@ def test_bench_refine_budgets_and_choices(synth_pair_folder, tiny_weights, tmp_p
     assert "--adapt 1" in md.read_text()
     assert json.loads(js.read_text())["pair_100000.npz"]["3"]["adapt_steps"] == 1  # D adapted, then refined
     # the stages one by one: with neither the sweep nor the steps (nor the adaptation) nothing changes
-    stages = ["--adapt", "0", "--no-sweep", "--no-steps", "--blend", "all"]
+    stages = ["--adapt", "0", "--no-sweep", "--no-steps", "--blend", "all", "--lpips-weight", "0"]
     assert main([*base, "--budgets", "0", "3", *stages, "--out", str(md), "--json", str(js), "--force"]) == 0
-    assert "--adapt 0 --no-sweep --no-steps --blend all" in md.read_text()
+    assert "--adapt 0 --no-sweep --no-steps --blend all --lpips-weight 0" in md.read_text()
     scores = json.loads(js.read_text())["pair_100000.npz"]
     assert scores["3"]["steps"] == 0 and scores["3"]["psnr"] == pytest.approx(scores["0"]["psnr"], abs=1e-3)
     assert {"default", "without the depth sweep", "learning rates x2"} <= set(CHOICES)

@@ -181,6 +181,8 @@ def test_bad_configurations_are_one_line_errors(synth_pair, start):
         (dict(seconds=-1.0), "--refine"),
         (dict(adapt_steps=-2), "--adapt"),
         (dict(groups=("depth", "wings")), "groups"),
+        (dict(lpips_weight=float("nan")), "lpips_weight"),
+        (dict(blend="sideways"), "blend"),
     ):
         with pytest.raises(InputError, match=match):
             RefineConfig(**kwargs)
