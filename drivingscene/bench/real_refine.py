@@ -51,6 +51,15 @@ def add_blend_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--blend", choices=BLEND_MODES, default=None, help=blend_help)
 
 
+def refine_config(args: argparse.Namespace, seconds: float, lidar: bool):
+    """The refinement of one budget as the arguments both refinement benchmarks share choose
+    (``--adapt``, ``--blend``)."""
+    from drivingscene.methods.refine import RefineConfig
+
+    config = RefineConfig(seconds=seconds, lidar=lidar, adapt_steps=args.adapt)
+    return replace(config, blend=args.blend) if args.blend else config
+
+
 def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
     """``gt_depth`` ``[2, V, H, W]`` split into the returns refinement may fit and the held-out ones
     (a checkerboard of ``block`` x ``block`` pixel blocks)."""
@@ -73,18 +82,16 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
     """``(name, fn, extra)`` per refinement row; ``extra``: run once, and where LiDAR is split, the
     pair to score depth on."""
     from drivingscene.methods.feedforward import reconstruct
-    from drivingscene.methods.refine import RefineConfig, refine
+    from drivingscene.methods.refine import refine
 
-    if (args.lidar or args.adapt is not None or getattr(args, "blend", None)) and not args.refine:
+    if (args.lidar or args.adapt is not None or args.blend) and not args.refine:
         from drivingscene.errors import InputError
 
         raise InputError("--lidar/--adapt/--blend: only with --refine SECONDS")
     out = []
     for seconds in args.refine:
         for lidar in (False, True) if args.lidar else (False,):
-            config = RefineConfig(seconds=seconds, lidar=lidar, adapt_steps=args.adapt)
-            if getattr(args, "blend", None):
-                config = replace(config, blend=args.blend)
+            config = refine_config(args, seconds, lidar)
 
             def run(pair, config=config):
                 fit = replace(pair, gt_depth=lidar_halves(pair.gt_depth)[0]) if config.lidar else pair
@@ -93,7 +100,7 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
             extra = {"repeats": 1, "refine": True}
             if lidar:
                 extra["depth_pair"] = lambda pair: replace(pair, gt_depth=lidar_halves(pair.gt_depth)[1])
-            out.append((method_name(seconds, lidar, args.adapt, getattr(args, "blend", None)), run, extra))
+            out.append((method_name(seconds, lidar, args.adapt, args.blend), run, extra))
     return out
 
 

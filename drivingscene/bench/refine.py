@@ -132,19 +132,17 @@ def score_pair(model, pair, args, perceptual) -> dict:
 
 
 def stage_config(args, seconds: float):
-    """The refinement of one budget with the stages and blend the arguments choose."""
+    """The refinement of one budget with the stages, blend and loss the arguments choose."""
     from dataclasses import replace
 
-    from drivingscene.methods.refine import RefineConfig
+    from drivingscene.bench.real_refine import refine_config
 
-    config = RefineConfig(seconds=seconds, lidar=args.lidar, adapt_steps=args.adapt)
-    if getattr(args, "no_sweep", False):
+    config = refine_config(args, seconds, args.lidar)
+    if args.no_sweep:
         config = replace(config, sweep=None)
-    if getattr(args, "no_steps", False):
+    if args.no_steps:
         config = replace(config, groups=())
-    if getattr(args, "blend", None):
-        config = replace(config, blend=args.blend)
-    if getattr(args, "lpips_weight", None) is not None:
+    if args.lpips_weight is not None:
         config = replace(config, lpips_weight=args.lpips_weight)
     return config
 
@@ -196,10 +194,10 @@ def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
     flags = f" --depth-scale {args.depth_scale:g}" if args.depth_scale != 1 else ""
     flags += " --lidar" if args.lidar else ""
     flags += f" --adapt {args.adapt}" if args.adapt is not None else ""
-    flags += " --no-sweep" if getattr(args, "no_sweep", False) else ""
-    flags += " --no-steps" if getattr(args, "no_steps", False) else ""
-    flags += f" --blend {args.blend}" if getattr(args, "blend", None) else ""
-    flags += f" --lpips-weight {args.lpips_weight:g}" if getattr(args, "lpips_weight", None) is not None else ""
+    flags += " --no-sweep" if args.no_sweep else ""
+    flags += " --no-steps" if args.no_steps else ""
+    flags += f" --blend {args.blend}" if args.blend else ""
+    flags += f" --lpips-weight {args.lpips_weight:g}" if args.lpips_weight is not None else ""
     budgets = " ".join(f"{b:g}" for b in args.budgets)
     return (
         f"`drivingscene bench refine --data {args.data} --count {args.count} --budgets {budgets}{flags}` on {machine}, "

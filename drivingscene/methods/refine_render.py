@@ -49,17 +49,15 @@ class ViewSet:
     sky: Tensor  # [2V, 3, h, w] background colour
     valid: Tensor | None  # [2V, h, w] bool
     lidar: Tensor | None  # [2V, h, w] LiDAR depth, 0 where none
-    blend: str = "all"  # how both keyframes' Gaussians combine (`render_gaussians`)
-    axes: Tensor | None = None  # [2, V, 3] input cameras' optical axes, local frame (blend "cameras")
+    blend: str  # how both keyframes' Gaussians combine (`render_gaussians`)
+    axes: Tensor | None  # [2, V, 3] input cameras' optical axes, local frame (blend "cameras")
 
     @property
     def size(self) -> tuple[int, int]:
         return int(self.images.shape[-2]), int(self.images.shape[-1])
 
 
-def view_set(
-    inputs: RefineInputs, sky_sh: Tensor | None, scale: float = 1.0, blend: str = "all", axes: Tensor | None = None
-) -> ViewSet:
+def view_set(inputs: RefineInputs, sky_sh: Tensor | None, scale: float, blend: str, axes: Tensor | None) -> ViewSet:
     """The input views at ``scale`` of their size (area-resized; a pixel is valid where every pixel
     it covers is; a LiDAR return is kept at the nearest return within the pixel), rendered with
     ``blend`` (``axes``: the input cameras' optical axes in the local frame, for "cameras")."""

@@ -433,26 +433,23 @@ def predict_static(model: DrivingSceneModel, batch: PairTensors, depth_images: T
     num_views = batch.num_views
     size = batch.image_size
     net_size = model.config.input_size or size
-    images = batch.images.flatten(0, 1)
-    intrinsics = batch.intrinsics.repeat(2, 1, 1)
-    geometry = view_geometry(batch, net_size)
     if depth_images is not None and (tuple(net_size) != tuple(size) or depth_images.shape != batch.images.shape):
         raise ValueError(
             f"predict_static: depth_images {list(depth_images.shape)} must match the images "
             f"{list(batch.images.shape)} at the networks' input size {list(net_size)}"
         )
+    net_images, net_intrinsics, geometry = _network_inputs(batch, net_size)
     if tuple(net_size) == tuple(size):
         channels_last = None if depth_images is None else depth_images.flatten(0, 1).contiguous(memory_format=torch.channels_last)
-        depth_out, params = model.static(images.contiguous(memory_format=torch.channels_last), intrinsics, geometry, channels_last)
+        depth_out, params = model.static(net_images, net_intrinsics, geometry, channels_last)
         depth = depth_out.depth
     else:
-        small = batch.resized_images(net_size).flatten(0, 1).contiguous(memory_format=torch.channels_last)
-        depth_out, raw = model.static_raw(small, _scaled_intrinsics(intrinsics, size, net_size), geometry)
-        depth = 1.0 / _resize(1.0 / depth_out.depth.float()[:, None], size, "bilinear")[:, 0]
+        depth_out, raw = model.static_raw(net_images, net_intrinsics, geometry)
+        depth = _full_size_depth(depth_out.depth, size)
         # channels-last in, channels-last out: the upsampled [B, H, W, C] view is then contiguous
         raw = raw.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
         raw = _resize(raw, size, "bilinear").permute(0, 2, 3, 1)
-        params = model.gaussian_head.activate(raw, images, depth, intrinsics)
+        params = model.gaussian_head.activate(raw, batch.images.flatten(0, 1), depth, batch.intrinsics.repeat(2, 1, 1))
     return StaticPrediction(depth=depth.unflatten(0, (2, num_views)), depth_output=depth_out, params=params)
 
 
@@ -460,16 +457,28 @@ def predict_depth(model: DrivingSceneModel, batch: PairTensors) -> Tensor:
     """D alone on both keyframes' V images: ``[2, V, H, W]`` z-depth, what `predict_static` returns
     as ``depth`` without running P (test-time adaptation trains D on depth losses only)."""
     size = batch.image_size
-    net_size = model.config.input_size or size
+    net_images, net_intrinsics, geometry = _network_inputs(batch, model.config.input_size or size)
+    depth = model.depth_net(net_images, net_intrinsics, geometry).depth
+    return _full_size_depth(depth, size).unflatten(0, (2, batch.num_views))
+
+
+def _network_inputs(batch: PairTensors, net_size: tuple[int, int]) -> tuple[Tensor, Tensor, ViewGeometry]:
+    """The 2V images (channels-last) and intrinsics at the networks' input size, and D's geometry."""
+    size = batch.image_size
     intrinsics = batch.intrinsics.repeat(2, 1, 1)
-    geometry = view_geometry(batch, net_size)
     if tuple(net_size) == tuple(size):
-        depth = model.depth_net(batch.images.flatten(0, 1).contiguous(memory_format=torch.channels_last), intrinsics, geometry).depth
+        images = batch.images.flatten(0, 1)
     else:
-        small = batch.resized_images(net_size).flatten(0, 1).contiguous(memory_format=torch.channels_last)
-        depth = model.depth_net(small, _scaled_intrinsics(intrinsics, size, net_size), geometry).depth
-        depth = 1.0 / _resize(1.0 / depth.float()[:, None], size, "bilinear")[:, 0]
-    return depth.unflatten(0, (2, batch.num_views))
+        images = batch.resized_images(net_size).flatten(0, 1)
+        intrinsics = _scaled_intrinsics(intrinsics, size, net_size)
+    return images.contiguous(memory_format=torch.channels_last), intrinsics, view_geometry(batch, net_size)
+
+
+def _full_size_depth(depth: Tensor, size: tuple[int, int]) -> Tensor:
+    """D's depth ``[B, h, w]`` at the images' ``size`` (bilinear in inverse depth; as it is at that size)."""
+    if tuple(depth.shape[-2:]) == tuple(size):
+        return depth
+    return 1.0 / _resize(1.0 / depth.float()[:, None], size, "bilinear")[:, 0]
 
 
 def bound_flow(flow: Tensor) -> Tensor:
