@@ -44,6 +44,17 @@ def unit_interval(text: str) -> float:
     return value
 
 
+def fraction(text: str) -> float:
+    """argparse type: a float in (0, 1] (a share of a budget, an image scale)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], found {text!r}") from None
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], found {value:g}")
+    return value
+
+
 def positive_int(text: str) -> int:
     try:
         value = int(text)

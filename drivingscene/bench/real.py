@@ -441,11 +441,13 @@ def run(args: argparse.Namespace) -> int:
         flat[name] = {k: v for k, v in vars(s).items() if k != "figure"}
         print(f"{name}: scored", file=sys.stderr)
     precision = _precision(args)
+    from drivingscene.bench.real_refine import stage_flags
+
     command = "drivingscene bench real " + " ".join(str(p) for p in args.scenes)
     if args.refine:
         command += " --refine " + " ".join(f"{v:g}" for v in args.refine) + (" --lidar" if args.lidar else "")
         command += f" --adapt {args.adapt}" if args.adapt is not None else ""
-        command += f" --blend {args.blend}" if args.blend else ""
+        command += stage_flags(args)
     text = report(scenes, perceptual.name, command, machine_description(), precision)
     if notes:
         text += "\n" + notes

@@ -40,24 +40,41 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="with --refine: adapt D for K steps first (default: refinement's, 15 and none with --lidar; 0: not at all)",
     )
-    add_blend_argument(p)
+    add_stage_arguments(p)
 
 
-def add_blend_argument(p: argparse.ArgumentParser) -> None:
-    """``--blend``: the blend refinement's gradient steps render with (`RefineConfig.blend`)."""
+def add_stage_arguments(p: argparse.ArgumentParser) -> None:
+    """The refinement settings both refinement benchmarks take: ``--blend``, ``--adapt-share`` and
+    ``--adapt-scale`` (`RefineConfig`'s ``blend``, ``adapt_share``, ``adapt_scale``)."""
+    from drivingscene.arguments import fraction
     from drivingscene.gaussians.timing import BLEND_MODES
 
     blend_help = "the blend the gradient steps render with (default: refinement's, the blend the output is shown with)"
     p.add_argument("--blend", choices=BLEND_MODES, default=None, help=blend_help)
+    share_help = "the share of each budget the adaptation of D and its rebuild may take (default: refinement's)"
+    p.add_argument("--adapt-share", type=fraction, default=None, metavar="SHARE", help=share_help)
+    scale_help = "the image scale the adaptation's losses are computed at (default: refinement's)"
+    p.add_argument("--adapt-scale", type=fraction, default=None, metavar="SCALE", help=scale_help)
+
+
+def stage_flags(args: argparse.Namespace) -> str:
+    """The command-line flags of `add_stage_arguments` as given, for a report's command line."""
+    flags = f" --blend {args.blend}" if args.blend else ""
+    flags += f" --adapt-share {args.adapt_share:g}" if args.adapt_share is not None else ""
+    return flags + (f" --adapt-scale {args.adapt_scale:g}" if args.adapt_scale is not None else "")
 
 
 def refine_config(args: argparse.Namespace, seconds: float, lidar: bool):
     """The refinement of one budget as the arguments both refinement benchmarks share choose
-    (``--adapt``, ``--blend``)."""
+    (``--adapt`` and `add_stage_arguments`)."""
     from drivingscene.methods.refine import RefineConfig
 
     config = RefineConfig(seconds=seconds, lidar=lidar, adapt_steps=args.adapt)
-    return replace(config, blend=args.blend) if args.blend else config
+    if args.blend:
+        config = replace(config, blend=args.blend)
+    if args.adapt_scale is not None:
+        config = replace(config, adapt_scale=args.adapt_scale)
+    return replace(config, adapt_share=args.adapt_share) if args.adapt_share is not None else config
 
 
 def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
@@ -69,10 +86,14 @@ def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, 
     return np.where(fit, gt_depth, 0).astype(np.float32), np.where(fit, 0, gt_depth).astype(np.float32)
 
 
-def method_name(seconds: float, lidar: bool = False, adapt: int | None = None, blend: str | None = None) -> str:
+def method_name(
+    seconds: float, lidar: bool = False, adapt: int | None = None, blend: str | None = None, adapt_share: float | None = None
+) -> str:
     name = f"DrivingScene + refine {seconds:g} s"
     if adapt is not None:  # the default's rows carry no label
         name += f" (adapt {adapt})" if adapt else " (no adaptation)"
+    if adapt_share is not None:
+        name += f" (adaptation within {adapt_share:g} of the budget)"
     if blend is not None:
         name += f" (steps in the {blend} blend)"
     return name + (" + LiDAR (half)" if lidar else "")
@@ -84,10 +105,11 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import refine
 
-    if (args.lidar or args.adapt is not None or args.blend) and not args.refine:
+    given = args.adapt_share is not None or args.adapt_scale is not None
+    if (args.lidar or args.adapt is not None or args.blend or given) and not args.refine:
         from drivingscene.errors import InputError
 
-        raise InputError("--lidar/--adapt/--blend: only with --refine SECONDS")
+        raise InputError("--lidar/--adapt/--blend/--adapt-share/--adapt-scale: only with --refine SECONDS")
     out = []
     for seconds in args.refine:
         for lidar in (False, True) if args.lidar else (False,):
@@ -100,7 +122,7 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
             extra = {"repeats": 1, "refine": True}
             if lidar:
                 extra["depth_pair"] = lambda pair: replace(pair, gt_depth=lidar_halves(pair.gt_depth)[1])
-            out.append((method_name(seconds, lidar, args.adapt, args.blend), run, extra))
+            out.append((method_name(seconds, lidar, args.adapt, args.blend, args.adapt_share), run, extra))
     return out
 
 

@@ -28,7 +28,7 @@ from drivingscene.machine import machine_description
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from drivingscene.arguments import non_negative_int, non_negative_seconds
-    from drivingscene.bench.real_refine import add_blend_argument
+    from drivingscene.bench.real_refine import add_stage_arguments
 
     p.add_argument("--data", type=Path, required=True, help="folder of pair_*.npz (e.g. data/val176r)")
     p.add_argument("--count", type=int, default=4, help="pairs to use (default 4)")
@@ -51,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-sweep", action="store_true", help="without the depth sweep (refinement's stages one by one)")
     p.add_argument("--no-steps", action="store_true", help="without the gradient steps (refinement's stages one by one)")
-    add_blend_argument(p)
+    add_stage_arguments(p)
     p.add_argument(
         "--lpips-weight", type=float, default=None, metavar="W", help="the steps' perceptual loss weight (default: refinement's)"
     )
@@ -191,12 +191,14 @@ def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
         lines.append("| " + " | ".join([label[m], *cells]) + " |")
     per = ["| pair | " + " | ".join(label[m] for m in methods) + " |", "|" + "---|" * (len(methods) + 1)]
     per += [f"| {n} | " + " | ".join(_fmt(scores[n][m].get("psnr", math.nan), "{:.2f}") for m in methods) + " |" for n in names]
+    from drivingscene.bench.real_refine import stage_flags
+
     flags = f" --depth-scale {args.depth_scale:g}" if args.depth_scale != 1 else ""
     flags += " --lidar" if args.lidar else ""
     flags += f" --adapt {args.adapt}" if args.adapt is not None else ""
     flags += " --no-sweep" if args.no_sweep else ""
     flags += " --no-steps" if args.no_steps else ""
-    flags += f" --blend {args.blend}" if args.blend else ""
+    flags += stage_flags(args)
     flags += f" --lpips-weight {args.lpips_weight:g}" if args.lpips_weight is not None else ""
     budgets = " ".join(f"{b:g}" for b in args.budgets)
     return (

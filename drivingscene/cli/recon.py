@@ -12,6 +12,7 @@ from drivingscene.arguments import (
     add_amp_arguments,
     add_match_arguments,
     check_output,
+    fraction,
     non_negative_int,
     non_negative_seconds,
     positive_int,
@@ -20,7 +21,8 @@ from drivingscene.errors import InputError
 
 
 def add_refine_arguments(p: argparse.ArgumentParser) -> None:
-    """``--refine SECONDS``, ``--lidar``, ``--adapt K``, ``--refine-steps N`` (docs/refinement.md)."""
+    """``--refine SECONDS``, ``--lidar``, ``--adapt K``, ``--refine-steps N``, ``--adapt-share``,
+    ``--adapt-scale`` (docs/refinement.md)."""
     p.add_argument(
         "--refine",
         type=non_negative_seconds,
@@ -38,6 +40,20 @@ def add_refine_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--refine-steps", type=positive_int, default=None, metavar="N", help="with --refine: at most N gradient steps"
+    )
+    p.add_argument(
+        "--adapt-share",
+        type=fraction,
+        default=None,
+        metavar="SHARE",
+        help="with --refine: the share of the budget the adaptation of D may take (default 0.5; 1: all, for depth)",
+    )
+    p.add_argument(
+        "--adapt-scale",
+        type=fraction,
+        default=None,
+        metavar="SCALE",
+        help="with --refine: the image scale of the adaptation's losses (default 0.5; 1: full size, slower steps)",
     )
 
 
@@ -76,13 +92,23 @@ def refine_config(args: argparse.Namespace):
     from drivingscene.methods.refine import RefineConfig
 
     if args.refine is None:
-        for flag, given in (("--lidar", args.lidar), ("--adapt", args.adapt is not None), ("--refine-steps", args.refine_steps)):
+        flags = (
+            ("--lidar", args.lidar),
+            ("--adapt", args.adapt is not None),
+            ("--refine-steps", args.refine_steps),
+            ("--adapt-share", args.adapt_share is not None),
+            ("--adapt-scale", args.adapt_scale is not None),
+        )
+        for flag, given in flags:
             if given:
                 raise InputError(f"{flag}: only with --refine SECONDS")
         return None
-    return RefineConfig(
+    config = RefineConfig(
         seconds=args.refine, lidar=args.lidar, adapt_steps=args.adapt, max_steps=args.refine_steps, threads=args.threads
     )
+    if args.adapt_share is not None:
+        config = replace(config, adapt_share=args.adapt_share)
+    return replace(config, adapt_scale=args.adapt_scale) if args.adapt_scale is not None else config
 
 
 def register(sub: argparse._SubParsersAction) -> None:

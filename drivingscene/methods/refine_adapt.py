@@ -17,12 +17,13 @@ import statistics
 import time
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.data.tensors import PairTensors
 from drivingscene.geometry.flow import backward_warp, rigid_flow
 from drivingscene.methods.depth_sweep import neighbour_cameras
-from drivingscene.methods.refine_inputs import RefineInputs
+from drivingscene.methods.refine_inputs import RefineInputs, scaled_inputs
 from drivingscene.models.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
 from drivingscene.models.pipeline import predict_depth
 from drivingscene.precision import resolve_amp
@@ -83,7 +84,7 @@ def _lidar_term(depth: Tensor, inputs: RefineInputs) -> Tensor:
 
 def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: float) -> tuple[object, dict]:
     """A copy of ``model`` with D adapted for at most ``config.adapt_steps`` steps, each begun only
-    where it and ``reserve_s`` more still fit in the budget."""
+    where it and ``reserve_s`` more still fit in ``config.adapt_share`` of the budget."""
     adapted = copy.deepcopy(model).eval()  # eval: batch norm keeps its training statistics
     for p in adapted.parameters():
         p.requires_grad_(False)
@@ -93,16 +94,20 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     optimizer = torch.optim.Adam(trainable, lr=config.adapt_lr)
     batch = pair_tensors(inputs)
     amp = resolve_amp(None, "cpu")
+    small = scaled_inputs(inputs, config.adapt_scale)  # where L_loc and L_smooth are computed
+    targets = small.images.flatten(0, 1)
+    world = None if small.valid is None else small.valid.repeat(2, 1, 1)
     times, losses = [], []
     for step in range(config.adapt_steps):
-        if not clock.fits((statistics.median(times) if times else 0.0) + reserve_s):
+        if not clock.fits((statistics.median(times) if times else 0.0) + reserve_s, share=config.adapt_share):
             break
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
             depth = predict_depth(adapted, batch).float()  # D alone: the losses do not reach P
-        targets = inputs.images.flatten(0, 1)
-        world = None if inputs.valid is None else inputs.valid.repeat(2, 1, 1)
-        loss = location_loss(depth, inputs) + SMOOTH_WEIGHT * smoothness_loss(1.0 / depth.flatten(0, 1)[:, None], targets, world)
+        d = depth
+        if small is not inputs:
+            d = F.interpolate(depth.flatten(0, 1)[:, None], size=small.image_size, mode="area")[:, 0].view(2, -1, *small.image_size)
+        loss = location_loss(d, small) + SMOOTH_WEIGHT * smoothness_loss(1.0 / d.flatten(0, 1)[:, None], targets, world)
         if config.lidar and inputs.lidar is not None:
             loss = loss + _lidar_term(depth, inputs)
         optimizer.zero_grad(set_to_none=True)

@@ -8,15 +8,17 @@ precision whatever the world coordinates. The intermediate frames (``eval_*``) a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.geometry.camera import scale_intrinsics
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,26 @@ def refine_inputs(pair: FramePair, lidar: bool = False) -> RefineInputs:
         valid=None if pair.valid_mask is None else torch.from_numpy(pair.valid_mask.copy()),
         lidar=torch.from_numpy(pair.gt_depth.copy()).float() if lidar else None,
     )
+
+
+def scaled_inputs(inputs: RefineInputs, scale: float) -> RefineInputs:
+    """The input views at ``scale`` of their size (at least 4x4): images area-resized, intrinsics
+    scaled, a pixel valid where every pixel it covers is, a LiDAR return kept at the nearest return
+    within the pixel; ``inputs`` itself at their own size."""
+    height, width = inputs.image_size
+    size = (max(4, round(height * scale)), max(4, round(width * scale)))
+    if size == (height, width):
+        return inputs
+    images = F.interpolate(inputs.images.flatten(0, 1), size=size, mode="area").view(2, inputs.num_views, 3, *size)
+    valid = lidar = None
+    if inputs.valid is not None:
+        valid = F.interpolate((~inputs.valid)[:, None].float(), size=size, mode="area")[:, 0] == 0
+    if inputs.lidar is not None:
+        far = torch.where(inputs.lidar > 0, inputs.lidar, torch.full_like(inputs.lidar, 1e9)).flatten(0, 1)
+        lidar = -F.adaptive_max_pool2d(-far[:, None], size)[:, 0]
+        lidar = torch.where(lidar < 1e8, lidar, torch.zeros_like(lidar)).view(2, inputs.num_views, *size)
+    intrinsics = scale_intrinsics(inputs.intrinsics, size[1] / width, size[0] / height)
+    return replace(inputs, images=images, intrinsics=intrinsics, valid=valid, lidar=lidar)
 
 
 def pair_from_reconstruction(recon: Reconstruction) -> FramePair:

@@ -31,19 +31,24 @@ log = logging.getLogger(__name__)
 NEAR_Z = 0.5  # as the model's rigid flow: a static point nearer than this to the other camera has none
 RELIFT_THRESHOLD = 1.0 / 176  # of the image width: the model's dynamic gate, 1 px at its 96x176 input
 # A gradient step in the `cameras` blend (a rasterisation per input image's layer) took 2.5-2.9
-# times as long as an adaptation step (D alone) on 176x320 procedural pairs, with 1 and 2 threads
-# (AMD EPYC, 2026-11-27): the first step's estimate before any step is timed.
+# times as long as an adaptation step (D alone, losses at full size) on 176x320 procedural pairs,
+# with 1 and 2 threads, and 2.3-2.5 times one with the losses at half size (AMD EPYC, 2026-11-27):
+# the first step's estimate before any step is timed.
 STEP_PER_ADAPT_STEP = 3.0
 
 
-def adapt_and_rebuild(model, pair, inputs: RefineInputs, config, clock, report, meta: dict, rebuild_s: float) -> Reconstruction:
+def adapt_and_rebuild(
+    model, pair, recon: Reconstruction, inputs: RefineInputs, config, clock, report, meta: dict, rebuild_s: float
+) -> Reconstruction:
     """Adapt a copy of D to the pair (`refine_adapt`; ``rebuild_s`` of the budget kept for the
-    reconstruction after it), then reconstruct the pair again."""
+    reconstruction after it), then reconstruct the pair again (``recon`` as it is where no step fitted)."""
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine_adapt import adapt_model
 
     adapted, info = adapt_model(model, inputs, config, clock, report, reserve_s=rebuild_s)
     meta["adapt"] = info
+    if not info["steps"]:
+        return recon
     report(clock.fraction, "rebuilding the reconstruction with the adapted networks")
     return reconstruct(adapted, pair)
 

@@ -24,13 +24,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.gaussians.core import Gaussians
-from drivingscene.geometry.camera import scale_intrinsics
 from drivingscene.geometry.se3 import invert_rigid
-from drivingscene.methods.refine_inputs import RefineInputs
+from drivingscene.methods.refine_inputs import RefineInputs, scaled_inputs
 from drivingscene.models.losses import render_loss
 from drivingscene.render.scene import render_gaussians
 from drivingscene.render.sky import ray_directions, sky_colors
@@ -61,22 +59,13 @@ def view_set(inputs: RefineInputs, sky_sh: Tensor | None, scale: float, blend: s
     """The input views at ``scale`` of their size (area-resized; a pixel is valid where every pixel
     it covers is; a LiDAR return is kept at the nearest return within the pixel), rendered with
     ``blend`` (``axes``: the input cameras' optical axes in the local frame, for "cameras")."""
-    height, width = inputs.image_size
-    size = (max(4, round(height * scale)), max(4, round(width * scale)))
-    images = inputs.images.flatten(0, 1)
-    if size != (height, width):
-        images = F.interpolate(images, size=size, mode="area")
-    k = scale_intrinsics(inputs.intrinsics, size[1] / width, size[0] / height).repeat(2, 1, 1)
+    small = scaled_inputs(inputs, scale)
+    size = small.image_size
+    images = small.images.flatten(0, 1)
+    k = small.intrinsics.repeat(2, 1, 1)
     c2l = inputs.cam_to_local.flatten(0, 1)
-    valid = None
-    if inputs.valid is not None:
-        off = F.interpolate((~inputs.valid)[:, None].float(), size=size, mode="area")[:, 0]
-        valid = (off == 0).repeat(2, 1, 1)
-    lidar = None
-    if inputs.lidar is not None:
-        far = torch.where(inputs.lidar > 0, inputs.lidar, torch.full_like(inputs.lidar, 1e9)).flatten(0, 1)
-        lidar = -F.adaptive_max_pool2d(-far[:, None], size)[:, 0]
-        lidar = torch.where(lidar < 1e8, lidar, torch.zeros_like(lidar))
+    valid = None if small.valid is None else small.valid.repeat(2, 1, 1)
+    lidar = None if small.lidar is None else small.lidar.flatten(0, 1)
     if sky_sh is None:
         sky = torch.zeros_like(images)
     else:

@@ -38,6 +38,9 @@ def scenes(tmp_path):
         (["--adapt", "3"], "--adapt: only with --refine"),
         (["--refine", "1", "--adapt", "-2"], "--adapt"),
         (["--refine", "1", "--refine-steps", "0"], "--refine-steps"),
+        (["--adapt-share", "0.5"], "--adapt-share: only with --refine"),
+        (["--refine", "1", "--adapt-share", "0"], "--adapt-share"),
+        (["--refine", "1", "--adapt-scale", "2"], "--adapt-scale"),
     ],
 )
 def test_bad_refine_flags_are_one_line_errors(scenes, tmp_path, capsys, flags, needle):
@@ -64,3 +67,7 @@ def test_refined_reconstruction_is_written(scenes, tmp_path, capsys, tiny_weight
     meta = recon.meta["refinement"]
     assert meta["steps"] == 1 and meta["step_s"] > 0 and meta["budget_s"] == 60
     assert recon.meta["method"] == "drivingscene+refine"
+    # adapting D in all of the budget with full-size losses, then one gradient step
+    assert main([*args, "--refine", "60", "--refine-steps", "1", "--adapt", "1", "--adapt-share", "1", "--adapt-scale", "1", "--force"]) == 0
+    meta = load_reconstruction(out).meta["refinement"]
+    assert meta["adapt"]["steps"] == 1 and meta["steps"] == 1

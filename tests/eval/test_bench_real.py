@@ -79,6 +79,7 @@ def test_bench_real_scores_refined_reconstructions(synth_pair, tiny_weights, tmp
     assert main([*args, "--refine", "1", "--adapt", "0", "--blend", "all", "--out", str(md), "--json", str(js), "--force"]) == 0
     assert "--refine 1 --adapt 0 --blend all" in md.read_text()
     assert method_name(1.0, adapt=0, blend="all") in json.loads(js.read_text())["tiny"]["refine"]
-    assert main([*args, "--blend", "all", "--out", str(md), "--force"]) == 2  # --blend needs --refine
+    for flag, value in (("--blend", "all"), ("--adapt-share", "0.5"), ("--adapt-scale", "0.5")):  # only with --refine
+        assert main([*args, flag, value, "--out", str(md), "--force"]) == 2
     fit, held = lidar_halves(_real_like(synth_pair).gt_depth)
     assert not ((fit > 0) & (held > 0)).any() and np.array_equal(np.maximum(fit, held), _real_like(synth_pair).gt_depth)

@@ -25,8 +25,9 @@ def test_bench_refine_budgets_and_choices(synth_pair_folder, tiny_weights, tmp_p
         assert needle in text
     scores = json.loads(js.read_text())["pair_100000.npz"]
     assert scores["5"]["steps"] >= 1 and scores["0"]["steps"] == 0
-    assert main([*base, "--budgets", "3", "--adapt", "1", "--out", str(md), "--json", str(js), "--force"]) == 0
-    assert "--adapt 1" in md.read_text()
+    adapt = ["--adapt", "1", "--adapt-share", "1", "--adapt-scale", "0.5"]
+    assert main([*base, "--budgets", "3", *adapt, "--out", str(md), "--json", str(js), "--force"]) == 0
+    assert "--adapt 1 --adapt-share 1 --adapt-scale 0.5" in md.read_text()
     assert json.loads(js.read_text())["pair_100000.npz"]["3"]["adapt_steps"] == 1  # D adapted, then refined
     # the stages one by one: with neither the sweep nor the steps (nor the adaptation) nothing changes
     stages = ["--adapt", "0", "--no-sweep", "--no-steps", "--blend", "all", "--lpips-weight", "0"]

@@ -144,6 +144,29 @@ def test_any_stop_leaves_a_valid_reconstruction(synth_pair, start, tmp_path):
     assert 1 <= cancelled.meta["refinement"]["steps"] <= 3
 
 
+def test_scaled_inputs_keep_the_geometry_and_the_masks(pair):
+    """At half size a pixel covers 2x2: its colour their mean, valid only where all four are, its
+    LiDAR the nearest of their returns; a point projects where it did, at half the coordinates."""
+    from drivingscene.methods.refine_inputs import scaled_inputs
+
+    valid = np.ones(pair.image_size, dtype=bool)
+    valid[-5:, :] = False  # an ego body: rows 86-87 of the half-size image touch it
+    inputs = refine_inputs(replace(pair, valid_mask=np.broadcast_to(valid, (pair.num_views, *pair.image_size)).copy()), lidar=True)
+    half = scaled_inputs(inputs, 0.5)
+    h, w = inputs.image_size
+    assert half.image_size == (h // 2, w // 2) and scaled_inputs(inputs, 1.0) is inputs
+    torch.testing.assert_close(half.images[1, 2, :, 3, 4], inputs.images[1, 2, :, 6:8, 8:10].mean((-1, -2)))
+    rows_off = (~half.valid[0]).all(-1)
+    assert rows_off[-3:].all() and not rows_off[:-3].any()  # ceil(5 / 2) rows
+    returns = inputs.lidar[0, 1, 10:12, 20:22]
+    expected = returns[returns > 0].min() if bool((returns > 0).any()) else torch.tensor(0.0)
+    assert float(half.lidar[0, 1, 5, 10]) == float(expected)
+    point = torch.tensor([1.0, -0.5, 10.0])
+    full_px = (inputs.intrinsics[0] @ point)[:2] / 10.0
+    half_px = (half.intrinsics[0] @ point)[:2] / 10.0
+    torch.testing.assert_close(half_px, (full_px + 0.5) * 0.5 - 0.5)  # pixel centres at integers
+
+
 def test_held_out_frames_are_never_read(synth_pair, start):
     config = RefineConfig(max_steps=2, **FAST)
     reference = refine(None, synth_pair, start, config)
@@ -225,7 +248,8 @@ def test_flows_are_lifted_again_with_the_corrected_depth(synth_pair):
     assert made_static == 0 and torch.equal(untouched.flows, local.flows)
 
 
-def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
+def _tiny_model():
+    """An untrained model of the shipped architecture at a small width (fast on a CPU)."""
     from drivingscene.models import DrivingSceneModel, ModelConfig
     from drivingscene.models.depth import DepthConfig
     from drivingscene.models.residual_flow import FlowConfig
@@ -234,7 +258,11 @@ def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
     config = ModelConfig(
         depth=DepthConfig(width=8, decoder_channels=(8, 8, 16, 16, 32)), flow=FlowConfig(channels=(8, 8, 16, 16), hidden=8)
     )
-    model = DrivingSceneModel(config).eval()
+    return DrivingSceneModel(config).eval()
+
+
+def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
+    model = _tiny_model()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     from drivingscene.methods.feedforward import reconstruct
 
@@ -253,6 +281,48 @@ def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
     assert "adapt" not in refine(None, synth_pair, start, config).meta["refinement"]
     assert "adapt" not in refine(model, synth_pair, start, replace(config, adapt_steps=0)).meta["refinement"]
     assert "adapt" not in refine(model, synth_pair, start, replace(config, lidar=True)).meta["refinement"]  # LiDAR: steps first
+
+
+def test_the_adaptation_ends_within_its_share_of_the_budget(synth_pair, monkeypatch):
+    """A step of the adaptation begins only where it ends within ``adapt_share`` of the budget; with
+    no room for one, nothing is adapted and the reconstruction is not rebuilt."""
+    from drivingscene.methods.refine import Clock
+    from drivingscene.methods.refine_adapt import adapt_model
+
+    model = _tiny_model()
+
+    class Ticking(Clock):
+        """A 1000 s budget on which each question about the time left takes 100 s."""
+
+        def __init__(self):
+            super().__init__(1000.0, None)
+            self.ticks = 0
+
+        @property
+        def elapsed(self) -> float:
+            return float(self.ticks)
+
+        def fits(self, step_s: float = 0.0, share: float = 1.0) -> bool:
+            answer = super().fits(step_s, share)
+            self.ticks += 100
+            return answer
+
+    inputs = refine_inputs(synth_pair)
+    report = lambda fraction, message: None  # noqa: E731
+    for share, steps in ((1.0, 3), (0.2, 2), (0.1, 1)):
+        config = RefineConfig(adapt_steps=3, adapt_share=share, **FAST)
+        _, info = adapt_model(model, inputs, config, Ticking(), report, reserve_s=0.0)
+        assert info["steps"] == steps, info
+    start = oracle_reconstruction(synth_pair, refine=0)
+
+    def no_rebuild(*args, **kwargs):
+        raise AssertionError("rebuilt without an adaptation step")
+
+    monkeypatch.setattr("drivingscene.methods.feedforward.reconstruct", no_rebuild)
+    out = refine(model, synth_pair, start, RefineConfig(adapt_steps=3, adapt_share=0.0, max_steps=0, **FAST))
+    assert "adapt" not in out.meta["refinement"]
+    with pytest.raises(InputError, match="adapt_share"):
+        RefineConfig(adapt_share=1.5)
 
 
 def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pair, start):
