@@ -8,7 +8,7 @@ From a feed-forward reconstruction, within a budget of seconds:
    copy of D is adapted to the pair for K self-supervised steps (L_loc + L_smooth at
    ``adapt_scale`` of the image size, `refine_adapt`) and the pair is reconstructed again, both
    within ``adapt_share`` of the budget;
-2. (``sweep``, before ``sweep_share`` of the budget) the depth of every pixel is corrected by a plane sweep over depth, checked across
+2. (``sweep``, before ``sweep_share`` of the budget, and only where D was not adapted) the depth of every pixel is corrected by a plane sweep over depth, checked across
    images, and LiDAR with ``lidar`` (`depth_sweep`): the Gaussians slide along their rays, and the
    dynamic ones' flows are lifted again with the corrected depth;
 3. Adam on the Gaussians' depth along their rays, colours, opacities, scales and the dynamic
@@ -230,7 +230,11 @@ def _refine(model, pair: FramePair, recon: Reconstruction, config: RefineConfig,
         recon = adapt_and_rebuild(model, pair, recon, inputs, config, clock, report, meta, rebuild_s)
     local = recon.gaussians.transform(inputs.world_to_local)
     rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
-    if config.sweep is not None and clock.fits(share=config.sweep_share):
+    # The sweep corrects the model's depth; after an adaptation the depth is the adapted D's, which
+    # the sweep made worse on procedural pairs (docs/refinement.md, *Sharing the budget*), and the
+    # default adaptation leaves it no time before its share ends anyway.
+    adapted = bool((meta.get("adapt") or {}).get("steps"))
+    if config.sweep is not None and not adapted and clock.fits(share=config.sweep_share):
         local = corrected_gaussians(local, rays, inputs, recon, config, clock, report, meta)
         rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
     params = RefineParams(local, rays, tuple(config.groups))

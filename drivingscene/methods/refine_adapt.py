@@ -29,6 +29,11 @@ from drivingscene.models.pipeline import predict_depth
 from drivingscene.precision import resolve_amp
 
 SMOOTH_WEIGHT = 0.01  # L_smooth relative to L_loc (stage 1: 0.001 / 0.1)
+# A gradient step in the `cameras` blend (a rasterisation per input image's layer) took 2.5-2.9
+# times as long as an adaptation step (D alone, losses at full size) on 176x320 procedural pairs,
+# with 1 and 2 threads, and 2.3-2.6 times one with the losses at half size (AMD EPYC, 2026-11-27):
+# the first gradient step's estimate before any is timed.
+STEP_PER_ADAPT_STEP = 3.0
 
 
 def pair_tensors(inputs: RefineInputs) -> PairTensors:
@@ -84,7 +89,9 @@ def _lidar_term(depth: Tensor, inputs: RefineInputs) -> Tensor:
 
 def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: float) -> tuple[object, dict]:
     """A copy of ``model`` with D adapted for at most ``config.adapt_steps`` steps, each begun only
-    where it and ``reserve_s`` more still fit in ``config.adapt_share`` of the budget."""
+    where it and ``reserve_s`` more (the rebuild) still end within ``config.adapt_share`` of the
+    budget, or, past that share, where no gradient step (``STEP_PER_ADAPT_STEP`` adaptation steps)
+    would fit after the rebuild anyway: no part of the budget is left idle that a step could use."""
     adapted = copy.deepcopy(model).eval()  # eval: batch norm keeps its training statistics
     for p in adapted.parameters():
         p.requires_grad_(False)
@@ -99,8 +106,11 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     world = None if small.valid is None else small.valid.repeat(2, 1, 1)
     times, losses = [], []
     for step in range(config.adapt_steps):
-        if not clock.fits((statistics.median(times) if times else 0.0) + reserve_s, share=config.adapt_share):
-            break
+        step_s = statistics.median(times) if times else 0.0
+        if not clock.fits(step_s + reserve_s, share=config.adapt_share):
+            room_for_gradient = config.groups and clock.fits(reserve_s + STEP_PER_ADAPT_STEP * step_s)
+            if room_for_gradient or not clock.fits(step_s + reserve_s):
+                break
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
             depth = predict_depth(adapted, batch).float()  # D alone: the losses do not reach P

@@ -21,6 +21,7 @@ from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
 from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
 from drivingscene.geometry.se3 import invert_rigid, transform_points
 from drivingscene.methods.depth_sweep import corrected_depth
+from drivingscene.methods.refine_adapt import STEP_PER_ADAPT_STEP
 from drivingscene.methods.refine_inputs import RefineInputs
 from drivingscene.methods.refine_params import GaussianRays, RefineParams
 from drivingscene.methods.refine_render import view_set, views_loss
@@ -30,11 +31,6 @@ log = logging.getLogger(__name__)
 
 NEAR_Z = 0.5  # as the model's rigid flow: a static point nearer than this to the other camera has none
 RELIFT_THRESHOLD = 1.0 / 176  # of the image width: the model's dynamic gate, 1 px at its 96x176 input
-# A gradient step in the `cameras` blend (a rasterisation per input image's layer) took 2.5-2.9
-# times as long as an adaptation step (D alone, losses at full size) on 176x320 procedural pairs,
-# with 1 and 2 threads, and 2.3-2.5 times one with the losses at half size (AMD EPYC, 2026-11-27):
-# the first step's estimate before any step is timed.
-STEP_PER_ADAPT_STEP = 3.0
 
 
 def adapt_and_rebuild(

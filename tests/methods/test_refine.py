@@ -281,38 +281,58 @@ def test_adaptation_updates_a_copy_of_d_and_rebuilds(synth_pair, monkeypatch):
     assert "adapt" not in refine(None, synth_pair, start, config).meta["refinement"]
     assert "adapt" not in refine(model, synth_pair, start, replace(config, adapt_steps=0)).meta["refinement"]
     assert "adapt" not in refine(model, synth_pair, start, replace(config, lidar=True)).meta["refinement"]  # LiDAR: steps first
+    # the depth sweep corrects the model's depth, not an adapted D's
+    from drivingscene.methods.depth_sweep import SweepConfig
+
+    swept = replace(config, sweep=SweepConfig(), max_steps=0)
+    assert "sweep" not in refine(model, synth_pair, start, swept).meta["refinement"]
+    assert "sweep" in refine(model, synth_pair, start, replace(swept, adapt_steps=0)).meta["refinement"]
 
 
 def test_the_adaptation_ends_within_its_share_of_the_budget(synth_pair, monkeypatch):
-    """A step of the adaptation begins only where it ends within ``adapt_share`` of the budget; with
-    no room for one, nothing is adapted and the reconstruction is not rebuilt."""
+    """A step of the adaptation begins only where it ends within ``adapt_share`` of the budget, or
+    past that share where no gradient step would fit after it anyway; with no room for any step,
+    nothing is adapted and the reconstruction is not rebuilt."""
+    from drivingscene.methods import refine_adapt
     from drivingscene.methods.refine import Clock
-    from drivingscene.methods.refine_adapt import adapt_model
 
     model = _tiny_model()
 
     class Ticking(Clock):
-        """A 1000 s budget on which each question about the time left takes 100 s."""
+        """A budget on a clock that each reading of the time moves by 50 s: an adaptation step
+        measures 50 s and takes 100 s of the budget."""
 
-        def __init__(self):
-            super().__init__(1000.0, None)
-            self.ticks = 0
+        def __init__(self, seconds: float):
+            super().__init__(seconds, None)
+            self.ticks = 0.0
 
         @property
         def elapsed(self) -> float:
-            return float(self.ticks)
+            return self.ticks
 
-        def fits(self, step_s: float = 0.0, share: float = 1.0) -> bool:
-            answer = super().fits(step_s, share)
-            self.ticks += 100
-            return answer
+        def perf_counter(self) -> float:
+            self.ticks += 50.0
+            return self.ticks
 
     inputs = refine_inputs(synth_pair)
     report = lambda fraction, message: None  # noqa: E731
-    for share, steps in ((1.0, 3), (0.2, 2), (0.1, 1)):
+    # (budget s, share, gradient steps to follow, adaptation steps): a gradient step is estimated
+    # at 3 adaptation steps (150 s)
+    cases = (
+        (1000.0, 1.0, True, 3),  # all three fit
+        (1000.0, 0.2, True, 2),  # the third would end past 200 s
+        (1000.0, 0.1, True, 1),
+        (1000.0, 0.1, False, 3),  # no gradient steps: the adaptation has the budget
+        (220.0, 0.1, True, 2),  # past its share, but no gradient step would fit after 100 s
+    )
+    for seconds, share, gradient, steps in cases:
+        clock = Ticking(seconds)
+        monkeypatch.setattr(refine_adapt, "time", clock)
         config = RefineConfig(adapt_steps=3, adapt_share=share, **FAST)
-        _, info = adapt_model(model, inputs, config, Ticking(), report, reserve_s=0.0)
-        assert info["steps"] == steps, info
+        config = config if gradient else replace(config, groups=())
+        _, info = refine_adapt.adapt_model(model, inputs, config, clock, report, reserve_s=0.0)
+        assert info["steps"] == steps, (seconds, share, gradient, info)
+    monkeypatch.undo()
     start = oracle_reconstruction(synth_pair, refine=0)
 
     def no_rebuild(*args, **kwargs):
