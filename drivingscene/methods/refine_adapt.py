@@ -91,7 +91,8 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     """A copy of ``model`` with D adapted for at most ``config.adapt_steps`` steps, each begun only
     where it and ``reserve_s`` more (the rebuild) still end within ``config.adapt_share`` of the
     budget, or, past that share, where no gradient step (``STEP_PER_ADAPT_STEP`` adaptation steps)
-    would fit after the rebuild anyway: no part of the budget is left idle that a step could use."""
+    would fit after the rebuild anyway: no part of the budget is left idle that a step could use.
+    ``info["left_room"]``: it stopped to leave room for a gradient step (which then runs)."""
     adapted = copy.deepcopy(model).eval()  # eval: batch norm keeps its training statistics
     for p in adapted.parameters():
         p.requires_grad_(False)
@@ -105,11 +106,12 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     targets = small.images.flatten(0, 1)
     world = None if small.valid is None else small.valid.repeat(2, 1, 1)
     times, losses = [], []
+    left_room = False  # stopped to leave a gradient step room after the rebuild
     for step in range(config.adapt_steps):
         step_s = statistics.median(times) if times else 0.0
         if not clock.fits(step_s + reserve_s, share=config.adapt_share):
-            room_for_gradient = config.groups and clock.fits(reserve_s + STEP_PER_ADAPT_STEP * step_s)
-            if room_for_gradient or not clock.fits(step_s + reserve_s):
+            left_room = bool(config.groups) and clock.fits(reserve_s + STEP_PER_ADAPT_STEP * step_s)
+            if left_room or not clock.fits(step_s + reserve_s):
                 break
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
@@ -128,4 +130,5 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
         report(clock.fraction, f"adapting D: step {step + 1}/{config.adapt_steps}, L_loc {losses[-1]:.4f}")
     for p in adapted.parameters():
         p.requires_grad_(False)
-    return adapted, {"steps": len(times), "step_s": round(statistics.median(times), 3) if times else None, "losses": losses}
+    step_s = round(statistics.median(times), 3) if times else None
+    return adapted, {"steps": len(times), "step_s": step_s, "losses": losses, "left_room": left_room}

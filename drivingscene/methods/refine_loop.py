@@ -190,8 +190,11 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
     times, losses = [], []
     # Before any step is timed, the adaptation's step (a forward and backward pass over the pair)
     # scaled by `STEP_PER_ADAPT_STEP` says whether one fits: without it the first step overran 30 s
-    # budgets by up to 3 s once the adaptation had used most of them.
-    first = STEP_PER_ADAPT_STEP * float((meta.get("adapt") or {}).get("step_s") or 0.0)
+    # budgets by up to 3 s once the adaptation had used most of them. Where the adaptation stopped
+    # to leave room for one (by the same estimate), the first step runs: the decision is made once,
+    # before the rebuild, whose time varies.
+    adapt = meta.get("adapt") or {}
+    first = 0.0 if adapt.get("left_room") else STEP_PER_ADAPT_STEP * float(adapt.get("step_s") or 0.0)
     while config.max_steps is None or len(times) < config.max_steps:
         estimate = statistics.median(times) if times else first
         if not clock.fits(estimate):

@@ -316,22 +316,22 @@ def test_the_adaptation_ends_within_its_share_of_the_budget(synth_pair, monkeypa
 
     inputs = refine_inputs(synth_pair)
     report = lambda fraction, message: None  # noqa: E731
-    # (budget s, share, gradient steps to follow, adaptation steps): a gradient step is estimated
-    # at 3 adaptation steps (150 s)
+    # (budget s, share, gradient steps to follow, adaptation steps, stopped to leave room for a
+    # gradient step): a gradient step is estimated at 3 adaptation steps (150 s)
     cases = (
-        (1000.0, 1.0, True, 3),  # all three fit
-        (1000.0, 0.2, True, 2),  # the third would end past 200 s
-        (1000.0, 0.1, True, 1),
-        (1000.0, 0.1, False, 3),  # no gradient steps: the adaptation has the budget
-        (220.0, 0.1, True, 2),  # past its share, but no gradient step would fit after 100 s
+        (1000.0, 1.0, True, 3, False),  # all three fit
+        (1000.0, 0.2, True, 2, True),  # the third would end past 200 s
+        (1000.0, 0.1, True, 1, True),
+        (1000.0, 0.1, False, 3, False),  # no gradient steps: the adaptation has the budget
+        (220.0, 0.1, True, 2, False),  # past its share, but no gradient step would fit after 100 s
     )
-    for seconds, share, gradient, steps in cases:
+    for seconds, share, gradient, steps, left_room in cases:
         clock = Ticking(seconds)
         monkeypatch.setattr(refine_adapt, "time", clock)
         config = RefineConfig(adapt_steps=3, adapt_share=share, **FAST)
         config = config if gradient else replace(config, groups=())
         _, info = refine_adapt.adapt_model(model, inputs, config, clock, report, reserve_s=0.0)
-        assert info["steps"] == steps, (seconds, share, gradient, info)
+        assert info["steps"] == steps and info["left_room"] == left_room, (seconds, share, gradient, info)
     monkeypatch.undo()
     start = oracle_reconstruction(synth_pair, refine=0)
 
@@ -348,7 +348,8 @@ def test_the_adaptation_ends_within_its_share_of_the_budget(synth_pair, monkeypa
 def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pair, start):
     """Before any step is timed, the first must fit in what is left as the adaptation's step times
     `STEP_PER_ADAPT_STEP` (a gradient step renders every layer of the blend)."""
-    from drivingscene.methods.refine_loop import STEP_PER_ADAPT_STEP, gradient_steps
+    from drivingscene.methods.refine_adapt import STEP_PER_ADAPT_STEP
+    from drivingscene.methods.refine_loop import gradient_steps
 
     class OneSecondLeft:
         fraction = 0.9
@@ -360,9 +361,17 @@ def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pa
     local = start.gaussians.transform(inputs.world_to_local)
     rays = gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size)
     config = RefineConfig(max_steps=1, **FAST)
-    cases = ((2.0, 0), (0.9 / STEP_PER_ADAPT_STEP, 1), (1.1 / STEP_PER_ADAPT_STEP, 0), (None, 1))
-    for adapt_step_s, steps in cases:  # no adaptation: the first step always starts
-        meta = {} if adapt_step_s is None else {"adapt": {"steps": 3, "step_s": adapt_step_s}}
+    # (adaptation step s, whether it stopped to leave room for a gradient step, steps); no adaptation:
+    # the first step always starts, and so it does where the adaptation left room for it
+    cases = (
+        (2.0, False, 0),
+        (0.9 / STEP_PER_ADAPT_STEP, False, 1),
+        (1.1 / STEP_PER_ADAPT_STEP, False, 0),
+        (None, False, 1),
+        (2.0, True, 1),
+    )
+    for adapt_step_s, left_room, steps in cases:
+        meta = {} if adapt_step_s is None else {"adapt": {"steps": 3, "step_s": adapt_step_s, "left_room": left_room}}
         params = RefineParams(local, rays, tuple(config.groups))
         gradient_steps(params, inputs, start, config, OneSecondLeft(), lambda fraction, message: None, meta)
         assert meta["steps"] == steps
