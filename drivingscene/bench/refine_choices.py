@@ -24,14 +24,17 @@ CHOICES: dict[str, dict] = {
     "colour only": {"groups": ("color",)},
     "6 views per step, half the steps": {"views_per_step": 6, "steps": 0.5},
     "cosine decay of the rates": {"decay": True},
-    "L2 only (no LPIPS term)": {"lpips_weight": 0.0},
+    "with the paper's LPIPS term (0.05)": {"lpips_weight": 0.05},
     "without the depth sweep": {"sweep": None},
     "adapt D for 5 steps first": {"adapt_steps": 5},
 }
 
 
 def variant_config(name: str, steps: int, lidar: bool = False) -> RefineConfig:
-    kwargs = dict(CHOICES[name])
+    """The variant at ``steps`` gradient steps; D is not adapted unless the variant says so (the
+    variants compare the sweep and the steps, which an adaptation would precede and, for the sweep,
+    replace)."""
+    kwargs = {"adapt_steps": 0, **CHOICES[name]}
     fraction = kwargs.pop("steps", 1.0)
     return RefineConfig(seconds=1e9, max_steps=max(1, round(steps * fraction)), lidar=lidar, **kwargs)
 
@@ -95,13 +98,19 @@ def speed_rows(
         for views in views_list:
             for scale in scale_list:
                 config = RefineConfig(
-                    seconds=1e9, max_steps=steps, sweep=None, views_per_step=views, scales=((0.0, scale),), threads=threads
+                    seconds=1e9,
+                    max_steps=steps,
+                    sweep=None,
+                    adapt_steps=0,
+                    views_per_step=views,
+                    scales=((0.0, scale),),
+                    threads=threads,
                 )
                 times = refine(model, pair, base, config).meta["refinement"]["step_times"][1:]
                 rows.append({"threads": threads, "views": views, "scale": scale, "step_s": statistics.median(times)})
     sweep = []
     for threads in threads_list:
-        config = RefineConfig(seconds=1e9, groups=(), threads=threads)
+        config = RefineConfig(seconds=1e9, groups=(), adapt_steps=0, threads=threads)
         sweep.append({"threads": threads, "seconds": refine(model, pair, base, config).meta["refinement"]["sweep"]["seconds"]})
     return rows + [{"sweep": sweep, "gaussians": len(base.gaussians), "size": list(pair.image_size)}]
 
