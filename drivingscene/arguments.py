@@ -120,6 +120,30 @@ def add_match_arguments(p: argparse.ArgumentParser) -> None:
     group.add_argument("--no-match", dest="match", action="store_const", const="off", help="the same as --match off")
 
 
+def add_adaptation_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """``--adapt-share SHARE`` and ``--adapt-scale SCALE`` (refinement's ``adapt_share`` and
+    ``adapt_scale``; None where not given); ``prefix`` starts their help (e.g. "with --refine: ")."""
+    p.add_argument(
+        "--adapt-share",
+        type=fraction,
+        default=None,
+        metavar="SHARE",
+        help=f"{prefix}the share of the budget the adaptation of D and its rebuild may take (default 0.5; 1: all, for depth)",
+    )
+    p.add_argument(
+        "--adapt-scale",
+        type=fraction,
+        default=None,
+        metavar="SCALE",
+        help=f"{prefix}the image scale the adaptation's losses are computed at (default 0.5; 1: full size, slower steps)",
+    )
+
+
+def adaptation_settings(args: argparse.Namespace) -> dict[str, float]:
+    """The `RefineConfig` fields that `add_adaptation_arguments` set, where given."""
+    return {name: getattr(args, name) for name in ("adapt_share", "adapt_scale") if getattr(args, name) is not None}
+
+
 def add_amp_arguments(p: argparse.ArgumentParser) -> None:
     """``--amp`` / ``--no-amp`` into ``args.amp``: True, False, or None (default: decided per
     machine, drivingscene/precision.py)."""

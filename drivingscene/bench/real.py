@@ -414,6 +414,7 @@ def run(args: argparse.Namespace) -> int:
     import os
     import sys
 
+    from drivingscene.bench.real_refine import stage_flags
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.eval.lpips import load_perceptual
 
@@ -441,8 +442,6 @@ def run(args: argparse.Namespace) -> int:
         flat[name] = {k: v for k, v in vars(s).items() if k != "figure"}
         print(f"{name}: scored", file=sys.stderr)
     precision = _precision(args)
-    from drivingscene.bench.real_refine import stage_flags
-
     command = "drivingscene bench real " + " ".join(str(p) for p in args.scenes)
     if args.refine:
         command += " --refine " + " ".join(f"{v:g}" for v in args.refine) + (" --lidar" if args.lidar else "")

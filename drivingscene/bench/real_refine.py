@@ -46,15 +46,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def add_stage_arguments(p: argparse.ArgumentParser) -> None:
     """The refinement settings both refinement benchmarks take: ``--blend``, ``--adapt-share`` and
     ``--adapt-scale`` (`RefineConfig`'s ``blend``, ``adapt_share``, ``adapt_scale``)."""
-    from drivingscene.arguments import fraction
+    from drivingscene.arguments import add_adaptation_arguments
     from drivingscene.gaussians.timing import BLEND_MODES
 
     blend_help = "the blend the gradient steps render with (default: refinement's, the blend the output is shown with)"
     p.add_argument("--blend", choices=BLEND_MODES, default=None, help=blend_help)
-    share_help = "the share of each budget the adaptation of D and its rebuild may take (default: refinement's)"
-    p.add_argument("--adapt-share", type=fraction, default=None, metavar="SHARE", help=share_help)
-    scale_help = "the image scale the adaptation's losses are computed at (default: refinement's)"
-    p.add_argument("--adapt-scale", type=fraction, default=None, metavar="SCALE", help=scale_help)
+    add_adaptation_arguments(p)
 
 
 def stage_flags(args: argparse.Namespace) -> str:
@@ -67,14 +64,11 @@ def stage_flags(args: argparse.Namespace) -> str:
 def refine_config(args: argparse.Namespace, seconds: float, lidar: bool):
     """The refinement of one budget as the arguments both refinement benchmarks share choose
     (``--adapt`` and `add_stage_arguments`)."""
+    from drivingscene.arguments import adaptation_settings
     from drivingscene.methods.refine import RefineConfig
 
-    config = RefineConfig(seconds=seconds, lidar=lidar, adapt_steps=args.adapt)
-    if args.blend:
-        config = replace(config, blend=args.blend)
-    if args.adapt_scale is not None:
-        config = replace(config, adapt_scale=args.adapt_scale)
-    return replace(config, adapt_share=args.adapt_share) if args.adapt_share is not None else config
+    blend = {"blend": args.blend} if args.blend else {}
+    return RefineConfig(seconds=seconds, lidar=lidar, adapt_steps=args.adapt, **blend, **adaptation_settings(args))
 
 
 def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, np.ndarray]:
@@ -102,11 +96,11 @@ def method_name(
 def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
     """``(name, fn, extra)`` per refinement row; ``extra``: run once, and where LiDAR is split, the
     pair to score depth on."""
+    from drivingscene.arguments import adaptation_settings
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import refine
 
-    given = args.adapt_share is not None or args.adapt_scale is not None
-    if (args.lidar or args.adapt is not None or args.blend or given) and not args.refine:
+    if (args.lidar or args.adapt is not None or args.blend or adaptation_settings(args)) and not args.refine:
         from drivingscene.errors import InputError
 
         raise InputError("--lidar/--adapt/--blend/--adapt-share/--adapt-scale: only with --refine SECONDS")

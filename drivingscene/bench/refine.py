@@ -157,6 +157,8 @@ def _fmt(x: float, fmt: str) -> str:
 
 
 def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
+    from drivingscene.bench.real_refine import stage_flags
+
     names = list(scores)
     methods = list(next(iter(scores.values())))
     label = {
@@ -191,8 +193,6 @@ def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:
         lines.append("| " + " | ".join([label[m], *cells]) + " |")
     per = ["| pair | " + " | ".join(label[m] for m in methods) + " |", "|" + "---|" * (len(methods) + 1)]
     per += [f"| {n} | " + " | ".join(_fmt(scores[n][m].get("psnr", math.nan), "{:.2f}") for m in methods) + " |" for n in names]
-    from drivingscene.bench.real_refine import stage_flags
-
     flags = f" --depth-scale {args.depth_scale:g}" if args.depth_scale != 1 else ""
     flags += " --lidar" if args.lidar else ""
     flags += f" --adapt {args.adapt}" if args.adapt is not None else ""

@@ -9,10 +9,11 @@ from pathlib import Path
 
 from drivingscene.arguments import (
     Progress,
+    adaptation_settings,
+    add_adaptation_arguments,
     add_amp_arguments,
     add_match_arguments,
     check_output,
-    fraction,
     non_negative_int,
     non_negative_seconds,
     positive_int,
@@ -41,20 +42,7 @@ def add_refine_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--refine-steps", type=positive_int, default=None, metavar="N", help="with --refine: at most N gradient steps"
     )
-    p.add_argument(
-        "--adapt-share",
-        type=fraction,
-        default=None,
-        metavar="SHARE",
-        help="with --refine: the share of the budget the adaptation of D may take (default 0.5; 1: all, for depth)",
-    )
-    p.add_argument(
-        "--adapt-scale",
-        type=fraction,
-        default=None,
-        metavar="SCALE",
-        help="with --refine: the image scale of the adaptation's losses (default 0.5; 1: full size, slower steps)",
-    )
+    add_adaptation_arguments(p, prefix="with --refine: ")
 
 
 def _scale(text: str) -> float | str:
@@ -103,12 +91,14 @@ def refine_config(args: argparse.Namespace):
             if given:
                 raise InputError(f"{flag}: only with --refine SECONDS")
         return None
-    config = RefineConfig(
-        seconds=args.refine, lidar=args.lidar, adapt_steps=args.adapt, max_steps=args.refine_steps, threads=args.threads
+    return RefineConfig(
+        seconds=args.refine,
+        lidar=args.lidar,
+        adapt_steps=args.adapt,
+        max_steps=args.refine_steps,
+        threads=args.threads,
+        **adaptation_settings(args),
     )
-    if args.adapt_share is not None:
-        config = replace(config, adapt_share=args.adapt_share)
-    return replace(config, adapt_scale=args.adapt_scale) if args.adapt_scale is not None else config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
