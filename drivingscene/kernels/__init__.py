@@ -26,6 +26,7 @@ from drivingscene.kernels.build import (
     default_build_dir,
     load_extension,
 )
+from drivingscene.kernels.composite import composite_backward, composite_forward
 from drivingscene.kernels.flow import (
     epipolar_parallax,
     fb_consistent,
@@ -52,6 +53,8 @@ __all__ = [
     "available",
     "build_extension",
     "clear_stale_lock",
+    "composite_backward",
+    "composite_forward",
     "default_build_dir",
     "epipolar_parallax",
     "fb_consistent",

@@ -106,7 +106,9 @@ def rasterize(
         pair_ids = find_pairs_cpp(inp, width, height, max_layers)
     else:
         pair_ids = find_pairs_torch(inp, width, height, max_layers)
-    rgb, depth, alpha = composite(pair_ids, s.means2d, s.conics, s.opacities, s.depths, s.colors, backgrounds, width, height)
+    rgb, depth, alpha = composite(
+        pair_ids, s.means2d, s.conics, s.opacities, s.depths, s.colors, backgrounds, width, height, compiled=chosen == "cpp"
+    )
     return RenderOutput(colors=rgb, depths=depth, alphas=alpha)
 
 

@@ -41,7 +41,7 @@ def test_the_build_directory_follows_the_environment(tmp_path, monkeypatch):
 
 
 def test_the_sources_are_the_packaged_csrc_files():
-    assert [s.name for s in build.SOURCES] == ["find_pairs.cpp", "surfels.cpp", "flow.cpp", "matching.cpp"]
+    assert [s.name for s in build.SOURCES] == ["find_pairs.cpp", "composite.cpp", "surfels.cpp", "flow.cpp", "matching.cpp"]
     assert all(s.is_file() and s.parent.name == "csrc" and s.parent.parent.name == "kernels" for s in build.SOURCES)
 
 

@@ -1,0 +1,195 @@
+// Front-to-back compositing over the rasterizer's pair buffer, forward and backward (the compiled
+// path of drivingscene.render.composite._Composite; the torch path there is the reference).
+//
+// Each pixel p (global over cameras: p = (b H + y) W + x) has up to L splat ids in
+// pair_ids[p, :] (front to back, -1 where empty). A splat's row of `packed` holds
+// mean x, mean y, conic a, b, c, opacity, z and C colour channels. Per pixel, with
+// d = (x - mean x, y - mean y):
+//
+//     sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,  raw = opacity exp(-sigma),  alpha = min(raw, 0.99)
+//     w_k = alpha_k T_k,  T_{k+1} = T_k (1 - alpha_k),  T_0 = 1
+//     rgb = sum w c + T_L bg[b],  S = sum w,  depth = sum w z / S (0 where S < 1e-6)
+//
+// Backward (v_k = dL/dw_k; Kerbl et al. 2023, supplementary):
+//     dL/dalpha_k = v_k T_k - (sum_{j>k} v_j w_j + (dL/drgb . bg) T_L) / (1 - alpha_k)
+// with no gradient through alpha where raw > 0.99 (the clamp). The pair finder already applied
+// the cut, the early stop and the layer cap: every listed splat contributes.
+//
+// Pixels are split between threads in contiguous ranges; the gradients of the splat rows go to one
+// buffer per thread (several pixels share a splat), summed at the end, as are the background's.
+// The same operations as the torch path, sums in another order (float rounding; the tests
+// compare both).
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+namespace {
+
+constexpr float kMaxAlpha = 0.99f;
+constexpr float kMinWeightSum = 1e-6f;
+constexpr int64_t kFixed = 7;  // mean x, mean y, conic a, b, c, opacity, z
+
+struct Inputs {
+  at::Tensor packed, backgrounds, ids;
+  int64_t pixels, layers, rows, row, channels, cameras;
+};
+
+Inputs check(const char* name, const at::Tensor& packed_in, const at::Tensor& backgrounds_in, const at::Tensor& ids_in,
+             int64_t width, int64_t height) {
+  TORCH_CHECK(packed_in.dim() == 2 && packed_in.size(1) > kFixed, name, ": expected packed [M, 7 + C]");
+  TORCH_CHECK(backgrounds_in.dim() == 2 && backgrounds_in.size(1) == packed_in.size(1) - kFixed, name,
+              ": expected backgrounds [B, C] with the C of packed");
+  TORCH_CHECK(ids_in.dim() == 2, name, ": expected pair_ids [P, L]");
+  TORCH_CHECK(width > 0 && height > 0 && ids_in.size(0) == backgrounds_in.size(0) * width * height, name,
+              ": expected P = B * H * W pixels");
+  Inputs c{packed_in.to(at::kFloat).contiguous(), backgrounds_in.to(at::kFloat).contiguous(), ids_in.to(at::kInt).contiguous(),
+           ids_in.size(0), ids_in.size(1), packed_in.size(0), packed_in.size(1), packed_in.size(1) - kFixed, backgrounds_in.size(0)};
+  return c;
+}
+
+}  // namespace
+
+std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at::Tensor& backgrounds_in, const at::Tensor& pair_ids,
+                                          int64_t width, int64_t height) {
+  const Inputs c = check("composite_forward", packed_in, backgrounds_in, pair_ids, width, height);
+  at::Tensor rgb = at::empty({c.pixels, c.channels}, c.packed.options());
+  at::Tensor depth = at::empty({c.pixels}, c.packed.options());
+  at::Tensor weight_sum = at::empty({c.pixels}, c.packed.options());
+  const float* packed = c.packed.data_ptr<float>();
+  const float* bgs = c.backgrounds.data_ptr<float>();
+  const int32_t* ids = c.ids.data_ptr<int32_t>();
+  float* o_rgb = rgb.data_ptr<float>();
+  float* o_depth = depth.data_ptr<float>();
+  float* o_ws = weight_sum.data_ptr<float>();
+  const int64_t layers = c.layers, row = c.row, channels = c.channels, image = width * height;
+  at::parallel_for(0, c.pixels, 1024, [&](int64_t begin, int64_t end) {
+    std::vector<float> acc(channels);
+    for (int64_t p = begin; p < end; ++p) {
+      const float u = static_cast<float>(p % width), v = static_cast<float>((p / width) % height);
+      std::fill(acc.begin(), acc.end(), 0.0f);
+      float trans = 1.0f, ws = 0.0f, wz = 0.0f;
+      for (int64_t k = 0; k < layers; ++k) {
+        const int32_t id = ids[p * layers + k];
+        if (id < 0) continue;
+        const float* r = packed + static_cast<int64_t>(id) * row;
+        const float dx = u - r[0], dy = v - r[1];
+        const float sigma = 0.5f * (r[2] * dx * dx + r[4] * dy * dy) + r[3] * dx * dy;
+        const float alpha = std::min(r[5] * std::exp(-sigma), kMaxAlpha);
+        const float w = alpha * trans;
+        trans = trans * (1.0f - alpha);
+        ws += w;
+        wz += w * r[6];
+        for (int64_t ch = 0; ch < channels; ++ch) acc[ch] += w * r[kFixed + ch];
+      }
+      const float* bg = bgs + (p / image) * channels;
+      for (int64_t ch = 0; ch < channels; ++ch) o_rgb[p * channels + ch] = acc[ch] + trans * bg[ch];
+      o_ws[p] = ws;
+      o_depth[p] = ws >= kMinWeightSum ? wz / ws : 0.0f;
+    }
+  });
+  return {rgb, depth, weight_sum};
+}
+
+std::vector<at::Tensor> composite_backward(const at::Tensor& packed_in, const at::Tensor& backgrounds_in, const at::Tensor& pair_ids,
+                                           int64_t width, int64_t height, const at::Tensor& depth_in, const at::Tensor& weight_sum_in,
+                                           const at::Tensor& grad_rgb_in, const at::Tensor& grad_depth_in,
+                                           const at::Tensor& grad_alpha_in) {
+  const Inputs c = check("composite_backward", packed_in, backgrounds_in, pair_ids, width, height);
+  const at::Tensor depth = depth_in.to(at::kFloat).contiguous(), weight_sum = weight_sum_in.to(at::kFloat).contiguous();
+  const at::Tensor grad_rgb = grad_rgb_in.to(at::kFloat).contiguous();
+  const at::Tensor grad_depth = grad_depth_in.to(at::kFloat).contiguous(), grad_alpha = grad_alpha_in.to(at::kFloat).contiguous();
+  TORCH_CHECK(depth.numel() == c.pixels && weight_sum.numel() == c.pixels && grad_depth.numel() == c.pixels &&
+                  grad_alpha.numel() == c.pixels && grad_rgb.numel() == c.pixels * c.channels,
+              "composite_backward: expected depth, weight_sum, grad_depth, grad_alpha [P] and grad_rgb [P, C]");
+  const int64_t layers = c.layers, row = c.row, channels = c.channels, image = width * height;
+  const int threads = std::max(1, at::get_num_threads());
+  // One slice per thread: the splat rows' gradients, then the backgrounds'.
+  const int64_t slice = c.rows * row + c.cameras * channels;
+  at::Tensor buffers = at::zeros({threads, slice}, c.packed.options());
+  const float* packed = c.packed.data_ptr<float>();
+  const float* bgs = c.backgrounds.data_ptr<float>();
+  const int32_t* ids = c.ids.data_ptr<int32_t>();
+  const float* dep = depth.data_ptr<float>();
+  const float* wsum = weight_sum.data_ptr<float>();
+  const float* g_rgb = grad_rgb.data_ptr<float>();
+  const float* g_depth = grad_depth.data_ptr<float>();
+  const float* g_alpha = grad_alpha.data_ptr<float>();
+  float* base = buffers.data_ptr<float>();
+  at::parallel_for(0, c.pixels, 1024, [&](int64_t begin, int64_t end) {
+    float* grads = base + at::get_thread_num() * slice;
+    float* grad_bg = grads + c.rows * row;
+    // per layer of one pixel: alpha, transmittance before it, its weight, raw, exp(-sigma), dx, dy, v
+    std::vector<float> alpha(layers), before(layers), weight(layers), raw(layers), e(layers), ddx(layers), ddy(layers), vk(layers);
+    for (int64_t p = begin; p < end; ++p) {
+      const float u = static_cast<float>(p % width), v = static_cast<float>((p / width) % height);
+      const float* gr = g_rgb + p * channels;
+      const float* bg = bgs + (p / image) * channels;
+      const bool has = wsum[p] >= kMinWeightSum;
+      const float grad_d = has ? g_depth[p] / wsum[p] : 0.0f;
+      float trans = 1.0f;
+      for (int64_t k = 0; k < layers; ++k) {
+        const int32_t id = ids[p * layers + k];
+        if (id < 0) {
+          alpha[k] = 0.0f;
+          before[k] = trans;
+          weight[k] = 0.0f;
+          vk[k] = 0.0f;
+          continue;
+        }
+        const float* r = packed + static_cast<int64_t>(id) * row;
+        const float dx = u - r[0], dy = v - r[1];
+        e[k] = std::exp(-(0.5f * (r[2] * dx * dx + r[4] * dy * dy) + r[3] * dx * dy));
+        raw[k] = r[5] * e[k];
+        alpha[k] = std::min(raw[k], kMaxAlpha);
+        before[k] = trans;
+        weight[k] = alpha[k] * trans;
+        trans = trans * (1.0f - alpha[k]);
+        ddx[k] = dx;
+        ddy[k] = dy;
+        float vv = g_alpha[p] + grad_d * (r[6] - dep[p]);
+        for (int64_t ch = 0; ch < channels; ++ch) vv = vv + gr[ch] * r[kFixed + ch];
+        vk[k] = vv;
+      }
+      float bg_dot = 0.0f;
+      for (int64_t ch = 0; ch < channels; ++ch) {
+        bg_dot += gr[ch] * bg[ch];
+        grad_bg[(p / image) * channels + ch] += gr[ch] * trans;
+      }
+      float behind = bg_dot * trans;  // sum over j > k of v_j w_j, plus the background's share
+      for (int64_t k = layers - 1; k >= 0; --k) {
+        const int32_t id = ids[p * layers + k];
+        if (id < 0) continue;
+        const float* r = packed + static_cast<int64_t>(id) * row;
+        float* g = grads + static_cast<int64_t>(id) * row;
+        const float grad_alpha_k = vk[k] * before[k] - behind / (1.0f - alpha[k]);
+        behind += vk[k] * weight[k];
+        if (raw[k] <= kMaxAlpha) {  // else alpha is clamped: no gradient through it (nor 0 * inf)
+          const float grad_raw = grad_alpha_k;
+          const float grad_sigma = -grad_raw * raw[k];
+          const float dx = ddx[k], dy = ddy[k];
+          g[0] += -grad_sigma * (r[2] * dx + r[3] * dy);
+          g[1] += -grad_sigma * (r[3] * dx + r[4] * dy);
+          g[2] += 0.5f * grad_sigma * dx * dx;
+          g[3] += grad_sigma * dx * dy;
+          g[4] += 0.5f * grad_sigma * dy * dy;
+          g[5] += grad_raw * e[k];
+        }
+        g[6] += weight[k] * grad_d;
+        for (int64_t ch = 0; ch < channels; ++ch) g[kFixed + ch] += weight[k] * gr[ch];
+      }
+    }
+  });
+  const at::Tensor total = buffers.sum(0);
+  return {total.narrow(0, 0, c.rows * row).view({c.rows, row}), total.narrow(0, c.rows * row, c.cameras * channels).view({c.cameras, channels})};
+}
+
+TORCH_LIBRARY_FRAGMENT(drivingscene_render, m) {
+  m.def("composite_forward(Tensor packed, Tensor backgrounds, Tensor pair_ids, int width, int height) -> Tensor[]", &composite_forward);
+  m.def("composite_backward(Tensor packed, Tensor backgrounds, Tensor pair_ids, int width, int height, Tensor depth, "
+        "Tensor weight_sum, Tensor grad_rgb, Tensor grad_depth, Tensor grad_alpha) -> Tensor[]",
+        &composite_backward);
+}
