@@ -29,11 +29,12 @@ from drivingscene.models.pipeline import predict_depth
 from drivingscene.precision import resolve_amp
 
 SMOOTH_WEIGHT = 0.01  # L_smooth relative to L_loc (stage 1: 0.001 / 0.1)
-# A gradient step in the `cameras` blend (a rasterisation per input image's layer) took 2.5-2.9
-# times as long as an adaptation step (D alone, losses at full size) on 176x320 procedural pairs,
-# with 1 and 2 threads, and 2.3-2.6 times one with the losses at half size (AMD EPYC, 2026-11-27):
-# the first gradient step's estimate before any is timed.
-STEP_PER_ADAPT_STEP = 3.0
+# The first gradient step's estimate before any is timed, in adaptation steps. A gradient step in
+# the `cameras` blend (a rasterisation per input image's layer) took 0.9-1.35 times as long as an
+# adaptation step with the losses at half size, on 176x320 procedural pairs and the real DDAD pair,
+# with 1 and 2 threads (AMD EPYC, 2026-11-27, compositing compiled; 2.3-2.6 times before); the
+# first step also builds the views, hence the margin.
+STEP_PER_ADAPT_STEP = 1.5
 
 
 def pair_tensors(inputs: RefineInputs) -> PairTensors:

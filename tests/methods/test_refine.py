@@ -316,6 +316,7 @@ def test_the_adaptation_ends_within_its_share_of_the_budget(synth_pair, monkeypa
 
     inputs = refine_inputs(synth_pair)
     report = lambda fraction, message: None  # noqa: E731
+    monkeypatch.setattr(refine_adapt, "STEP_PER_ADAPT_STEP", 3.0)
     # (budget s, share, gradient steps to follow, adaptation steps, stopped to leave room for a
     # gradient step): a gradient step is estimated at 3 adaptation steps (150 s)
     cases = (
