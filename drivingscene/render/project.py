@@ -43,7 +43,12 @@ class Projection:
 def covariances_3d(quats: Tensor, scales: Tensor) -> Tensor:
     """World covariances ``Σ = R S Sᵀ Rᵀ`` ``[..., 3, 3]`` (m²) from quats ``[..., 4]`` and scales ``[..., 3]`` (m)."""
     rs = quat_to_matrix(quats) * scales[..., None, :]  # [..., 3, 3] = R diag(s)
-    return (rs[..., :, None, :] * rs[..., None, :, :]).sum(-1)  # elementwise: batched 3x3 bmm is slow on CPU
+    r0, r1, r2 = rs.unbind(-2)
+    # the six distinct entries of rs rsᵀ, row by row: batched 3x3 products (bmm or a broadcast
+    # [..., 3, 3, 3]) are several times slower on a CPU, forward and backward
+    xx, yy, zz = (r0 * r0).sum(-1), (r1 * r1).sum(-1), (r2 * r2).sum(-1)
+    xy, xz, yz = (r0 * r1).sum(-1), (r0 * r2).sum(-1), (r1 * r2).sum(-1)
+    return torch.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], -1).unflatten(-1, (3, 3))
 
 
 def project_covariances(
@@ -60,7 +65,7 @@ def project_covariances(
 ) -> Projection:
     """Project Gaussians; all leading dims broadcast (e.g. means ``[1, N, 3]`` with viewmats ``[B, 1, 4, 4]``)."""
     rot = viewmats[..., :3, :3]
-    p_cam = (rot * means[..., None, :]).sum(-1) + viewmats[..., :3, 3]  # [..., 3]
+    p_cam = _times(rot, means) + viewmats[..., :3, 3]  # [..., 3]
     z = p_cam[..., 2]
     in_depth = (z >= near) & (z <= far)
     z_safe = torch.where(in_depth & (z > 0), z, torch.ones_like(z))  # finite values for culled entries
@@ -70,8 +75,8 @@ def project_covariances(
     # Rows of T = J W (J[1, 0] = 0), then Σ2D = T Σ Tᵀ; written out to avoid batched tiny matmuls.
     t0 = j00[..., None] * rot[..., 0, :] + j01[..., None] * rot[..., 1, :] + j02[..., None] * rot[..., 2, :]
     t1 = j11[..., None] * rot[..., 1, :] + j12[..., None] * rot[..., 2, :]
-    cov_t0 = (covars * t0[..., None, :]).sum(-1)  # [..., 3] = Σ t0
-    cov_t1 = (covars * t1[..., None, :]).sum(-1)
+    cov_t0 = _times(covars, t0)  # [..., 3] = Σ t0
+    cov_t1 = _times(covars, t1)
     a = (t0 * cov_t0).sum(-1) + eps2d
     b = (t1 * cov_t0).sum(-1)
     c = (t1 * cov_t1).sum(-1) + eps2d
@@ -83,6 +88,11 @@ def project_covariances(
         radius = 3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.0)))
         radii = torch.where(in_depth & (det > 0) & _touches_image(means2d, radius, width, height), radius, 0.0)
     return Projection(means2d=means2d, conics=conics, depths=z, radii=radii)
+
+
+def _times(matrix: Tensor, vector: Tensor) -> Tensor:
+    """``matrix`` ``[..., 3, 3]`` times ``vector`` ``[..., 3]`` (broadcast), row by row."""
+    return torch.stack([(row * vector).sum(-1) for row in matrix.unbind(-2)], -1)
 
 
 def _touches_image(means2d: Tensor, radius: Tensor, width: int, height: int) -> Tensor:
