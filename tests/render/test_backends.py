@@ -121,3 +121,14 @@ def test_gsplat_is_never_chosen_or_imported_on_cpu():
               torch.eye(4)[None], torch.eye(3)[None], 4, 4)  # fmt: skip
     assert imported_before or "gsplat" not in sys.modules
 
+
+
+def test_compiled_compositing_refuses_splat_ids_beyond_its_rows(cpp_op):
+    packed = torch.rand(4, 10)
+    ids = torch.full((2 * 3, 2), -1, dtype=torch.int32)
+    ids[1, 0] = 4  # one past the last row
+    with pytest.raises(RuntimeError, match="beyond the 4 rows"):
+        kernels.composite_forward(packed, torch.zeros(1, 3), ids, 3, 2)
+    with pytest.raises(RuntimeError, match="beyond the 4 rows"):
+        zeros = torch.zeros(6)
+        kernels.composite_backward(packed, torch.zeros(1, 3), ids, 3, 2, zeros, zeros, torch.zeros(6, 3), zeros, zeros)

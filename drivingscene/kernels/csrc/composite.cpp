@@ -15,15 +15,16 @@
 // with no gradient through alpha where raw > 0.99 (the clamp). The pair finder already applied
 // the cut, the early stop and the layer cap: every listed splat contributes.
 //
-// Pixels are split between threads in contiguous ranges; the gradients of the splat rows go to one
-// buffer per thread (several pixels share a splat), summed at the end, as are the background's.
-// The same operations as the torch path, sums in another order (float rounding; the tests
-// compare both).
+// A splat id beyond packed's rows is an error, never a read outside it. Pixels are split between
+// threads in contiguous ranges; the gradients of the splat rows go to one buffer per thread
+// (several pixels share a splat), summed at the end, as are the background's. The same operations
+// as the torch path, sums in another order (float rounding; the tests compare both).
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <vector>
 
@@ -65,7 +66,8 @@ std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at:
   float* o_rgb = rgb.data_ptr<float>();
   float* o_depth = depth.data_ptr<float>();
   float* o_ws = weight_sum.data_ptr<float>();
-  const int64_t layers = c.layers, row = c.row, channels = c.channels, image = width * height;
+  const int64_t layers = c.layers, row = c.row, channels = c.channels, image = width * height, rows = c.rows;
+  std::atomic<bool> out_of_range{false};
   at::parallel_for(0, c.pixels, 1024, [&](int64_t begin, int64_t end) {
     std::vector<float> acc(channels);
     for (int64_t p = begin; p < end; ++p) {
@@ -75,6 +77,10 @@ std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at:
       for (int64_t k = 0; k < layers; ++k) {
         const int32_t id = ids[p * layers + k];
         if (id < 0) continue;
+        if (id >= rows) {
+          out_of_range = true;
+          continue;
+        }
         const float* r = packed + static_cast<int64_t>(id) * row;
         const float dx = u - r[0], dy = v - r[1];
         const float sigma = 0.5f * (r[2] * dx * dx + r[4] * dy * dy) + r[3] * dx * dy;
@@ -91,6 +97,7 @@ std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at:
       o_depth[p] = ws >= kMinWeightSum ? wz / ws : 0.0f;
     }
   });
+  TORCH_CHECK(!out_of_range, "composite_forward: pair_ids refer to splats beyond the ", rows, " rows of packed");
   return {rgb, depth, weight_sum};
 }
 
@@ -105,7 +112,8 @@ std::vector<at::Tensor> composite_backward(const at::Tensor& packed_in, const at
   TORCH_CHECK(depth.numel() == c.pixels && weight_sum.numel() == c.pixels && grad_depth.numel() == c.pixels &&
                   grad_alpha.numel() == c.pixels && grad_rgb.numel() == c.pixels * c.channels,
               "composite_backward: expected depth, weight_sum, grad_depth, grad_alpha [P] and grad_rgb [P, C]");
-  const int64_t layers = c.layers, row = c.row, channels = c.channels, image = width * height;
+  const int64_t layers = c.layers, row = c.row, channels = c.channels, image = width * height, rows = c.rows;
+  std::atomic<bool> out_of_range{false};
   const int threads = std::max(1, at::get_num_threads());
   // One slice per thread: the splat rows' gradients, then the backgrounds'.
   const int64_t slice = c.rows * row + c.cameras * channels;
@@ -133,7 +141,8 @@ std::vector<at::Tensor> composite_backward(const at::Tensor& packed_in, const at
       float trans = 1.0f;
       for (int64_t k = 0; k < layers; ++k) {
         const int32_t id = ids[p * layers + k];
-        if (id < 0) {
+        if (id >= rows) out_of_range = true;
+        if (id < 0 || id >= rows) {
           alpha[k] = 0.0f;
           before[k] = trans;
           weight[k] = 0.0f;
@@ -162,7 +171,7 @@ std::vector<at::Tensor> composite_backward(const at::Tensor& packed_in, const at
       float behind = bg_dot * trans;  // sum over j > k of v_j w_j, plus the background's share
       for (int64_t k = layers - 1; k >= 0; --k) {
         const int32_t id = ids[p * layers + k];
-        if (id < 0) continue;
+        if (id < 0 || id >= rows) continue;
         const float* r = packed + static_cast<int64_t>(id) * row;
         float* g = grads + static_cast<int64_t>(id) * row;
         const float grad_alpha_k = vk[k] * before[k] - behind / (1.0f - alpha[k]);
@@ -183,6 +192,7 @@ std::vector<at::Tensor> composite_backward(const at::Tensor& packed_in, const at
       }
     }
   });
+  TORCH_CHECK(!out_of_range, "composite_backward: pair_ids refer to splats beyond the ", rows, " rows of packed");
   const at::Tensor total = buffers.sum(0);
   return {total.narrow(0, 0, c.rows * row).view({c.rows, row}), total.narrow(0, c.rows * row, c.cameras * channels).view({c.cameras, channels})};
 }
