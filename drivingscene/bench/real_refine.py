@@ -81,13 +81,22 @@ def lidar_halves(gt_depth: np.ndarray, block: int = BLOCK) -> tuple[np.ndarray, 
 
 
 def method_name(
-    seconds: float, lidar: bool = False, adapt: int | None = None, blend: str | None = None, adapt_share: float | None = None
+    seconds: float,
+    lidar: bool = False,
+    adapt: int | None = None,
+    blend: str | None = None,
+    adapt_share: float | None = None,
+    adapt_scale: float | None = None,
 ) -> str:
+    """A refinement row's name: the budget, then each setting given on the command line (the
+    default's rows carry no label)."""
     name = f"DrivingScene + refine {seconds:g} s"
-    if adapt is not None:  # the default's rows carry no label
+    if adapt is not None:
         name += f" (adapt {adapt})" if adapt else " (no adaptation)"
     if adapt_share is not None:
         name += f" (adaptation within {adapt_share:g} of the budget)"
+    if adapt_scale is not None:
+        name += f" (adaptation's losses at {adapt_scale:g}x)"
     if blend is not None:
         name += f" (steps in the {blend} blend)"
     return name + (" + LiDAR (half)" if lidar else "")
@@ -116,7 +125,8 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
             extra = {"repeats": 1, "refine": True}
             if lidar:
                 extra["depth_pair"] = lambda pair: replace(pair, gt_depth=lidar_halves(pair.gt_depth)[1])
-            out.append((method_name(seconds, lidar, args.adapt, args.blend, args.adapt_share), run, extra))
+            name = method_name(seconds, lidar, args.adapt, args.blend, args.adapt_share, args.adapt_scale)
+            out.append((name, run, extra))
     return out
 
 

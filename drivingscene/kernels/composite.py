@@ -44,4 +44,6 @@ def composite_backward(
 
     CPU tensors (computed in float32). Reference path: ``drivingscene.render.composite._Composite.backward``
     on the torch backend (equal up to float rounding)."""
-    return call("composite_backward", packed, backgrounds, pair_ids, width, height, depth, weight_sum, grad_rgb, grad_depth, grad_alpha)
+    return call(
+        "composite_backward", packed, backgrounds, pair_ids, width, height, depth, weight_sum, grad_rgb, grad_depth, grad_alpha
+    )

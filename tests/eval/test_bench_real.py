@@ -83,3 +83,18 @@ def test_bench_real_scores_refined_reconstructions(synth_pair, tiny_weights, tmp
         assert main([*args, flag, value, "--out", str(md), "--force"]) == 2
     fit, held = lidar_halves(_real_like(synth_pair).gt_depth)
     assert not ((fit > 0) & (held > 0)).any() and np.array_equal(np.maximum(fit, held), _real_like(synth_pair).gt_depth)
+
+
+def test_every_refinement_setting_given_names_its_row():
+    from drivingscene.bench.real_refine import method_name
+
+    names = {
+        method_name(30.0),
+        method_name(30.0, adapt=5),
+        method_name(30.0, blend="all"),
+        method_name(30.0, adapt_share=0.67),
+        method_name(30.0, adapt_scale=1.0),
+        method_name(30.0, adapt_share=0.67, adapt_scale=1.0),
+    }
+    assert len(names) == 6  # rows of different settings never share a name (nor overwrite in the JSON)
+    assert "0.67 of the budget" in method_name(30.0, adapt_share=0.67) and "losses at 1x" in method_name(30.0, adapt_scale=1.0)
