@@ -63,6 +63,7 @@ class Variant:
     fdisp: float | None = None  # MatchedDepthConfig.fallback_dispersion (0: every camera matched again)
     rig: bool | None = None  # MatchedDepthConfig.cross: the stereo across the rig on (the default) or off
     fuse: str | None = None  # MatchedDepthConfig.fuse
+    replace: bool | None = None  # MatchedDepthConfig.replace: determined pixels take the triangulated depth
     pdepth: str | None = None  # LiftConfig.epipolar_depth
     ptex: float | None = None  # LiftConfig.epipolar_min_texture
 
@@ -87,6 +88,7 @@ class Variant:
                 ("prior_preset", self.pmatch),
                 ("fallback_dispersion", self.fdisp),
                 ("fuse", self.fuse),
+                ("replace", self.replace),
             )
             for name, value in changes:
                 if value is not None:
@@ -134,7 +136,7 @@ def _nanmean(values: list[float]) -> float:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, bonus, region, unseen, unseenpx."""
+    windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
@@ -154,7 +156,7 @@ def parse_variant(text: str) -> Variant:
             values["unseen"] = value == "static"
         elif key == "unseenpx" and _is_number(value) and float(value) >= 0:
             values["unseen_px"] = float(value)
-        elif key in ("photo", "parallax", "head", "rig") and value in ("on", "off"):
+        elif key in ("photo", "parallax", "head", "rig", "replace") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
             values["match"] = value
@@ -183,7 +185,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

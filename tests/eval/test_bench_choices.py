@@ -47,7 +47,8 @@ def test_variant_options_change_only_what_they_name():
     assert replace(forced, fallback_dispersion=base.match.fallback_dispersion, prior_preset=base.match.prior_preset) == base.match
     assert parse_variant("rig=off").options(base).match == replace(base.match, cross=None)
     assert parse_variant("rig=on").options(base).match == base.match and base.match.cross is not None
-    for bad in ("pmatch=off", "fdisp=-1", "rig=maybe"):
+    assert parse_variant("replace=off").options(base).match == replace(base.match, replace=False) and base.match.replace
+    for bad in ("pmatch=off", "fdisp=-1", "rig=maybe", "replace=maybe"):
         with pytest.raises(InputError, match=f"'{bad}'"):
             parse_variant(bad)
     with pytest.raises(InputError, match="'unseenpx=-1'"):
