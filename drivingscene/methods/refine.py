@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -91,10 +90,11 @@ class RefineConfig:
     lidar_weight: float = 0.1  # weight of the relative L1 depth term
     sweep: SweepConfig | None = field(default_factory=SweepConfig)  # None: no depth correction
     sweep_share: float = 0.5  # the sweep stops (depth unchanged) past this share of the budget
-    # CPU threads while refining; None: 1 when other jobs keep the CPU busy (1-minute load average of
-    # 1 or more), else torch's default. Refinement's tensors are small (a few views, 0.1-1 M
+    # CPU threads while refining; None: each phase times its steps on torch's threads and on one and
+    # keeps the faster (`ThreadChoice`). Refinement's tensors are small (a few views, 0.1-1 M
     # Gaussians): on these shared 2-core machines two threads stall on each other whenever another
-    # job holds a core (measured: 19-28 s per step with 2 threads against 2.4 s with 1, load 4).
+    # job holds a core (measured: 2.9 s per step with 2 threads against 1.1 s with 1 beside one
+    # busy process; 0.7 s against 1.1 s on the quiet machine).
     threads: int | None = None
     # Self-supervised steps on D before rebuilding (`refine_adapt`). None: `DEFAULT_ADAPT_STEPS`
     # where the model is given and ``lidar`` is off, else none (a saved reconstruction refined on
@@ -210,11 +210,47 @@ def refine(
 
 
 def refine_threads(config: RefineConfig) -> int:
-    """The threads refinement runs on (``RefineConfig.threads``)."""
-    if config.threads is not None:
-        return config.threads
-    busy = hasattr(os, "getloadavg") and os.getloadavg()[0] >= 1.0
-    return 1 if busy else torch.get_num_threads()
+    """The threads refinement starts on (``RefineConfig.threads``, else torch's; with None each
+    phase then chooses by timing, `ThreadChoice`)."""
+    return config.threads if config.threads is not None else torch.get_num_threads()
+
+
+class ThreadChoice:
+    """The threads of one phase's steps (the adaptation's, the gradient steps'), chosen by timing
+    where ``RefineConfig.threads`` is None: the phase's first step runs on torch's threads (a
+    warm-up: caches, allocations), the second on one thread, the third on torch's again, and the
+    faster of those two runs the rest. Refinement's tensors are small: on a quiet 2-core machine two
+    threads made a step 1.6 times faster than one, but with one other busy process 2.8 times slower
+    (docs/refinement.md, *Seconds per step*), and neither the load average (which counts this
+    process too) nor the core count tells the two apart beforehand. With one thread to start with
+    there is nothing to choose."""
+
+    def __init__(self, many: int):
+        self.many = max(1, int(many))
+        self.trials: dict[int, float] = {}
+        self.steps = 0
+        self.chosen: int | None = None if self.many > 1 else 1
+
+    def threads(self) -> int:
+        """The threads of the next step."""
+        if self.chosen is not None:
+            return self.chosen
+        return 1 if self.steps == 1 else self.many
+
+    def record(self, threads: int, seconds: float) -> None:
+        """A step's time on ``threads``; after the two trials the faster setting is kept (ties: one thread)."""
+        if self.chosen is None and self.steps >= 1:
+            self.trials[threads] = seconds
+            if len(self.trials) == 2:
+                self.chosen = min(sorted(self.trials), key=self.trials.get)
+        self.steps += 1
+
+    def begin_step(self) -> int:
+        """Set torch's threads for the next step; returns them."""
+        threads = self.threads()
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+        return threads
 
 
 def _refine(model, pair: FramePair, recon: Reconstruction, config: RefineConfig, progress, should_stop) -> Reconstruction:

@@ -23,6 +23,7 @@ from torch import Tensor
 from drivingscene.data.tensors import PairTensors
 from drivingscene.geometry.flow import backward_warp, rigid_flow
 from drivingscene.methods.depth_sweep import neighbour_cameras
+from drivingscene.methods.refine import ThreadChoice
 from drivingscene.methods.refine_inputs import RefineInputs, scaled_inputs
 from drivingscene.models.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
 from drivingscene.models.pipeline import predict_depth
@@ -108,12 +109,14 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     world = None if small.valid is None else small.valid.repeat(2, 1, 1)
     times, losses = [], []
     left_room = False  # stopped to leave a gradient step room after the rebuild
+    choice = ThreadChoice(torch.get_num_threads()) if config.threads is None else None
     for step in range(config.adapt_steps):
         step_s = statistics.median(times) if times else 0.0
         if not clock.fits(step_s + reserve_s, share=config.adapt_share):
             left_room = bool(config.groups) and clock.fits(reserve_s + STEP_PER_ADAPT_STEP * step_s)
             if left_room or not clock.fits(step_s + reserve_s):
                 break
+        threads = choice.begin_step() if choice is not None else None
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
             depth = predict_depth(adapted, batch).float()  # D alone: the losses do not reach P
@@ -127,9 +130,13 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
         loss.backward()
         optimizer.step()
         times.append(time.perf_counter() - start)
+        if choice is not None:
+            choice.record(threads, times[-1])
         losses.append(round(float(loss.detach()), 5))
         report(clock.fraction, f"adapting D: step {step + 1}/{config.adapt_steps}, L_loc {losses[-1]:.4f}")
     for p in adapted.parameters():
         p.requires_grad_(False)
     step_s = round(statistics.median(times), 3) if times else None
-    return adapted, {"steps": len(times), "step_s": step_s, "losses": losses, "left_room": left_room}
+    info = {"steps": len(times), "step_s": step_s, "losses": losses, "left_room": left_room}
+    info["threads"] = torch.get_num_threads() if choice is None else choice.chosen or choice.threads()
+    return adapted, info

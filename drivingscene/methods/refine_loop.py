@@ -21,6 +21,7 @@ from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
 from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
 from drivingscene.geometry.se3 import invert_rigid, transform_points
 from drivingscene.methods.depth_sweep import corrected_depth
+from drivingscene.methods.refine import ThreadChoice
 from drivingscene.methods.refine_adapt import STEP_PER_ADAPT_STEP
 from drivingscene.methods.refine_inputs import RefineInputs
 from drivingscene.methods.refine_params import GaussianRays, RefineParams
@@ -195,8 +196,11 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
     # before the rebuild, whose time varies.
     adapt = meta.get("adapt") or {}
     first = 0.0 if adapt.get("left_room") else STEP_PER_ADAPT_STEP * float(adapt.get("step_s") or 0.0)
+    choice = ThreadChoice(torch.get_num_threads()) if config.threads is None else None
+    threads_of: list[int] = []  # each step's threads: the estimate follows the chosen setting's steps
     while config.max_steps is None or len(times) < config.max_steps:
-        estimate = statistics.median(times) if times else first
+        chosen = [t for t, n in zip(times, threads_of) if choice is None or choice.chosen in (None, n)]
+        estimate = statistics.median(chosen or times) if times else first
         if not clock.fits(estimate):
             break
         start = time.perf_counter()
@@ -209,6 +213,7 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
         if scale not in cache:
             cache[scale] = view_set(inputs, recon.sky_sh, scale, config.blend, local_axes(recon, inputs))
         index = next(batches)
+        threads_of.append(choice.begin_step() if choice is not None else torch.get_num_threads())
         gaussians = params.gaussians()
         if visible is not None:
             gaussians = gaussians.index(visible)
@@ -230,10 +235,13 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
             log.warning("refine: a step produced non-finite values; keeping the previous step")
             break
         times.append(time.perf_counter() - start)
+        if choice is not None:
+            choice.record(threads_of[-1], times[-1])
         losses.append(float(loss.detach()))
         report(clock.fraction, f"step {len(times)}: loss {losses[-1]:.4f} at {scale:g}x, {times[-1]:.2f} s per step")
         log.debug("refine step %d: %s", len(times), terms)
     meta.update(
+        threads=(choice.chosen or choice.threads()) if choice is not None and times else torch.get_num_threads(),
         steps=len(times),
         step_s=round(statistics.median(times), 3) if times else None,
         step_times=[round(t, 3) for t in times],

@@ -376,3 +376,48 @@ def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pa
         params = RefineParams(local, rays, tuple(config.groups))
         gradient_steps(params, inputs, start, config, OneSecondLeft(), lambda fraction, message: None, meta)
         assert meta["steps"] == steps
+
+
+def test_thread_choice_keeps_the_faster_of_one_thread_and_many():
+    from drivingscene.methods.refine import ThreadChoice
+
+    for many_s, one_s, chosen in ((3.0, 1.0, 1), (0.5, 1.0, 4), (1.0, 1.0, 1)):
+        choice = ThreadChoice(4)
+        seen = []
+        for _ in range(6):
+            threads = choice.threads()
+            seen.append(threads)
+            choice.record(threads, one_s if threads == 1 else many_s)
+        # a warm-up on many, a trial on one, a trial on many, then the faster (ties: one thread)
+        assert seen == [4, 1, 4, chosen, chosen, chosen] and choice.chosen == chosen
+    single = ThreadChoice(1)
+    assert single.threads() == 1 and single.chosen == 1
+
+
+def test_the_gradient_steps_run_on_the_threads_their_timing_chose(synth_pair, start, monkeypatch):
+    """With ``threads=None`` the steps try torch's threads and one, then keep the faster: on a fake
+    clock where a step on two threads takes three times as long, the rest run on one; the reverse
+    keeps two. Refinement leaves torch's threads as they were."""
+    from drivingscene.methods import refine_loop
+
+    class ThreadTimedClock:
+        def __init__(self, slow_threads: int):
+            self.now, self.slow = 0.0, slow_threads
+
+        def perf_counter(self) -> float:  # each step reads it twice: its cost is the second advance
+            self.now += 3.0 if torch.get_num_threads() == self.slow else 1.0
+            return self.now
+
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for slow, chosen in ((2, 1), (1, 2)):
+            monkeypatch.setattr(refine_loop, "time", ThreadTimedClock(slow))
+            config = RefineConfig(**dict(FAST, threads=None, max_steps=5))
+            out = refine(None, synth_pair, start, config)
+            meta = out.meta["refinement"]
+            assert meta["steps"] == 5 and meta["threads"] == chosen, meta
+            assert meta["step_times"][3:] == [1.0, 1.0]  # the chosen setting's steps
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads_before)
