@@ -20,7 +20,7 @@ def composite_forward(
     ``[P]``, float32 (P = B * H * W, pixels row-major per camera).
 
     CPU tensors (computed in float32); no autograd (``composite_backward`` is the backward).
-    Reference path: ``drivingscene.render.composite._Composite.forward`` on the torch backend (the
+    Reference path: ``drivingscene.render.composite.composite_torch`` (the
     same operations, sums in another order: equal up to float rounding)."""
     return call("composite_forward", packed, backgrounds, pair_ids, width, height)
 
@@ -42,8 +42,8 @@ def composite_backward(
     ``[B, C]``, float32: per pixel the 3DGS backward (no gradient through alpha where it is
     clamped at 0.99), the rows' gradients summed over the pixels that use them.
 
-    CPU tensors (computed in float32). Reference path: ``drivingscene.render.composite._Composite.backward``
-    on the torch backend (equal up to float rounding)."""
+    CPU tensors (computed in float32). Reference path:
+    ``drivingscene.render.composite.composite_backward_torch`` (equal up to float rounding)."""
     return call(
         "composite_backward", packed, backgrounds, pair_ids, width, height, depth, weight_sum, grad_rgb, grad_depth, grad_alpha
     )

@@ -138,5 +138,5 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
         p.requires_grad_(False)
     step_s = round(statistics.median(times), 3) if times else None
     info = {"steps": len(times), "step_s": step_s, "losses": losses, "left_room": left_room}
-    info["threads"] = torch.get_num_threads() if choice is None else choice.chosen or choice.threads()
+    info["threads"] = torch.get_num_threads() if choice is None else choice.threads()
     return adapted, info

@@ -241,7 +241,7 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
         report(clock.fraction, f"step {len(times)}: loss {losses[-1]:.4f} at {scale:g}x, {times[-1]:.2f} s per step")
         log.debug("refine step %d: %s", len(times), terms)
     meta.update(
-        threads=(choice.chosen or choice.threads()) if choice is not None and times else torch.get_num_threads(),
+        threads=choice.threads() if choice is not None and times else torch.get_num_threads(),
         steps=len(times),
         step_s=round(statistics.median(times), 3) if times else None,
         step_times=[round(t, 3) for t in times],

@@ -220,8 +220,7 @@ def composite(
     if packed.shape[0] == 0:
         packed = packed.new_zeros(1, packed.shape[1])
     compiled = compiled and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (packed, backgrounds))
-    function = _CompiledComposite if compiled else _Composite
-    rgb, depth, alpha = function.apply(packed, backgrounds, pair_ids, width, height)
+    rgb, depth, alpha = _Composite.apply(packed, backgrounds, pair_ids, width, height, compiled)
     return (
         rgb.reshape(num_cams, height, width, channels),
         depth.reshape(num_cams, height, width),
@@ -238,53 +237,84 @@ def _pixel_chunks(pair_ids: Tensor):
 
 
 class _Composite(torch.autograd.Function):
-    """Front-to-back compositing over ``[P, L]`` gathered splats with a hand-written backward.
-
-    Backward (Kerbl et al. 2023, supplementary; ``v_k = dL/dw_k``, ``T_k`` transmittance before k):
-    ``dL/dalpha_k = v_k T_k - (sum_{j>k} v_j w_j + (dL/drgb . bg) T_L) / (1 - alpha_k)``.
-    Both passes run over blocks of pixels so that the ``[pixels, layers]`` temporaries stay in cache.
+    """Front-to-back compositing over ``[P, L]`` gathered splats with a hand-written backward, by
+    the compiled kernels (``compiled``) or by torch (`composite_torch`, `composite_backward_torch`:
+    the reference). Backward (Kerbl et al. 2023, supplementary; ``v_k = dL/dw_k``, ``T_k``
+    transmittance before k): ``dL/dalpha_k = v_k T_k - (sum_{j>k} v_j w_j + (dL/drgb . bg) T_L) / (1 - alpha_k)``.
     """
 
     @staticmethod
-    def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int):
-        num_pixels, channels = pair_ids.shape[0], backgrounds.shape[1]
-        rgb = packed.new_empty(num_pixels, channels)
-        depth = packed.new_empty(num_pixels)
-        weight_sum = packed.new_empty(num_pixels)
-        for start, ids in _pixel_chunks(pair_ids):
-            g = _gather(packed, backgrounds, ids, start, width, height)
-            trans = torch.cumprod(1.0 - g.alpha, dim=1)  # [p, L] after each layer
-            weights = g.alpha * torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
-            end = start + len(ids)
-            ws = weights.sum(1)
-            weight_sum[start:end] = ws
-            rgb[start:end] = torch.stack([(weights * c).sum(1) for c in g.colors], dim=-1) + trans[:, -1:] * g.bg
-            has = ws >= MIN_WEIGHT_SUM
-            depth[start:end] = torch.where(has, (weights * g.z).sum(1) / torch.where(has, ws, torch.ones_like(ws)), 0.0)
+    def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int, compiled: bool):
+        forward = kernels.composite_forward if compiled else composite_torch
+        rgb, depth, weight_sum = forward(packed, backgrounds, pair_ids, width, height)
         ctx.save_for_backward(packed, backgrounds, pair_ids, depth, weight_sum)
-        ctx.size = (width, height)
+        ctx.size, ctx.compiled = (width, height), compiled
         return rgb, depth, weight_sum
 
     @staticmethod
     def backward(ctx, grad_rgb: Tensor, grad_depth: Tensor, grad_alpha: Tensor):
+        backward = kernels.composite_backward if ctx.compiled else composite_backward_torch
         packed, backgrounds, pair_ids, depth, weight_sum = ctx.saved_tensors
-        grad_packed = torch.zeros_like(packed)
-        has = weight_sum >= MIN_WEIGHT_SUM
-        grad_d = torch.where(has, grad_depth / torch.where(has, weight_sum, torch.ones_like(weight_sum)), 0.0)
-        trans_final = torch.empty_like(weight_sum)
-        for start, ids in _pixel_chunks(pair_ids):
-            end = start + len(ids)
-            g = _gather(packed, backgrounds, ids, start, *ctx.size)
-            trans = torch.cumprod(1.0 - g.alpha, dim=1)
-            trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
-            trans_final[start:end] = trans[:, -1]
-            grads = _chunk_grads(
-                g, trans_before, trans[:, -1], grad_rgb[start:end], grad_d[start:end], grad_alpha[start:end], depth[start:end]
-            )
-            grad_packed.index_add_(0, ids.clamp(min=0).reshape(-1), grads.flatten(0, 1))
-        num_cams, channels = backgrounds.shape
-        grad_bg = (grad_rgb * trans_final[:, None]).reshape(num_cams, -1, channels).sum(1)
-        return grad_packed, grad_bg, None, None, None
+        grad_packed, grad_bg = backward(
+            packed, backgrounds, pair_ids, *ctx.size, depth, weight_sum, grad_rgb, grad_depth, grad_alpha
+        )
+        return grad_packed, grad_bg, None, None, None, None
+
+
+def composite_torch(
+    packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The torch compositing (`kernels.composite_forward`'s reference): colours ``[P, C]``, depth and
+    accumulated alpha ``[P]``, over blocks of pixels so that the ``[pixels, layers]`` temporaries
+    stay in cache."""
+    num_pixels, channels = pair_ids.shape[0], backgrounds.shape[1]
+    rgb = packed.new_empty(num_pixels, channels)
+    depth = packed.new_empty(num_pixels)
+    weight_sum = packed.new_empty(num_pixels)
+    for start, ids in _pixel_chunks(pair_ids):
+        g = _gather(packed, backgrounds, ids, start, width, height)
+        trans = torch.cumprod(1.0 - g.alpha, dim=1)  # [p, L] after each layer
+        weights = g.alpha * torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+        end = start + len(ids)
+        ws = weights.sum(1)
+        weight_sum[start:end] = ws
+        rgb[start:end] = torch.stack([(weights * c).sum(1) for c in g.colors], dim=-1) + trans[:, -1:] * g.bg
+        has = ws >= MIN_WEIGHT_SUM
+        depth[start:end] = torch.where(has, (weights * g.z).sum(1) / torch.where(has, ws, torch.ones_like(ws)), 0.0)
+    return rgb, depth, weight_sum
+
+
+def composite_backward_torch(
+    packed: Tensor,
+    backgrounds: Tensor,
+    pair_ids: Tensor,
+    width: int,
+    height: int,
+    depth: Tensor,
+    weight_sum: Tensor,
+    grad_rgb: Tensor,
+    grad_depth: Tensor,
+    grad_alpha: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """The torch backward (`kernels.composite_backward`'s reference): gradients of ``packed`` and
+    ``backgrounds``, block by block as `composite_torch`."""
+    grad_packed = torch.zeros_like(packed)
+    has = weight_sum >= MIN_WEIGHT_SUM
+    grad_d = torch.where(has, grad_depth / torch.where(has, weight_sum, torch.ones_like(weight_sum)), 0.0)
+    trans_final = torch.empty_like(weight_sum)
+    for start, ids in _pixel_chunks(pair_ids):
+        end = start + len(ids)
+        g = _gather(packed, backgrounds, ids, start, width, height)
+        trans = torch.cumprod(1.0 - g.alpha, dim=1)
+        trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+        trans_final[start:end] = trans[:, -1]
+        grads = _chunk_grads(
+            g, trans_before, trans[:, -1], grad_rgb[start:end], grad_d[start:end], grad_alpha[start:end], depth[start:end]
+        )
+        grad_packed.index_add_(0, ids.clamp(min=0).reshape(-1), grads.flatten(0, 1))
+    num_cams, channels = backgrounds.shape
+    grad_bg = (grad_rgb * trans_final[:, None]).reshape(num_cams, -1, channels).sum(1)
+    return grad_packed, grad_bg
 
 
 def _chunk_grads(
@@ -315,25 +345,6 @@ def _chunk_grads(
         + [weights * grad_rgb[:, ch : ch + 1] for ch in range(len(g.colors))]
     )
     return torch.stack(grads, -1)
-
-
-class _CompiledComposite(torch.autograd.Function):
-    """`_Composite` by the compiled kernels: one pass per pixel over its splats, forward and backward."""
-
-    @staticmethod
-    def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int):
-        rgb, depth, weight_sum = kernels.composite_forward(packed, backgrounds, pair_ids, width, height)
-        ctx.save_for_backward(packed, backgrounds, pair_ids, depth, weight_sum)
-        ctx.size = (width, height)
-        return rgb, depth, weight_sum
-
-    @staticmethod
-    def backward(ctx, grad_rgb: Tensor, grad_depth: Tensor, grad_alpha: Tensor):
-        packed, backgrounds, pair_ids, depth, weight_sum = ctx.saved_tensors
-        grad_packed, grad_bg = kernels.composite_backward(
-            packed, backgrounds, pair_ids, *ctx.size, depth, weight_sum, grad_rgb, grad_depth, grad_alpha
-        )
-        return grad_packed, grad_bg, None, None, None
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,7 @@ def _pair_buffer(num_pixels: int, layers: int, num_splats: int, seed: int) -> to
 
 
 def test_compiled_compositing_equals_the_torch_path_forward_and_backward(cpp_op):
-    from drivingscene.render.composite import _CompiledComposite, _Composite
+    from drivingscene.render.composite import _Composite
 
     width, height, cams, channels, splats = 13, 7, 3, 3, 60
     g = torch.Generator().manual_seed(3)
@@ -70,9 +70,9 @@ def test_compiled_compositing_equals_the_torch_path_forward_and_backward(cpp_op)
     ids = _pair_buffer(cams * width * height, 6, splats, seed=4)
     assert (ids < 0).all(1).any() and ((ids[:, :-1] < 0) & (ids[:, 1:] >= 0)).any()  # empty pixels, holes
     results = []
-    for function in (_CompiledComposite, _Composite):
+    for compiled in (True, False):
         leaves = packed.clone().requires_grad_(True), backgrounds.clone().requires_grad_(True)
-        rgb, depth, alpha = function.apply(*leaves, ids, width, height)
+        rgb, depth, alpha = _Composite.apply(*leaves, ids, width, height, compiled)
         assert (depth[(ids < 0).all(1)] == 0).all()
         (rgb.cos().sum() + (depth * torch.linspace(0, 1, len(depth))).sum() + alpha.square().sum()).backward()
         results.append((rgb, depth, alpha, leaves[0].grad, leaves[1].grad))

@@ -1,5 +1,6 @@
 // Front-to-back compositing over the rasterizer's pair buffer, forward and backward (the compiled
-// path of drivingscene.render.composite._Composite; the torch path there is the reference).
+// path of drivingscene.render.composite._Composite; composite_torch and composite_backward_torch
+// there are the reference).
 //
 // Each pixel p (global over cameras: p = (b H + y) W + x) has up to L splat ids in
 // pair_ids[p, :] (front to back, -1 where empty). A splat's row of `packed` holds
