@@ -16,6 +16,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="check a scene.npz against the format (a recon.npz too); one line per problem, exit 2 if invalid",
     )
     p.add_argument("files", nargs="+", type=Path, metavar="FILE", help="scene.npz files (a recon.npz or .ply: says what it is)")
+    p.add_argument(
+        "--geometry",
+        action="store_true",
+        help="also check that a valid scene's poses, extrinsics and LiDAR agree with its images, camera by camera "
+        "(docs/importing.md); exit 1 where an image disagrees",
+    )
     p.set_defaults(func=run_validate)
     p = sub.add_parser("info", help="summarise a scene.npz, or say what a recon.npz or .ply holds")
     p.add_argument("file", type=Path, metavar="FILE", help="a scene.npz, recon.npz or 3DGS .ply")
@@ -23,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def source_kind(path: Path) -> str:
-    """"scene", "recon" or "ply" by the rule of ``drivingscene.sources`` (suffix, then the .npz's
+    """ "scene", "recon" or "ply" by the rule of ``drivingscene.sources`` (suffix, then the .npz's
     ``format``); "scene" where the file cannot be read, so the scene reader says what is wrong."""
     from drivingscene.errors import InputError
 
@@ -60,7 +66,7 @@ def run_validate(args: argparse.Namespace) -> int:
     from drivingscene.errors import InputError, SceneFormatError
     from drivingscene.sources import open_source
 
-    bad = 0
+    bad = disagree = 0
     for path in args.files:
         kind = source_kind(path)
         if kind == "scene":
@@ -81,7 +87,61 @@ def run_validate(args: argparse.Namespace) -> int:
             bad += 1
         else:
             print(f"{path}: valid")
-    return 2 if bad else 0
+            if args.geometry:
+                disagree += check_geometry(path)
+    return 2 if bad else 1 if disagree else 0
+
+
+# What to look at when an image fails a test of `methods.rig_check`.
+ADVICE = {
+    "matches behind the cameras": "its cam_to_ego looks the wrong way, or its images belong to another camera",
+    "off the epipolar lines": "check its cam_to_ego rotation (axis convention: x right, y down, z forward), "
+    "its intrinsics and its capture time",
+    "LiDAR scale": "the ego's motion between the keyframes (units, camera_ego_to_world) or the LiDAR's frame is off",
+}
+
+
+def check_geometry(path: Path) -> int:
+    """Print `methods.rig_check`'s table for the scene at ``path`` and one line per image that
+    disagrees; the number of such images."""
+    from drivingscene.data.frame_pair import load_frame_pair
+    from drivingscene.methods.rig_check import RigCheckConfig, check_rig
+
+    config = RigCheckConfig()
+    checks = check_rig(load_frame_pair(path), config)
+    print(
+        "| camera | keyframe | baseline (m) | matches | in front | off the line (px, median) | within 1 px "
+        "| LiDAR returns | LiDAR scale | verdict |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for c in checks:
+        print(
+            f"| {c.camera} | {c.keyframe} | {c.baseline_m:.2f} | {c.matches} | {number(c.in_front, '.2f')} "
+            f"| {number(c.off_line_px, '.2f')} | {number(c.within_1px, '.2f')} | {c.returns} | {number(c.lidar_scale, '.2f')} | {c.verdict} |"
+        )
+    flagged = [c for c in checks if c.flagged]
+    for c in flagged:
+        found = []
+        if c.in_front is not None and c.in_front < config.min_in_front:
+            found.append(f"{c.in_front:.0%} of its matches in front of the cameras, expected at least {config.min_in_front:.0%}")
+        if c.off_line_px is not None and c.off_line_px > config.max_off_line_px:
+            found.append(
+                f"matches {c.off_line_px:.2f} px off their epipolar lines (median), expected at most {config.max_off_line_px}"
+            )
+        if c.lidar_scale is not None and "LiDAR scale" in c.verdict:
+            found.append(
+                f"its LiDAR agrees best at {c.lidar_scale:.2f} x its depth, expected 1 within {config.max_scale_error:.0%}"
+            )
+        advice = "; ".join(ADVICE[part] for part in c.verdict.split(", ") if part in ADVICE)
+        print(f"{path}: camera {c.camera}, keyframe {c.keyframe}: {', '.join(found)}: {advice}", file=sys.stderr)
+    if not flagged:
+        print(f"{path}: geometry consistent with the images")
+    return len(flagged)
+
+
+def number(value: float | None, spec: str) -> str:
+    """``value`` formatted, or a dash where there is none."""
+    return "–" if value is None else format(value, spec)
 
 
 def run_info(args: argparse.Namespace) -> int:

@@ -1,0 +1,209 @@
+"""Is a scene's geometry consistent with its images? A check of the poses, the extrinsics and
+the LiDAR of an imported pair, camera by camera, with no network.
+
+Everything the model does across time and cameras trusts the scene's geometry: a camera whose
+``cam_to_ego`` is a degree off, a wrong camera timestamp or a LiDAR in the wrong frame do not
+raise an error, they quietly make the matching, the depth and the in-between frame worse. Two
+tests say which image disagrees with the others:
+
+- **Epipolar residual.** Each camera's image at one keyframe is matched to the same camera's
+  image at the other by OpenCV's DIS optical flow, unguided (a guide from the poses would pull
+  the matches onto the very lines under test). Where a match is forward/backward consistent and
+  the image has texture, the poses predict a line that its end point must lie on, whatever the
+  depth (`models.pipeline.epipolar_geometry`). The median distance from that line, in the
+  scene's pixels, is DIS's own error (well under a pixel) where the geometry is right; a rotation
+  error of the camera's extrinsics, or of the ego's motion between the images, moves every line
+  and shows as pixels. Moving objects are off their lines too, which the median ignores while
+  they are under half of the matches.
+- **LiDAR scale** (where the scene has ``gt_depth``). Each LiDAR return with texture around it
+  predicts where its 5x5 patch lies in the other keyframe's image of the same camera; the check
+  slides every return's depth by a common factor (0.5-2, in 1 % steps) and takes the factor at
+  which the patches agree best (median absolute grey difference). With the LiDAR, the
+  extrinsics and the poses right, that factor is 1: a LiDAR whose points land on the wrong
+  pixels, or a pose whose baseline is too long or too short, move it.
+
+A camera whose keyframes have next to no baseline (the ego standing still) says nothing about
+either and is reported so. The thresholds (``RigCheckConfig``) are chosen from the procedural
+pairs, whose geometry is exact, and from those pairs with one camera's extrinsics rotated
+(tests/methods/test_rig_check.py); docs/importing.md shows the real DDAD pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from drivingscene.data.frame_pair import FramePair
+from drivingscene.data.tensors import pair_to_tensors
+from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
+from drivingscene.methods.classical import dis_flows
+from drivingscene.models.pipeline import epipolar_geometry
+
+
+@dataclass(frozen=True)
+class RigCheckConfig:
+    preset: str = "medium"  # DIS preset of the matching
+    # Pixels whose grey level changes by at least this much (0-255, Sobel magnitude / 8: the mean
+    # difference over one pixel) are textured: matches and patches are only trusted there.
+    min_texture: float = 4.0
+    min_matches: int = 200  # fewer consistent textured matches: nothing to say
+    # Median distance from the epipolar line (scene pixels) from which an image is reported.
+    max_off_line_px: float = 1.0
+    min_baseline_m: float = 0.05  # camera motion between the keyframes below which nothing is tested
+    # An image is reported when fewer of its matches than this triangulate in front of both
+    # cameras (a camera looking the other way, images of two cameras swapped).
+    min_in_front: float = 0.5
+    # LiDAR: the factors tried (0.5-2 in steps of 5 %, then 1 % steps around the best), at most
+    # ``max_returns`` returns per image (evenly spaced), and how far from 1 the best may be
+    # before the image is reported.
+    max_scale: float = 2.0
+    coarse_step: float = 0.05
+    fine_step: float = 0.01
+    max_scale_error: float = 0.1
+    clear_minimum: float = 0.8  # the coarse search's least cost must be below this times its median
+    min_returns: int = 100
+    max_returns: int = 2000
+    window: int = 5  # the patch compared around each return
+
+
+@dataclass(frozen=True)
+class ImageCheck:
+    camera: str
+    keyframe: int
+    baseline_m: float  # how far the camera moved to the other keyframe
+    matches: int  # consistent textured matches to the other keyframe
+    in_front: float | None  # the share of them that triangulates in front of both cameras
+    off_line_px: float | None  # their median distance from the epipolar line (those in front)
+    within_1px: float | None  # the share within one pixel of it
+    returns: int  # textured LiDAR returns
+    lidar_scale: float | None  # the depth factor at which they agree best with the other keyframe (None: no clear best)
+    verdict: str  # "ok", or what is wrong, or why nothing could be said
+
+    @property
+    def flagged(self) -> bool:
+        return self.verdict not in ("ok", "no baseline", "too little texture")
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+
+def _textured(grey: np.ndarray, threshold: float) -> np.ndarray:
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
+    return np.hypot(gx, gy) / 8.0 >= threshold
+
+
+def patch_difference(
+    grey: np.ndarray,  # [H, W] this keyframe's image
+    other: np.ndarray,  # [H, W] the same camera at the other keyframe
+    flow: np.ndarray,  # [N, 2] each return's flow
+    ys: np.ndarray,
+    xs: np.ndarray,  # [N] the returns' pixels
+    window: int,
+) -> float:
+    """The median over returns of the mean absolute grey difference between the return's
+    ``window`` x ``window`` patch and the other image sampled at the patch moved by the return's
+    flow (the patch taken as fronto-parallel)."""
+    height, width = grey.shape
+    half = window // 2
+    total = np.zeros(len(ys), np.float32)
+    for dy in range(-half, half + 1):
+        for dx in range(-half, half + 1):
+            yy, xx = np.clip(ys + dy, 0, height - 1), np.clip(xs + dx, 0, width - 1)
+            map_x = (xx + flow[:, 0]).astype(np.float32)[:, None]
+            map_y = (yy + flow[:, 1]).astype(np.float32)[:, None]
+            sampled = cv2.remap(other, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0]
+            total += np.abs(grey[yy, xx] - sampled)
+    return float(np.median(total / window**2))
+
+
+def best_lidar_scale(
+    pair: FramePair, batch, greys: list, k: int, v: int, ys: np.ndarray, xs: np.ndarray, config: RigCheckConfig
+) -> float | None:
+    """The factor of the returns' depth at which their patches agree best with the other
+    keyframe (`patch_difference`): a coarse search, then a fine one around its best. None where
+    the coarse search has no clear minimum: at an end of its range, or above ``clear_minimum``
+    times its median (an image without enough texture, or motion too large for the window)."""
+    depth = torch.zeros((1, *pair.image_size))
+    depth[0, ys, xs] = torch.from_numpy(pair.gt_depth[k, v, ys, xs]).float()
+    c2l, intrinsics = batch.cam_to_local.float(), batch.intrinsics[v : v + 1].float()
+
+    def curve(centre: float, step: float, count: int) -> tuple[np.ndarray, np.ndarray]:
+        factors = centre * np.exp(np.log1p(step) * np.arange(-count, count + 1))
+        costs = []
+        for factor in factors:
+            flow, _ = rigid_flow(depth * float(factor), intrinsics, c2l[k, v : v + 1], c2l[1 - k, v : v + 1])
+            costs.append(patch_difference(greys[k][v], greys[1 - k][v], flow[0].numpy()[ys, xs], ys, xs, config.window))
+        return factors, np.asarray(costs)
+
+    factors, costs = curve(1.0, config.coarse_step, int(np.ceil(np.log(config.max_scale) / np.log1p(config.coarse_step))))
+    best = int(np.argmin(costs))
+    if best in (0, len(costs) - 1) or costs[best] > config.clear_minimum * np.median(costs):
+        return None
+    factors, costs = curve(
+        float(factors[best]), config.fine_step, int(np.ceil(np.log1p(config.coarse_step) / np.log1p(config.fine_step)))
+    )
+    return float(factors[int(np.argmin(costs))])
+
+
+def check_rig(pair: FramePair, config: RigCheckConfig = RigCheckConfig()) -> list[ImageCheck]:
+    """One `ImageCheck` per keyframe and camera (keyframe-major), as the module docstring says."""
+    batch = pair_to_tensors(pair, with_gt=pair.gt_depth is not None, with_eval=False)
+    c2l = batch.cam_to_local.double()
+    flows = torch.from_numpy(dis_flows(pair.images, config.preset))  # [2, V, H, W, 2], unguided
+    greys = [[_grey(image) for image in keyframe] for keyframe in pair.images]
+    world = np.ones((pair.num_views, *pair.image_size), bool) if pair.valid_mask is None else pair.valid_mask
+    out = []
+    for k in (0, 1):
+        rel = (torch.linalg.inv(c2l[1 - k]) @ c2l[k]).float()  # [V, 4, 4] this keyframe's camera -> the other's
+        baselines = rel[:, :3, 3].norm(dim=-1)
+        consistent = forward_backward_consistency(flows[k], flows[1 - k]).numpy()
+        _, off_line, _, valid = epipolar_geometry(flows[k].float(), batch.intrinsics.float(), rel)
+        for v in range(pair.num_views):
+            baseline = float(baselines[v])
+            textured = _textured(greys[k][v], config.min_texture) & world[v]
+            matched = textured & consistent[v]
+            matches = int(matched.sum())
+            front = off = within = None
+            if matches >= config.min_matches:
+                use = matched & valid[v].numpy()
+                front = float(use.sum() / matches)
+                if use.sum() >= config.min_matches:
+                    distances = off_line[v].numpy()[use]
+                    off, within = float(np.median(distances)), float(np.mean(distances <= 1.0))
+            returns, best = 0, None
+            if pair.gt_depth is not None:
+                ys, xs = np.nonzero((pair.gt_depth[k, v] > 0) & textured)
+                returns = len(ys)
+                if returns >= config.min_returns and baseline >= config.min_baseline_m:
+                    keep = np.linspace(0, returns - 1, min(returns, config.max_returns)).round().astype(np.int64)
+                    best = best_lidar_scale(pair, batch, greys, k, v, ys[keep], xs[keep], config)
+            verdict = _verdict(baseline, front, off, best, config)
+            out.append(
+                ImageCheck(pair.camera_names[v], k, round(baseline, 3), matches, front, off, within, returns, best, verdict)
+            )
+    return out
+
+
+def _verdict(baseline: float, front: float | None, off: float | None, scale: float | None, config: RigCheckConfig) -> str:
+    if baseline < config.min_baseline_m:
+        return "no baseline"
+    problems = []
+    if front is not None and front < config.min_in_front:
+        problems.append("matches behind the cameras")
+    if off is not None and off > config.max_off_line_px:
+        problems.append("off the epipolar lines")
+    if scale is not None and abs(np.log(scale)) > np.log1p(config.max_scale_error):
+        problems.append("LiDAR scale")
+    if problems:
+        return ", ".join(problems)
+    return "ok" if off is not None or scale is not None else "too little texture"
+
+
+def report_rows(checks: list[ImageCheck]) -> list[dict]:
+    """The checks as JSON-ready dicts."""
+    return [asdict(c) | {"flagged": c.flagged} for c in checks]

@@ -1,0 +1,103 @@
+"""The geometry check of a scene (`methods.rig_check`, `drivingscene validate --geometry`): exact
+procedural geometry passes, the mistakes people make importing their own rig are reported on the
+camera that has them."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from drivingscene.methods.rig_check import RigCheckConfig, check_rig
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """A procedural pair at 96x176 (test seed 200000): exact poses, extrinsics and depth."""
+    from drivingscene.errors import DrivingSceneError
+    from drivingscene.synth.config import SynthConfig
+    from drivingscene.synth.generate import generate_pair
+    from drivingscene.synth.render import SynthRenderer
+
+    try:
+        renderer = SynthRenderer()
+    except DrivingSceneError as e:
+        pytest.skip(f"no offscreen OpenGL context: {e}")
+    return generate_pair(SynthConfig(height=96, width=176), 200000, renderer)
+
+
+@pytest.fixture(scope="module")
+def exact(pair):
+    return check_rig(pair)
+
+
+def _tested(checks):
+    """The images that either test could say something about."""
+    return [c for c in checks if c.off_line_px is not None or c.lidar_scale is not None]
+
+
+def test_exact_geometry_passes(pair, exact):
+    assert len(exact) == 2 * pair.num_views
+    tested = _tested(exact)
+    assert len(tested) >= 4  # the check is not vacuous on this pair
+    assert not [c for c in exact if c.flagged]
+    for c in tested:
+        if c.off_line_px is not None:
+            assert c.off_line_px < RigCheckConfig().max_off_line_px
+            assert c.in_front > 0.8
+        if c.lidar_scale is not None:
+            assert abs(np.log(c.lidar_scale)) <= np.log(1.03)
+
+
+def test_rotated_camera_is_the_one_reported(pair, exact):
+    # a camera whose extrinsics say it looks 90 degrees rolled (another axis convention)
+    camera = next(c for c in exact if c.off_line_px is not None)
+    v = pair.camera_names.index(camera.camera)
+    turn = np.eye(4, dtype=np.float32)
+    turn[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    cam_to_ego = pair.cam_to_ego.copy()
+    cam_to_ego[v] = cam_to_ego[v] @ turn
+    checks = check_rig(dataclasses.replace(pair, cam_to_ego=cam_to_ego))
+    flagged = {c.camera for c in checks if c.flagged}
+    assert flagged == {camera.camera}
+    bad = next(c for c in checks if c.camera == camera.camera and c.keyframe == camera.keyframe)
+    assert "epipolar" in bad.verdict or "behind" in bad.verdict
+
+
+def test_wrong_ego_motion_moves_the_lidar_scale(pair, exact):
+    # the ego's translation between the keyframes 1.5 times too long (e.g. a unit mistake)
+    ego = pair.ego_to_world.copy()
+    ego[1, :3, 3] = ego[0, :3, 3] + 1.5 * (ego[1, :3, 3] - ego[0, :3, 3])
+    checks = check_rig(dataclasses.replace(pair, ego_to_world=ego, camera_ego_to_world=None))
+    scaled = [c.lidar_scale for c in checks if c.lidar_scale is not None]
+    assert len(scaled) >= 2
+    assert all(abs(s / 1.5 - 1) < 0.05 for s in scaled)
+    assert all("LiDAR scale" in c.verdict for c in checks if c.lidar_scale is not None)
+
+
+def test_standing_still_says_nothing(pair):
+    ego = pair.ego_to_world.copy()
+    ego[1] = ego[0]
+    checks = check_rig(dataclasses.replace(pair, ego_to_world=ego, camera_ego_to_world=None))
+    assert all(c.verdict == "no baseline" and not c.flagged for c in checks)
+
+
+def test_validate_geometry_command(pair, tmp_path, capsys):
+    from drivingscene.cli import main
+    from drivingscene.data import save_frame_pair
+
+    good = save_frame_pair(pair, tmp_path / "good.npz")
+    assert main(["validate", str(good), "--geometry"]) == 0
+    out = capsys.readouterr()
+    assert "geometry consistent with the images" in out.out and out.err == ""
+    ego = pair.ego_to_world.copy()
+    ego[1, :3, 3] = ego[0, :3, 3] + 1.5 * (ego[1, :3, 3] - ego[0, :3, 3])
+    bad = save_frame_pair(dataclasses.replace(pair, ego_to_world=ego, camera_ego_to_world=None), tmp_path / "bad.npz")
+    assert main(["validate", str(bad), "--geometry"]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines and all(line.startswith(f"{bad}: camera ") for line in lines)
+    factors = [float(re.search(r"LiDAR agrees best at (\d+\.\d+) x its depth", line).group(1)) for line in lines]
+    assert all(abs(f / 1.5 - 1) < 0.05 for f in factors)
