@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -244,6 +245,12 @@ class ThreadChoice:
             if len(self.trials) == 2:
                 self.chosen = min(sorted(self.trials), key=self.trials.get)
         self.steps += 1
+
+    def typical_step(self, times: list[float], threads_of: list[int]) -> float:
+        """The median of the step ``times`` (``threads_of``: each step's threads) that ran on the
+        chosen setting, or of all of them before a choice: what the next step should take."""
+        chosen = [t for t, n in zip(times, threads_of) if self.chosen in (None, n)]
+        return statistics.median(chosen or times) if times else 0.0
 
     def begin_step(self) -> int:
         """Set torch's threads for the next step; returns them."""

@@ -108,15 +108,16 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     targets = small.images.flatten(0, 1)
     world = None if small.valid is None else small.valid.repeat(2, 1, 1)
     times, losses = [], []
+    threads_of: list[int] = []  # each step's threads: the estimate follows the chosen setting's steps
     left_room = False  # stopped to leave a gradient step room after the rebuild
     choice = ThreadChoice(torch.get_num_threads()) if config.threads is None else None
     for step in range(config.adapt_steps):
-        step_s = statistics.median(times) if times else 0.0
+        step_s = _typical(choice, times, threads_of)
         if not clock.fits(step_s + reserve_s, share=config.adapt_share):
             left_room = bool(config.groups) and clock.fits(reserve_s + STEP_PER_ADAPT_STEP * step_s)
             if left_room or not clock.fits(step_s + reserve_s):
                 break
-        threads = choice.begin_step() if choice is not None else None
+        threads = choice.begin_step() if choice is not None else torch.get_num_threads()
         start = time.perf_counter()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
             depth = predict_depth(adapted, batch).float()  # D alone: the losses do not reach P
@@ -130,13 +131,23 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
         loss.backward()
         optimizer.step()
         times.append(time.perf_counter() - start)
+        threads_of.append(threads)
         if choice is not None:
             choice.record(threads, times[-1])
         losses.append(round(float(loss.detach()), 5))
         report(clock.fraction, f"adapting D: step {step + 1}/{config.adapt_steps}, L_loc {losses[-1]:.4f}")
     for p in adapted.parameters():
         p.requires_grad_(False)
-    step_s = round(statistics.median(times), 3) if times else None
+    # the chosen setting's typical step: what the first gradient step's estimate scales
+    step_s = round(_typical(choice, times, threads_of), 3) if times else None
     info = {"steps": len(times), "step_s": step_s, "losses": losses, "left_room": left_room}
     info["threads"] = torch.get_num_threads() if choice is None else choice.threads()
     return adapted, info
+
+
+def _typical(choice: ThreadChoice | None, times: list[float], threads_of: list[int]) -> float:
+    """The next step's expected time: `ThreadChoice.typical_step`, or the median of all steps
+    where the threads are fixed."""
+    if choice is not None:
+        return choice.typical_step(times, threads_of)
+    return statistics.median(times) if times else 0.0

@@ -199,8 +199,10 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
     choice = ThreadChoice(torch.get_num_threads()) if config.threads is None else None
     threads_of: list[int] = []  # each step's threads: the estimate follows the chosen setting's steps
     while config.max_steps is None or len(times) < config.max_steps:
-        chosen = [t for t, n in zip(times, threads_of) if choice is None or choice.chosen in (None, n)]
-        estimate = statistics.median(chosen or times) if times else first
+        if not times:
+            estimate = first
+        else:
+            estimate = choice.typical_step(times, threads_of) if choice is not None else statistics.median(times)
         if not clock.fits(estimate):
             break
         start = time.perf_counter()

@@ -394,6 +394,26 @@ def test_thread_choice_keeps_the_faster_of_one_thread_and_many():
     assert single.threads() == 1 and single.chosen == 1
 
 
+def test_the_next_step_is_estimated_from_the_chosen_threads():
+    """Once a setting is chosen, the budget's estimate of a step is the median of the steps that
+    ran on it: the slower trial (here three times as long) no longer counts."""
+    from drivingscene.methods.refine import ThreadChoice
+
+    choice = ThreadChoice(2)
+    times, threads_of = [], []
+    for _ in range(4):
+        threads = choice.threads()
+        times.append(3.0 if threads == 2 else 1.0)
+        threads_of.append(threads)
+        choice.record(threads, times[-1])
+    assert threads_of == [2, 1, 2, 1] and choice.chosen == 1
+    assert choice.typical_step(times, threads_of) == 1.0  # the median of all four would be 2.0
+    assert ThreadChoice(2).typical_step([], []) == 0.0
+    undecided = ThreadChoice(2)
+    undecided.record(2, 3.0)
+    assert undecided.typical_step([3.0], [2]) == 3.0  # before a choice, every step counts
+
+
 def test_the_gradient_steps_run_on_the_threads_their_timing_chose(synth_pair, start, monkeypatch):
     """With ``threads=None`` the steps try torch's threads and one, then keep the faster: on a fake
     clock where a step on two threads takes three times as long, the rest run on one; the reverse
