@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from drivingscene.arguments import check_output
@@ -25,6 +26,12 @@ def _common(p: argparse.ArgumentParser, default_res: str | None = "176x320") -> 
     )
     p.add_argument("-o", "--out", type=Path, required=True, metavar="SCENE", help="the scene.npz to write")
     p.add_argument("--force", action="store_true", help="overwrite SCENE if it exists")
+    p.add_argument(
+        "--no-check",
+        action="store_true",
+        help="do not check the written scene's poses, extrinsics and LiDAR against its images "
+        "(`drivingscene validate SCENE --geometry`; about a second)",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -71,7 +78,29 @@ def _write(pair, args: argparse.Namespace) -> int:
     depth = ", LiDAR depth" if pair.gt_depth is not None else ""
     mask = f", {100 * (1 - pair.world_mask().mean()):.1f}% masked" if pair.valid_mask is not None else ""
     print(f"{args.out}: {pair.num_views} cameras, {w}x{h}, {pair.duration:.3f} s apart{extra}{depth}{mask}")
+    if not args.no_check:
+        _check_geometry(pair, args.out)
     return 0
+
+
+def _check_geometry(pair, out: Path) -> None:
+    """One line on whether the imported scene's geometry agrees with its images (`methods.rig_check`),
+    and a warning per image that does not; the import stands either way."""
+    from drivingscene.methods.rig_check import check_rig, problem_line
+
+    checks = check_rig(pair)
+    flagged = [c for c in checks if c.flagged]
+    for c in flagged:
+        print(f"{out}: warning: {problem_line(c)}", file=sys.stderr)
+    tested = sum(c.off_line_px is not None or c.lidar_scale is not None for c in checks)
+    if flagged:
+        print(
+            f"{out}: {len(flagged)} of {len(checks)} images disagree with the geometry: `drivingscene validate {out} --geometry` shows the table"
+        )
+    elif tested:
+        print(f"{out}: geometry consistent with the images ({tested} of {len(checks)} images tested; docs/importing.md)")
+    else:
+        print(f"{out}: geometry not checked: no image has the motion and texture to test it")
 
 
 def run_nuscenes(args: argparse.Namespace) -> int:

@@ -92,56 +92,20 @@ def run_validate(args: argparse.Namespace) -> int:
     return 2 if bad else 1 if disagree else 0
 
 
-# What to look at when an image fails a test of `methods.rig_check`.
-ADVICE = {
-    "matches behind the cameras": "its cam_to_ego looks the wrong way, or its images belong to another camera",
-    "off the epipolar lines": "check its cam_to_ego rotation (axis convention: x right, y down, z forward), "
-    "its intrinsics and its capture time",
-    "LiDAR scale": "the ego's motion between the keyframes (units, camera_ego_to_world) or the LiDAR's frame is off",
-}
-
-
 def check_geometry(path: Path) -> int:
     """Print `methods.rig_check`'s table for the scene at ``path`` and one line per image that
     disagrees; the number of such images."""
     from drivingscene.data.frame_pair import load_frame_pair
-    from drivingscene.methods.rig_check import RigCheckConfig, check_rig
+    from drivingscene.methods.rig_check import check_rig, problem_line, table_lines
 
-    config = RigCheckConfig()
-    checks = check_rig(load_frame_pair(path), config)
-    print(
-        "| camera | keyframe | baseline (m) | matches | in front | off the line (px, median) | within 1 px "
-        "| LiDAR returns | LiDAR scale | verdict |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for c in checks:
-        print(
-            f"| {c.camera} | {c.keyframe} | {c.baseline_m:.2f} | {c.matches} | {number(c.in_front, '.2f')} "
-            f"| {number(c.off_line_px, '.2f')} | {number(c.within_1px, '.2f')} | {c.returns} | {number(c.lidar_scale, '.2f')} | {c.verdict} |"
-        )
+    checks = check_rig(load_frame_pair(path))
+    print("\n".join(table_lines(checks)))
     flagged = [c for c in checks if c.flagged]
     for c in flagged:
-        found = []
-        if c.in_front is not None and c.in_front < config.min_in_front:
-            found.append(f"{c.in_front:.0%} of its matches in front of the cameras, expected at least {config.min_in_front:.0%}")
-        if c.off_line_px is not None and c.off_line_px > config.max_off_line_px:
-            found.append(
-                f"matches {c.off_line_px:.2f} px off their epipolar lines (median), expected at most {config.max_off_line_px}"
-            )
-        if c.lidar_scale is not None and "LiDAR scale" in c.verdict:
-            found.append(
-                f"its LiDAR agrees best at {c.lidar_scale:.2f} x its depth, expected 1 within {config.max_scale_error:.0%}"
-            )
-        advice = "; ".join(ADVICE[part] for part in c.verdict.split(", ") if part in ADVICE)
-        print(f"{path}: camera {c.camera}, keyframe {c.keyframe}: {', '.join(found)}: {advice}", file=sys.stderr)
+        print(f"{path}: {problem_line(c)}", file=sys.stderr)
     if not flagged:
         print(f"{path}: geometry consistent with the images")
     return len(flagged)
-
-
-def number(value: float | None, spec: str) -> str:
-    """``value`` formatted, or a dash where there is none."""
-    return "–" if value is None else format(value, spec)
 
 
 def run_info(args: argparse.Namespace) -> int:

@@ -30,13 +30,15 @@ pairs, whose geometry is exact, and from those pairs with one camera's extrinsic
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import dataclasses
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import torch
 
 from drivingscene.data.frame_pair import FramePair
+from drivingscene.data.resize import resized_pair
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
 from drivingscene.methods.classical import dis_flows
@@ -67,6 +69,11 @@ class RigCheckConfig:
     min_returns: int = 100
     max_returns: int = 2000
     window: int = 5  # the patch compared around each return
+    # Wider scenes are checked at this width (images area-resized, each LiDAR return moved to its
+    # pixel there, the nearest kept), so that the pixel thresholds keep one meaning (DIS's error
+    # is about constant in pixels, a geometric error grows with the image) and DIS on full-size
+    # images does not take seconds per image.
+    max_width: int = 320
 
 
 @dataclass(frozen=True)
@@ -150,8 +157,29 @@ def best_lidar_scale(
     return float(factors[int(np.argmin(costs))])
 
 
+def checked_size(pair: FramePair, max_width: int) -> FramePair:
+    """``pair`` as it is checked: resized to ``max_width`` where it is wider (`resized_pair`), its
+    LiDAR depth carried along (each return to the pixel of the smaller image that holds its
+    centre, the nearest where several land on one)."""
+    height, width = pair.image_size
+    if width <= max_width:
+        return pair
+    small = resized_pair(pair, max_width / width)
+    if pair.gt_depth is None:
+        return small
+    h, w = small.image_size
+    depth = np.full((2, pair.num_views, h, w), np.inf, np.float32)
+    k, v, y, x = np.nonzero(pair.gt_depth > 0)
+    ys = np.clip(np.round((y + 0.5) * h / height - 0.5).astype(np.int64), 0, h - 1)
+    xs = np.clip(np.round((x + 0.5) * w / width - 0.5).astype(np.int64), 0, w - 1)
+    np.minimum.at(depth, (k, v, ys, xs), pair.gt_depth[k, v, y, x])
+    return dataclasses.replace(small, gt_depth=np.where(np.isfinite(depth), depth, 0.0).astype(np.float32))
+
+
 def check_rig(pair: FramePair, config: RigCheckConfig = RigCheckConfig()) -> list[ImageCheck]:
-    """One `ImageCheck` per keyframe and camera (keyframe-major), as the module docstring says."""
+    """One `ImageCheck` per keyframe and camera (keyframe-major), as the module docstring says,
+    on the pair at most ``config.max_width`` wide (`checked_size`)."""
+    pair = checked_size(pair, config.max_width)
     batch = pair_to_tensors(pair, with_gt=pair.gt_depth is not None, with_eval=False)
     c2l = batch.cam_to_local.double()
     flows = torch.from_numpy(dis_flows(pair.images, config.preset))  # [2, V, H, W, 2], unguided
@@ -204,6 +232,47 @@ def _verdict(baseline: float, front: float | None, off: float | None, scale: flo
     return "ok" if off is not None or scale is not None else "too little texture"
 
 
-def report_rows(checks: list[ImageCheck]) -> list[dict]:
-    """The checks as JSON-ready dicts."""
-    return [asdict(c) | {"flagged": c.flagged} for c in checks]
+# What to look at when an image fails a test.
+ADVICE = {
+    "matches behind the cameras": "its cam_to_ego looks the wrong way, or its images belong to another camera",
+    "off the epipolar lines": "check its cam_to_ego rotation (axis convention: x right, y down, z forward), "
+    "its intrinsics and its capture time",
+    "LiDAR scale": "the ego's motion between the keyframes (units, camera_ego_to_world) or the LiDAR's frame is off",
+}
+
+
+def problem_line(check: ImageCheck, config: RigCheckConfig = RigCheckConfig()) -> str:
+    """One line on a flagged image: what was found, what was expected, and what to look at."""
+    found = []
+    if check.in_front is not None and check.in_front < config.min_in_front:
+        found.append(f"{check.in_front:.0%} of its matches in front of the cameras, expected at least {config.min_in_front:.0%}")
+    if check.off_line_px is not None and check.off_line_px > config.max_off_line_px:
+        found.append(
+            f"matches {check.off_line_px:.2f} px off their epipolar lines (median), expected at most {config.max_off_line_px}"
+        )
+    if check.lidar_scale is not None and "LiDAR scale" in check.verdict:
+        found.append(
+            f"its LiDAR agrees best at {check.lidar_scale:.2f} x its depth, expected 1 within {config.max_scale_error:.0%}"
+        )
+    advice = "; ".join(ADVICE[part] for part in check.verdict.split(", ") if part in ADVICE)
+    return f"camera {check.camera}, keyframe {check.keyframe}: {', '.join(found)}: {advice}"
+
+
+def table_lines(checks: list[ImageCheck]) -> list[str]:
+    """The checks as a markdown table."""
+    lines = [
+        "| camera | keyframe | baseline (m) | matches | in front | off the line (px, median) | within 1 px "
+        "| LiDAR returns | LiDAR scale | verdict |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in checks:
+        lines.append(
+            f"| {c.camera} | {c.keyframe} | {c.baseline_m:.2f} | {c.matches} | {_number(c.in_front, '.2f')} "
+            f"| {_number(c.off_line_px, '.2f')} | {_number(c.within_1px, '.2f')} | {c.returns} | {_number(c.lidar_scale, '.2f')} "
+            f"| {c.verdict} |"
+        )
+    return lines
+
+
+def _number(value: float | None, spec: str) -> str:
+    return "–" if value is None else format(value, spec)

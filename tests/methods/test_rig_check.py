@@ -5,6 +5,7 @@ camera that has them."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 
 import numpy as np
@@ -101,3 +102,48 @@ def test_validate_geometry_command(pair, tmp_path, capsys):
     assert lines and all(line.startswith(f"{bad}: camera ") for line in lines)
     factors = [float(re.search(r"LiDAR agrees best at (\d+\.\d+) x its depth", line).group(1)) for line in lines]
     assert all(abs(f / 1.5 - 1) < 0.05 for f in factors)
+
+
+def test_import_checks_the_geometry(pair, exact, tmp_path, capsys):
+    """``drivingscene import`` checks what it wrote: a rig folder of the exact pair passes; the
+    same folder with one camera's extrinsics in another axis convention is imported anyway, with a
+    warning naming that camera."""
+    from drivingscene.cli import main
+    from drivingscene.data.importers.rig_export import export_rig
+
+    folder = tmp_path / "rig"
+    export_rig(pair, folder)
+    last = str(pair.num_eval + 1)
+    out = tmp_path / "scene.npz"
+    assert main(["import", "rig", str(folder), "--frames", "0", last, "-o", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "geometry consistent with the images" in captured.out and "warning" not in captured.err
+    camera = next(c.camera for c in exact if c.off_line_px is not None)
+    rig = json.loads((folder / "rig.json").read_text())
+    entry = next(c for c in rig["cameras"] if c["name"] == camera)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    entry["cam_to_ego"] = (np.asarray(entry["cam_to_ego"]) @ turn).tolist()
+    (folder / "rig.json").write_text(json.dumps(rig))
+    bad = tmp_path / "bad.npz"
+    assert main(["import", "rig", str(folder), "--frames", "0", last, "-o", str(bad)]) == 0
+    captured = capsys.readouterr()
+    warnings = captured.err.strip().splitlines()
+    assert warnings and all(line.startswith(f"{bad}: warning: camera {camera}, keyframe ") for line in warnings)
+    assert f"`drivingscene validate {bad} --geometry`" in captured.out
+    assert main(["import", "rig", str(folder), "--frames", "0", last, "-o", str(bad), "--force", "--no-check"]) == 0
+    captured = capsys.readouterr()
+    assert "geometry" not in captured.out and captured.err == ""
+
+
+def test_wide_scenes_are_checked_at_most_max_width(pair):
+    from drivingscene.data.frame_pair import FramePair
+    from drivingscene.methods.rig_check import checked_size
+
+    small = checked_size(pair, 88)
+    assert isinstance(small, FramePair) and small.image_size == (48, 88)
+    # every return lands on the pixel holding its centre; where several do, the nearest is kept
+    kept = small.gt_depth > 0
+    assert kept.mean() > 0.9
+    assert np.all(small.gt_depth[kept] >= pair.gt_depth[pair.gt_depth > 0].min())
+    assert checked_size(pair, 176) is pair
