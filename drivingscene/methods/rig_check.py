@@ -52,7 +52,8 @@ class RigCheckConfig:
     # difference over one pixel) are textured: matches and patches are only trusted there.
     min_texture: float = 4.0
     min_matches: int = 200  # fewer consistent textured matches: nothing to say
-    # Median distance from the epipolar line (scene pixels) from which an image is reported.
+    # Median distance from the epipolar line (pixels at the checked size, `max_width`) from which an
+    # image is reported.
     max_off_line_px: float = 1.0
     min_baseline_m: float = 0.05  # camera motion between the keyframes below which nothing is tested
     # An image is reported when fewer of its matches than this triangulate in front of both
