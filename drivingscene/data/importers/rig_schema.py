@@ -156,8 +156,9 @@ def rigid(field: Field) -> np.ndarray:
     if not np.allclose(mat[3], [0, 0, 0, 1], atol=1e-9):
         raise field.error("a rigid transform with last row [0, 0, 0, 1]", f"last row {mat[3].tolist()}")
     rot = mat[:3, :3]
-    err = float(np.abs(rot.T @ rot - np.eye(3)).max())
-    if err > ROTATION_TOL:
+    with np.errstate(over="ignore", invalid="ignore"):  # entries near float64's limit: inf, refused below
+        err = float(np.abs(rot.T @ rot - np.eye(3)).max())
+    if not err <= ROTATION_TOL:
         raise field.error(f"a rigid transform (rotation with |R^T R - I| <= {ROTATION_TOL:g}, no scale)", f"error {err:.3g}")
     if np.linalg.det(rot) < 0:
         raise field.error("a rotation (det +1)", "a reflection (det -1)")
