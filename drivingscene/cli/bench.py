@@ -54,6 +54,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.report",
         "the whole benchmark: speed against accuracy, stability sweeps, parsimony, ablations (docs/benchmark.md)",
     ),
+    "geometry": (
+        "drivingscene.bench.geometry",
+        "the geometry check (validate --geometry) on pairs whose geometry is known: false alarms by the largest motion tested",
+    ),
     "results": (
         "drivingscene.bench.results",
         "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)",

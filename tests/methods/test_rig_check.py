@@ -147,3 +147,31 @@ def test_wide_scenes_are_checked_at_most_max_width(pair):
     assert kept.mean() > 0.9
     assert np.all(small.gt_depth[kept] >= pair.gt_depth[pair.gt_depth > 0].min())
     assert checked_size(pair, 176) is pair
+
+
+def test_motion_beyond_the_matching_is_not_tested_and_absurd_motion_is_reported(pair, exact):
+    # the ego's translation a thousand times too long (millimetres given as metres): every camera
+    # moves far more than any keyframe pair does
+    ego = pair.ego_to_world.copy()
+    ego[1, :3, 3] = ego[0, :3, 3] + 1000.0 * (ego[1, :3, 3] - ego[0, :3, 3])
+    checks = check_rig(dataclasses.replace(pair, ego_to_world=ego, camera_ego_to_world=None))
+    assert all("implausible motion" in c.verdict and c.flagged for c in checks)
+    # an image that moves more than the matching follows says so and is not reported
+    config = RigCheckConfig(max_motion_px=0.0)
+    checks = check_rig(pair, config)
+    assert all(c.off_line_px is None for c in checks)
+    assert {c.verdict for c in checks} <= {"ok", "motion too large", "too little texture"}
+    assert not [c for c in checks if c.flagged]
+    assert [c.motion_px for c in checks] == [c.motion_px for c in exact]
+
+
+def test_bench_geometry_counts_tested_and_reported_images(synth_pair_folder, capsys):
+    from drivingscene.cli import main
+
+    assert main(["bench", "geometry", "--data", str(synth_pair_folder), "--count", "1", "--motions", "0", "1e9"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {synth_pair_folder} (1) |")]
+    counts = [[int(cell) for cell in row.strip("|").split("|")[2:]] for row in rows]
+    # each setting is printed as it is measured and again in the report
+    assert len(counts) == 4 and counts[0] == counts[2] and counts[1] == counts[3]
+    (images, none_tested, _), (images_all, tested, reported) = counts[0], counts[1]
+    assert images == images_all == 12 and none_tested == 0 and 0 <= reported <= tested <= 12
