@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 from drivingscene_view.camera import CameraController, ViewCamera, fit_rect, invert_rigid
+from drivingscene_view.geometry_check import GeometryState, poll_geometry
 from drivingscene_view.loader import Loaded, LoadJob, MissingWeightsError, open_path, reconstruct_pair
 from drivingscene_view.overlays import LineRenderer, scene_overlays
 from drivingscene_view.quitting import QuitGuard, default_save_path
@@ -70,6 +71,7 @@ class Viewer:
         self.tools = ToolState()
         self.export = ExportState()
         self.job: LoadJob | None = None
+        self.geometry = GeometryState()  # the open scene's geometry check (app/geometry_check.py)
         self.view_rect = (0, 0, 1, 1)  # x, y, w, h in window pixels, y down
         self.display_camera: ViewCamera | None = None
         self.frame_ms = collections.deque(maxlen=120)
@@ -168,6 +170,7 @@ class Viewer:
 
     def poll_job(self) -> None:
         poll_refine(self)
+        poll_geometry(self)
         job = self.job
         if job is None or not job.done:
             return
@@ -200,6 +203,8 @@ class Viewer:
             f"{loaded.source.name if loaded.source else 'scene'}: {stats['total']:,} Gaussians "
             f"({stats['dynamic']:,} dynamic), {loaded.info.get('method')} in {seconds:.1f} s"
         )
+        # a scene.npz: are its poses, extrinsics and LiDAR those of its images? (checked once drawn)
+        self.geometry = GeometryState(self.doc, pending=loaded.pair)
 
     def _auto_ranges(self) -> None:
         """Depth colour-map range and flow scale from the scene (2nd/98th percentiles)."""

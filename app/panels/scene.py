@@ -32,6 +32,9 @@ def draw(viewer: Viewer) -> None:
             ("cameras", f"{recon.num_views} x {w}x{h}"),
             ("keyframes", f"{recon.timestamps[0]:.2f} s, {recon.timestamps[1]:.2f} s ({doc.duration:.2f} s apart)"),
         ]
+    geometry = viewer.geometry.describe(doc)
+    if geometry is not None:
+        rows.append(("geometry", geometry))
     if imgui.begin_table("scene_info", 2, imgui.TableFlags_.sizing_fixed_fit):
         for key, value in rows:
             imgui.table_next_row()
@@ -39,6 +42,9 @@ def draw(viewer: Viewer) -> None:
             imgui.text_disabled(key)
             imgui.table_next_column()
             imgui.text(value)
+            summary = viewer.geometry.summary
+            if key == "geometry" and summary is not None and summary.problems and imgui.is_item_hovered():
+                imgui.set_tooltip("\n".join(summary.problems) + "\n\n`drivingscene validate FILE --geometry` prints the table")
         imgui.end_table()
     if recon.num_views:
         _refine(viewer)
