@@ -299,9 +299,7 @@ def problem_line(check: ImageCheck, config: RigCheckConfig = RigCheckConfig()) -
             f"matches {check.off_line_px:.2f} px off their epipolar lines (median), expected at most {config.max_off_line_px}"
         )
     if "implausible motion" in check.verdict:
-        found.append(
-            f"the poses move it {check.motion_px:.0f} px between the keyframes (median), more than {config.max_plausible_motion:g} image widths"
-        )
+        found.append(f"the poses move it {check.baseline_m:g} m between the keyframes, faster than {config.max_speed_mps:g} m/s")
     if check.lidar_scale is not None and "LiDAR scale" in check.verdict:
         found.append(
             f"its LiDAR agrees best at {check.lidar_scale:.2f} x its depth, expected 1 within {config.max_scale_error:.0%}"

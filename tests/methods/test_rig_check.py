@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivingscene.methods.rig_check import RigCheckConfig, check_rig
+from drivingscene.methods.rig_check import RigCheckConfig, check_rig, problem_line
 
 
 @pytest.fixture(scope="module")
@@ -156,6 +156,8 @@ def test_motion_beyond_the_matching_is_not_tested_and_absurd_motion_is_reported(
     ego[1, :3, 3] = ego[0, :3, 3] + 1000.0 * (ego[1, :3, 3] - ego[0, :3, 3])
     checks = check_rig(dataclasses.replace(pair, ego_to_world=ego, camera_ego_to_world=None))
     assert all("implausible motion" in c.verdict and c.flagged for c in checks)
+    line = problem_line(checks[0])
+    assert "faster than 100 m/s" in line and "check the units of ego_to_world" in line
     # an image that moves more than the matching follows says so and is not reported
     config = RigCheckConfig(max_motion_px=0.0)
     checks = check_rig(pair, config)
