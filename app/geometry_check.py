@@ -7,34 +7,15 @@ reported in the status bar. A result for a document that is no longer open is dr
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from drivingscene_view.loader import LoadJob
 
 from drivingscene.data.frame_pair import FramePair
 
-
-@dataclass
-class GeometrySummary:
-    images: int
-    tested: int  # images either test could say something about
-    problems: list[str] = field(default_factory=list)  # one line per image that disagrees
-
-    def describe(self) -> str:
-        """The Scene panel's one line."""
-        if self.problems:
-            return f"{len(self.problems)} of {self.images} images disagree"
-        if self.tested:
-            return f"consistent ({self.tested} of {self.images} images tested)"
-        return "not tested (no motion or texture to test it)"
-
-
-def summarise(checks) -> GeometrySummary:
-    """A `GeometrySummary` of `check_rig`'s ``checks``."""
-    from drivingscene.methods.rig_check import problem_line
-
-    tested = sum(c.off_line_px is not None or c.lidar_scale is not None for c in checks)
-    return GeometrySummary(len(checks), tested, [problem_line(c) for c in checks if c.flagged])
+if TYPE_CHECKING:  # the check itself is imported when it first runs, not when the viewer starts
+    from drivingscene.methods.rig_check import GeometrySummary
 
 
 @dataclass
@@ -61,7 +42,7 @@ class GeometryState:
 
 def start_geometry_check(viewer, pair: FramePair) -> None:
     """Check ``pair`` (the open document's scene) in the background."""
-    from drivingscene.methods.rig_check import check_rig
+    from drivingscene.methods.rig_check import check_rig, summarise
 
     viewer.geometry = GeometryState(viewer.doc, job=LoadJob("checking the geometry", lambda progress: summarise(check_rig(pair))))
 

@@ -21,9 +21,9 @@ def small_pair():
     return make_pair()
 
 
-@pytest.fixture(scope="session")
-def synth_pair():
-    """A real procedural pair (64x112, test seed 200000) with all ground truth, rendered once."""
+def render_synth_pair(height: int, width: int):
+    """The procedural test pair of seed 200000 at ``height`` x ``width`` with all ground truth
+    (the test is skipped where no offscreen OpenGL context can be made)."""
     from drivingscene.errors import DrivingSceneError
     from drivingscene.synth.config import SynthConfig
     from drivingscene.synth.generate import generate_pair
@@ -33,7 +33,19 @@ def synth_pair():
         renderer = SynthRenderer()
     except DrivingSceneError as e:
         pytest.skip(f"no offscreen OpenGL context: {e}")
-    return generate_pair(SynthConfig(height=64, width=112), 200000, renderer)
+    return generate_pair(SynthConfig(height=height, width=width), 200000, renderer)
+
+
+@pytest.fixture(scope="session")
+def synth_pair():
+    """A real procedural pair (64x112, test seed 200000) with all ground truth, rendered once."""
+    return render_synth_pair(64, 112)
+
+
+@pytest.fixture(scope="session")
+def synth_pair_96():
+    """The same pair at 96x176: enough texture and motion for the geometry check to test most images."""
+    return render_synth_pair(96, 176)
 
 
 @pytest.fixture

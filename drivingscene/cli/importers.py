@@ -86,19 +86,20 @@ def _write(pair, args: argparse.Namespace) -> int:
 def _check_geometry(pair, out: Path) -> None:
     """One line on whether the imported scene's geometry agrees with its images (`methods.rig_check`),
     and a warning per image that does not; the import stands either way."""
-    from drivingscene.methods.rig_check import check_rig, problem_line
+    from drivingscene.methods.rig_check import check_rig, summarise
 
-    checks = check_rig(pair)
-    flagged = [c for c in checks if c.flagged]
-    for c in flagged:
-        print(f"{out}: warning: {problem_line(c)}", file=sys.stderr)
-    tested = sum(c.off_line_px is not None or c.lidar_scale is not None for c in checks)
-    if flagged:
+    summary = summarise(check_rig(pair))
+    for line in summary.problems:
+        print(f"{out}: warning: {line}", file=sys.stderr)
+    if summary.problems:
         print(
-            f"{out}: {len(flagged)} of {len(checks)} images disagree with the geometry: `drivingscene validate {out} --geometry` shows the table"
+            f"{out}: {len(summary.problems)} of {summary.images} images disagree with the geometry: "
+            f"`drivingscene validate {out} --geometry` shows the table"
         )
-    elif tested:
-        print(f"{out}: geometry consistent with the images ({tested} of {len(checks)} images tested; docs/importing.md)")
+    elif summary.tested:
+        print(
+            f"{out}: geometry consistent with the images ({summary.tested} of {summary.images} images tested; docs/importing.md)"
+        )
     else:
         print(f"{out}: geometry not checked: no image has the motion and texture to test it")
 

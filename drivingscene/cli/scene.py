@@ -96,16 +96,16 @@ def check_geometry(path: Path) -> int:
     """Print `methods.rig_check`'s table for the scene at ``path`` and one line per image that
     disagrees; the number of such images."""
     from drivingscene.data.frame_pair import load_frame_pair
-    from drivingscene.methods.rig_check import check_rig, problem_line, table_lines
+    from drivingscene.methods.rig_check import check_rig, summarise, table_lines
 
     checks = check_rig(load_frame_pair(path))
     print("\n".join(table_lines(checks)))
-    flagged = [c for c in checks if c.flagged]
-    for c in flagged:
-        print(f"{path}: {problem_line(c)}", file=sys.stderr)
-    if not flagged:
+    problems = summarise(checks).problems
+    for line in problems:
+        print(f"{path}: {line}", file=sys.stderr)
+    if not problems:
         print(f"{path}: geometry consistent with the images")
-    return len(flagged)
+    return len(problems)
 
 
 def run_info(args: argparse.Namespace) -> int:

@@ -246,18 +246,20 @@ class ThreadChoice:
                 self.chosen = min(sorted(self.trials), key=self.trials.get)
         self.steps += 1
 
-    def typical_step(self, times: list[float], threads_of: list[int]) -> float:
-        """The median of the step ``times`` (``threads_of``: each step's threads) that ran on the
-        chosen setting, or of all of them before a choice: what the next step should take."""
-        chosen = [t for t, n in zip(times, threads_of) if self.chosen in (None, n)]
-        return statistics.median(chosen or times) if times else 0.0
-
     def begin_step(self) -> int:
         """Set torch's threads for the next step; returns them."""
         threads = self.threads()
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
         return threads
+
+
+def typical_step(choice: ThreadChoice | None, times: list[float], threads_of: list[int]) -> float:
+    """What the next step of a phase should take: the median of its step ``times`` (``threads_of``:
+    each step's threads) that ran on the setting ``choice`` chose, or of all of them before a choice
+    or where the threads are fixed (``choice`` None); 0 before any step."""
+    chosen = [t for t, n in zip(times, threads_of) if choice is None or choice.chosen in (None, n)]
+    return statistics.median(chosen or times) if times else 0.0
 
 
 def _refine(model, pair: FramePair, recon: Reconstruction, config: RefineConfig, progress, should_stop) -> Reconstruction:

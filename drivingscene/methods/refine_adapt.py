@@ -13,7 +13,6 @@ by them, but its Gaussians follow D's new depth when the pair is reconstructed a
 from __future__ import annotations
 
 import copy
-import statistics
 import time
 
 import torch
@@ -23,7 +22,7 @@ from torch import Tensor
 from drivingscene.data.tensors import PairTensors
 from drivingscene.geometry.flow import backward_warp, rigid_flow
 from drivingscene.methods.depth_sweep import neighbour_cameras
-from drivingscene.methods.refine import ThreadChoice
+from drivingscene.methods.refine import ThreadChoice, typical_step
 from drivingscene.methods.refine_inputs import RefineInputs, scaled_inputs
 from drivingscene.models.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
 from drivingscene.models.pipeline import predict_depth
@@ -112,7 +111,7 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     left_room = False  # stopped to leave a gradient step room after the rebuild
     choice = ThreadChoice(torch.get_num_threads()) if config.threads is None else None
     for step in range(config.adapt_steps):
-        step_s = _typical(choice, times, threads_of)
+        step_s = typical_step(choice, times, threads_of)
         if not clock.fits(step_s + reserve_s, share=config.adapt_share):
             left_room = bool(config.groups) and clock.fits(reserve_s + STEP_PER_ADAPT_STEP * step_s)
             if left_room or not clock.fits(step_s + reserve_s):
@@ -139,15 +138,7 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
     for p in adapted.parameters():
         p.requires_grad_(False)
     # the chosen setting's typical step: what the first gradient step's estimate scales
-    step_s = round(_typical(choice, times, threads_of), 3) if times else None
+    step_s = round(typical_step(choice, times, threads_of), 3) if times else None
     info = {"steps": len(times), "step_s": step_s, "losses": losses, "left_room": left_room}
     info["threads"] = torch.get_num_threads() if choice is None else choice.threads()
     return adapted, info
-
-
-def _typical(choice: ThreadChoice | None, times: list[float], threads_of: list[int]) -> float:
-    """The next step's expected time: `ThreadChoice.typical_step`, or the median of all steps
-    where the threads are fixed."""
-    if choice is not None:
-        return choice.typical_step(times, threads_of)
-    return statistics.median(times) if times else 0.0

@@ -21,7 +21,7 @@ from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
 from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
 from drivingscene.geometry.se3 import invert_rigid, transform_points
 from drivingscene.methods.depth_sweep import corrected_depth
-from drivingscene.methods.refine import ThreadChoice
+from drivingscene.methods.refine import ThreadChoice, typical_step
 from drivingscene.methods.refine_adapt import STEP_PER_ADAPT_STEP
 from drivingscene.methods.refine_inputs import RefineInputs
 from drivingscene.methods.refine_params import GaussianRays, RefineParams
@@ -199,10 +199,7 @@ def gradient_steps(params: RefineParams, inputs: RefineInputs, recon, config, cl
     choice = ThreadChoice(torch.get_num_threads()) if config.threads is None else None
     threads_of: list[int] = []  # each step's threads: the estimate follows the chosen setting's steps
     while config.max_steps is None or len(times) < config.max_steps:
-        if not times:
-            estimate = first
-        else:
-            estimate = choice.typical_step(times, threads_of) if choice is not None else statistics.median(times)
+        estimate = typical_step(choice, times, threads_of) if times else first
         if not clock.fits(estimate):
             break
         start = time.perf_counter()

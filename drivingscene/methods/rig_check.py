@@ -45,8 +45,9 @@ from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
 from drivingscene.methods.classical import dis_flows
 from drivingscene.models.pipeline import epipolar_geometry, rigid_flows
 
-# The depth of the motion prior above the horizon (and its cap below): what the matching at
-# inference guides by where it knows nothing of the scene (`methods.matched_depth`).
+# The depth of the motion prior: the road plane, capped at this depth, and this depth at and above
+# the horizon (the matching at inference guides by the same depth above the horizon,
+# `MatchedDepthConfig.prior_depth`, but keeps the road out to its far limit).
 PRIOR_DEPTH_M = 20.0
 
 
@@ -110,6 +111,33 @@ class ImageCheck:
     @property
     def flagged(self) -> bool:
         return self.verdict not in ("ok", "no baseline", "too little texture", "motion too large")
+
+    @property
+    def tested(self) -> bool:
+        """Whether either test could say something about the image."""
+        return self.off_line_px is not None or self.lidar_scale is not None
+
+
+@dataclass
+class GeometrySummary:
+    """What the checks of one scene come to: the images, those tested, one line per image that disagrees."""
+
+    images: int
+    tested: int
+    problems: list[str]
+
+    def describe(self) -> str:
+        """In a few words (the viewer's Scene panel)."""
+        if self.problems:
+            return f"{len(self.problems)} of {self.images} images disagree"
+        if self.tested:
+            return f"consistent ({self.tested} of {self.images} images tested)"
+        return "not tested (no motion or texture to test it)"
+
+
+def summarise(checks: list[ImageCheck]) -> GeometrySummary:
+    """A `GeometrySummary` of ``checks`` (`problem_line` per flagged image)."""
+    return GeometrySummary(len(checks), sum(c.tested for c in checks), [problem_line(c) for c in checks if c.flagged])
 
 
 def _grey(image: np.ndarray) -> np.ndarray:

@@ -151,7 +151,9 @@ def test_scaled_inputs_keep_the_geometry_and_the_masks(pair):
 
     valid = np.ones(pair.image_size, dtype=bool)
     valid[-5:, :] = False  # an ego body: rows 86-87 of the half-size image touch it
-    inputs = refine_inputs(replace(pair, valid_mask=np.broadcast_to(valid, (pair.num_views, *pair.image_size)).copy()), lidar=True)
+    inputs = refine_inputs(
+        replace(pair, valid_mask=np.broadcast_to(valid, (pair.num_views, *pair.image_size)).copy()), lidar=True
+    )
     half = scaled_inputs(inputs, 0.5)
     h, w = inputs.image_size
     assert half.image_size == (h // 2, w // 2) and scaled_inputs(inputs, 1.0) is inputs
@@ -397,7 +399,7 @@ def test_thread_choice_keeps_the_faster_of_one_thread_and_many():
 def test_the_next_step_is_estimated_from_the_chosen_threads():
     """Once a setting is chosen, the budget's estimate of a step is the median of the steps that
     ran on it: the slower trial (here three times as long) no longer counts."""
-    from drivingscene.methods.refine import ThreadChoice
+    from drivingscene.methods.refine import ThreadChoice, typical_step
 
     choice = ThreadChoice(2)
     times, threads_of = [], []
@@ -407,11 +409,12 @@ def test_the_next_step_is_estimated_from_the_chosen_threads():
         threads_of.append(threads)
         choice.record(threads, times[-1])
     assert threads_of == [2, 1, 2, 1] and choice.chosen == 1
-    assert choice.typical_step(times, threads_of) == 1.0  # the median of all four would be 2.0
-    assert ThreadChoice(2).typical_step([], []) == 0.0
+    assert typical_step(choice, times, threads_of) == 1.0  # the median of all four would be 2.0
+    assert typical_step(ThreadChoice(2), [], []) == 0.0
+    assert typical_step(None, times, threads_of) == 2.0  # fixed threads: every step counts
     undecided = ThreadChoice(2)
     undecided.record(2, 3.0)
-    assert undecided.typical_step([3.0], [2]) == 3.0  # before a choice, every step counts
+    assert typical_step(undecided, [3.0], [2]) == 3.0  # before a choice, every step counts
 
 
 def test_the_gradient_steps_run_on_the_threads_their_timing_chose(synth_pair, start, monkeypatch):
