@@ -40,6 +40,16 @@ def shoot(win: ViewerWindow, path: Path) -> None:
     print(path)
 
 
+def wait_geometry_check(win: ViewerWindow, timeout: float = 120.0) -> None:
+    """Step until the opened scene's geometry check (started once its picture settled) has a
+    result, so that the Scene panel's geometry row in the shots says what it found (no wait for a
+    document without one to check)."""
+    start = time.time()
+    while time.time() - start < timeout and (win.viewer.geometry.pending is not None or win.viewer.geometry.job is not None):
+        win.step()
+        time.sleep(0.02)
+
+
 def _most_dynamic_camera(viewer) -> int:
     """The rig camera whose view holds the most moving Gaussians at keyframe 0 (by source camera)."""
     splats = viewer.doc.splats
@@ -74,6 +84,7 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     loading_shot(win, out)
     settle(win)
     v.viewport.wait_lod()
+    wait_geometry_check(win)
     v.set_time(0.5)
     v.camera.nav.pitch, v.camera.nav.distance = -0.5, 24.0
     v.panels["cameras"] = StripState(kind="total_flow")

@@ -65,8 +65,23 @@ def setup_style(font_size: float = 15.0) -> None:
             io.fonts.add_font_from_file_ttf(str(icons), font_size * 0.9, cfg)
 
 
+def dismiss_popups(viewer: Viewer) -> None:
+    """Esc with a menu or dialog open (``viewer.dismiss_popups``, set by the key handler): close every
+    menu and dialog, as their Cancel would (the unsaved-edits question answered "cancel", the file
+    dialog left); nothing else happens (the selection stays). Run at the start of a frame, before
+    any popup is drawn."""
+    if not viewer.dismiss_popups:
+        return
+    viewer.dismiss_popups = False
+    if viewer.quit.asking:
+        viewer.answer_quit("cancel")
+    filedialog.cancel(viewer)
+    imgui.internal.close_popup_to_level(0, True)
+
+
 def layout(viewer: Viewer, width: int, height: int) -> None:
     """Build every panel for this frame and set ``viewer.view_rect``."""
+    dismiss_popups(viewer)
     menu_h = menu.draw(viewer)
     strip_h = STRIP_H if viewer.doc is not None and viewer.doc.num_views else 0
     bottom = TIMELINE_H + STATUS_H

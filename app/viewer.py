@@ -79,6 +79,7 @@ class Viewer:
         self.panels: dict = {}  # per-panel UI state
         self.ui_rects: dict[str, tuple[float, float, float, float]] = {}  # widget rectangles (scripted tests)
         self.quit = QuitGuard()  # Ctrl+Q / close: asks first when edits are unsaved (app/quitting.py)
+        self.dismiss_popups = False  # Esc with a menu or dialog open: close them next frame (ui.dismiss_popups)
         self.task = None  # (label, generator, results): an export drawn one picture per frame
         self.refine = RefineState()  # test-time refinement running in the background (app/refine_job.py)
 

@@ -97,14 +97,18 @@ class ViewerWindow:
             interaction.mouse_scroll(self.viewer, scroll_y)
 
     def on_key_press(self, symbol, modifiers):
-        """Shortcuts (``shortcuts.SHORTCUTS``) when imgui does not want the keyboard (with a menu or
-        dialog open, Esc goes to imgui and closes it)."""
+        """Shortcuts (``shortcuts.SHORTCUTS``) when imgui does not want the keyboard; with a menu or
+        dialog open, Esc closes it (``ui.dismiss_popups``, next frame) and does nothing else."""
         import pyglet
+        from imgui_bundle import imgui
 
-        if self._io().want_capture_keyboard or self.viewer.quit.asking:
-            return
         name = pyglet.window.key.symbol_string(symbol)
         name = KEY_NAMES.get(name, name.lower().lstrip("_"))
+        if name == "escape" and (imgui.is_popup_open("", imgui.PopupFlags_.any_popup_id) or self.viewer.quit.asking):
+            self.viewer.dismiss_popups = True
+            return
+        if self._io().want_capture_keyboard or self.viewer.quit.asking:
+            return
         ctrl = bool(modifiers & pyglet.window.key.MOD_CTRL)
         interaction.key_press(self.viewer, name, ctrl, bool(modifiers & pyglet.window.key.MOD_SHIFT))
 

@@ -48,6 +48,11 @@ def _entries(folder: Path) -> list[tuple[str, bool]]:
     ]
 
 
+def cancel(viewer: Viewer) -> None:
+    """Leave the dialog as its Cancel button does (the caller closes the popup)."""
+    _state(viewer).mode = ""
+
+
 def draw(viewer: Viewer) -> None:
     st = _state(viewer)
     if not st.mode:

@@ -50,7 +50,7 @@ def run_session(display: str, module: str, *args: str) -> subprocess.CompletedPr
         env={**os.environ, "DISPLAY": display},
         capture_output=True,
         text=True,
-        timeout=240,
+        timeout=600,  # the whole session, several reconstructions: a bound, not a timing
         cwd=Path(__file__).resolve().parents[2],
     )
     assert run.returncode == 0, run.stderr[-3000:]
@@ -83,7 +83,9 @@ def test_escape_never_quits_and_unsaved_edits_ask(xvfb, tmp_path):
     run_session(xvfb, "tests.app.xvfb_session", str(tmp_path), "quit")
     r = json.loads((tmp_path / "result.json").read_text())
     assert r["selected"] > 0 and r["after_escape"] == {"selected": 0, "quit": False}
+    assert r["menu_open"] and r["after_menu_escape"] == {"menu_open": False, "selected": r["selected"], "quit": False}
     assert r["unsaved"]
     assert r["after_ctrl_q"] == {"asking": True, "quit": False, "modal": True}
+    assert r["after_dialog_escape"] == {"asking": False, "quit": False, "popup": False}
     assert r["after_cancel"] == {"asking": False, "quit": False}
     assert r["after_discard"] == {"asking": False, "quit": True}

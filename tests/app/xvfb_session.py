@@ -33,8 +33,9 @@ class Session:
             self.win.step()
         _xdo("windowfocus", "--sync", self.wid)
 
-    def pump(self, frames: int = 3, until=None, timeout: float = 60.0, settle: bool = True) -> None:
-        """Run at least ``frames`` frames, then until ``until()`` is true and (``settle``) the view is idle."""
+    def pump(self, frames: int = 3, until=None, timeout: float = 180.0, settle: bool = True) -> None:
+        """Run at least ``frames`` frames, then until ``until()`` is true and (``settle``) the view is idle
+        (a bound on a wait, not a timing: a reconstruction on a loaded 2-core machine took over 60 s)."""
         start = time.time()
         n = 0
         while time.time() - start < timeout:
@@ -189,8 +190,16 @@ def _export(s: Session, result: dict) -> None:
     result["exported_shapes"] = [list(cv2.imread(p).shape) for p in viewer.export.last]
 
 
+def _any_popup() -> bool:
+    """Whether a menu or dialog (an imgui popup) is open."""
+    from imgui_bundle import imgui
+
+    return imgui.is_popup_open("", imgui.PopupFlags_.any_popup_id)
+
+
 def run_quit(out: Path) -> dict:
-    """Esc does not quit; with an unsaved edit Ctrl+Q asks (the modal), Cancel keeps the window, Discard quits."""
+    """Esc does not quit (it clears the selection, or closes an open menu and does nothing else); with
+    an unsaved edit Ctrl+Q asks (the modal), Esc or Cancel keeps the window, Discard quits."""
     from drivingscene.gaussians.recon import save_reconstruction
     from tests.app.scenes import street_recon
 
@@ -207,6 +216,22 @@ def run_quit(out: Path) -> dict:
     _xdo("key", "--window", s.wid, "Escape")
     s.pump(3)
     result["after_escape"] = {"selected": int(viewer.doc.selected.sum()), "quit": viewer.quit_requested}
+    # Esc with a menu open closes the menu and nothing else: the selection stays
+    _xdo("key", "--window", s.wid, "ctrl+a")
+    s.pump(3)
+    x0, y0, x1, y1 = viewer.ui_rects["menu_file"]
+    s.move((x0 + x1) / 2, (y0 + y1) / 2)
+    _xdo("click", "1")
+    s.pump(3, settle=False)
+    result["menu_open"] = _any_popup()
+    _xdo("key", "--window", s.wid, "Escape")
+    s.pump(3, settle=False)
+    result["after_menu_escape"] = {
+        "menu_open": _any_popup(),
+        "selected": int(viewer.doc.selected.sum()),
+        "quit": viewer.quit_requested,
+    }
+    s.move(x + w / 2, y + h / 2)
     _xdo("key", "--window", s.wid, "ctrl+a")
     _xdo("key", "--window", s.wid, "h")  # hide: an edit that is saved
     s.pump(3)
@@ -218,11 +243,13 @@ def run_quit(out: Path) -> dict:
         "quit": viewer.quit_requested,
         "modal": "quit_cancel" in viewer.ui_rects,
     }
+    _xdo("key", "--window", s.wid, "Escape")  # in the question: Cancel
+    s.pump(3, settle=False)
+    result["after_dialog_escape"] = {"asking": viewer.quit.asking, "quit": viewer.quit_requested, "popup": _any_popup()}
     for answer in ("cancel", "discard"):
-        if answer == "discard":
-            s.move(x + w / 2, y + h / 2, settle=False)
-            _xdo("key", "--window", s.wid, "ctrl+q")
-            s.pump(4, settle=False)
+        s.move(x + w / 2, y + h / 2, settle=False)
+        _xdo("key", "--window", s.wid, "ctrl+q")
+        s.pump(4, settle=False)
         x0, y0, x1, y1 = viewer.ui_rects[f"quit_{answer}"]
         s.move((x0 + x1) / 2, (y0 + y1) / 2, settle=False)
         _xdo("click", "1")

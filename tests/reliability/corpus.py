@@ -322,12 +322,37 @@ def _dgp_calibration(fn: Callable[[dict], None]) -> Callable[[Path], None]:
     return _edit_json("calibration/c0.json", fn)
 
 
+def nuscenes_folder(folder: Path) -> Path:
+    """A valid nuScenes dataset (one scene, two samples, LiDAR) written from a small 6-camera pair."""
+    import dataclasses
+
+    from drivingscene.data.importers.nuscenes import CAMERAS
+    from tests.data.importers.nuscenes_layout import write_nuscenes
+
+    pair = dataclasses.replace(make_pair(num_views=len(CAMERAS), height=32, width=48), camera_names=tuple(CAMERAS))
+    return write_nuscenes(pair, folder / "nus")
+
+
+def _nuscenes(edit: Callable[[Path], None]) -> Callable[[Path], Path]:
+    return _built(nuscenes_folder, edit)
+
+
+def _nuscenes_calibration(fn: Callable[[dict], None]) -> Callable[[Path], None]:
+    """An edit of the first camera's calibrated_sensor record."""
+
+    def edit(data: list) -> None:
+        fn(next(r for r in data if r["camera_intrinsic"]))
+
+    return _edit_json("v1.0-mini/calibrated_sensor.json", edit)
+
+
 def _first_image(root: Path) -> Path:
     return sorted(root.rglob("*.png"))[0]
 
 
 # ---- the cases -------------------------------------------------------------------------------
-# Each entry: id -> (category, writer of the bad input, command, expected substrings). The command is
+# Each entry: id -> (category, writer of the bad input, command, expected substrings[, an optional
+# module the case needs]). The command is
 # a function of (the input path, the case folder) returning (program, argv, outputs); the expected
 # substrings may hold "{name}" (the input's file name).
 
@@ -529,6 +554,35 @@ SPECS: dict[str, tuple] = {
         import_nuscenes,
         ("v1.0-mini", "--version", "expected a table folder"),
     ),
+    # ... and datasets the devkit reads, broken (needs nuscenes-devkit, which make setup installs)
+    "nuscenes_ragged_intrinsics": (
+        "nuscenes",
+        _nuscenes(_nuscenes_calibration(lambda r: r.update(camera_intrinsic=[[1.0, 0.0], [0.0, 1.0, 0.0]]))),
+        import_nuscenes,
+        ("camera_intrinsic", "expected"),
+        "nuscenes",
+    ),
+    "nuscenes_nan_extrinsics": (
+        "nuscenes",
+        _nuscenes(_nuscenes_calibration(lambda r: r.update(translation=[float("nan"), 0.0, 1.5]))),
+        import_nuscenes,
+        ("calibrated_sensor.json", "cs0", "expected a finite translation"),
+        "nuscenes",
+    ),
+    "nuscenes_missing_table": (
+        "nuscenes",
+        _nuscenes(lambda d: (d / "v1.0-mini" / "calibrated_sensor.json").unlink()),
+        import_nuscenes,
+        ("calibrated_sensor.json", "expected a nuScenes table"),
+        "nuscenes",
+    ),
+    "nuscenes_missing_image": (
+        "nuscenes",
+        _nuscenes(lambda d: sorted(d.rglob("*.jpg"))[0].unlink()),
+        import_nuscenes,
+        (".jpg", "expected a readable image"),
+        "nuscenes",
+    ),
     # command-line values
     "cli_synth_res": ("cli", _nothing, _synth_res, ("--res", "expected HxW")),
     "cli_export_time_2": ("cli", _recon_file, _with(export, "--time", "2"), ("--time", "expected a number in [0, 1]")),
@@ -545,12 +599,12 @@ SPECS: dict[str, tuple] = {
 
 def build(case_id: str, folder: Path) -> Case:
     """Write the files of ``case_id`` under ``folder`` and return its case."""
-    category, writer, command, expect = SPECS[case_id]
+    category, writer, command, expect, *needs = SPECS[case_id]
     folder.mkdir(parents=True, exist_ok=True)
     path = writer(folder)
     program, argv, outputs = command(path, folder)
     marker = folder / "PWNED" if "pickled" in case_id else None
-    return Case(case_id, category, program, argv, tuple(expect), tuple(outputs), marker, files=(path,))
+    return Case(case_id, category, program, argv, tuple(expect), tuple(outputs), marker, "".join(needs), files=(path,))
 
 
 CASE_IDS = tuple(SPECS)

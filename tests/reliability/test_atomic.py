@@ -7,6 +7,9 @@ from __future__ import annotations
 import errno
 import os
 import re
+import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -118,9 +121,13 @@ def test_unwritable_places_are_clean_errors(tmp_path):
     with pytest.raises(OutputError, match="not a regular file"):
         atomic_write_text(fifo, "x")  # like /dev/full: never renamed over
     assert fifo.is_fifo()
+    if Path("/dev/full").is_char_device():  # the device itself, where there is one
+        with pytest.raises(OutputError, match="/dev/full: could not write it: not a regular file"):
+            atomic_write_text("/dev/full", "x")
+        assert Path("/dev/full").is_char_device()
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a chmod 0o555 folder; covered by /proc and a file as folder")
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a chmod 0o555 folder: the test below drops its override")
 def test_read_only_folder_is_a_clean_error(tmp_path):
     folder = tmp_path / "ro"
     folder.mkdir()
@@ -128,6 +135,36 @@ def test_read_only_folder_is_a_clean_error(tmp_path):
     try:
         with pytest.raises(OutputError, match="Permission denied"):
             atomic_write_text(folder / "out.txt", "x")
+        assert os.listdir(folder) == []
+    finally:
+        folder.chmod(0o755)
+
+
+@pytest.mark.skipif(
+    os.geteuid() != 0 or shutil.which("setpriv") is None, reason="root with setpriv only (others: the test above)"
+)
+def test_read_only_folder_stops_root_without_its_override(tmp_path):
+    """As root (CI's and these machines' user) a 0o555 folder is writable, so the command runs without
+    the capabilities that let root ignore permissions (setpriv drops them from its bounding set), as
+    any other user would: one line naming the target, exit code 2, nothing left in the folder."""
+    from drivingscene.data import save_frame_pair
+    from tests.factories import make_pair
+
+    scene = tmp_path / "pair.npz"
+    save_frame_pair(make_pair(num_views=2, height=12, width=16), scene)
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    target = folder / "out.npz"
+    drop = "--bounding-set=-dac_override,-dac_read_search"
+    try:
+        run = subprocess.run(
+            ["setpriv", drop, sys.executable, "-m", "drivingscene", "oracle", str(scene), "-o", str(target)],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert run.returncode == 2, run.stderr
+        lines = run.stderr.strip().splitlines()
+        assert len(lines) == 1 and str(target) in lines[0] and "Permission denied" in lines[0], run.stderr
         assert os.listdir(folder) == []
     finally:
         folder.chmod(0o755)

@@ -61,6 +61,8 @@ def test_corpus_size_and_categories():
 @pytest.mark.parametrize("case_id", CASE_IDS)
 def test_bad_input_is_one_line(case_id, tmp_path, capsys):
     case = build(case_id, tmp_path)
+    if case.needs:
+        pytest.importorskip(case.needs, reason=f"{case.needs} not installed (make setup installs it)")
     capsys.readouterr()  # building a case may log
     code = run_in_process(case)
     captured = capsys.readouterr()

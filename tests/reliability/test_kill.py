@@ -1,6 +1,7 @@
 """SIGKILL at any moment: ``drivingscene reconstruct`` and ``drivingscene export`` killed at spread
-times and deterministically inside the write leave the target as it was (absent, or the old
-complete file under --force) or as the complete new file, byte for byte the reference output.
+times, deterministically as each stage of the reconstruction starts, and inside the write leave
+the target as it was (absent, or the old complete file under --force) or as the complete new file,
+byte for byte the reference output.
 Only hidden temporary files (``.NAME.PID.XXXX.tmp``), never the user's name, can be left over,
 and the next write of the same target removes them."""
 
@@ -23,11 +24,13 @@ from drivingscene.data.atomic import atomic_write_text
 
 OLD = b"old complete content\n"
 # Runs the command with a hook that kills the process with SIGKILL inside the write of TARGET:
-# mid_write (half the bytes written), before_rename (all written and synced), after_rename.
+# mid_write (half the bytes written), before_rename (all written and synced), after_rename; or
+# stage:NAME, as the reconstruction's stage NAME starts (methods/feedforward.py STAGES).
 HOOK = r"""
 import os, signal, sys
 from pathlib import Path
 import drivingscene.data.atomic as atomic
+import drivingscene.methods.feedforward as feedforward
 from drivingscene.cli import main
 
 mode, target, argv = sys.argv[1], Path(sys.argv[2]).resolve(), sys.argv[3:]
@@ -67,8 +70,19 @@ def hooked_replace(src, dst):
     if mode == "after_rename":
         die()
 
+real_reporter = feedforward._stage_reporter
+
+def hooked_reporter(progress, num_views):
+    report = real_reporter(progress, num_views)
+    def hooked(stage):
+        if mode == f"stage:{stage}":
+            die()
+        report(stage)
+    return hooked
+
 atomic.open = hooked_open
 os.replace = hooked_replace
+feedforward._stage_reporter = hooked_reporter
 sys.exit(main(argv))
 """
 
@@ -182,6 +196,19 @@ def test_killed_at_spread_times(work):
 
 
 INSIDE = [(out, mode) for out in ("out.npz", "out.ply") for mode in ("mid_write", "before_rename", "after_rename")]
+
+
+@pytest.mark.parametrize("stage", ["static", "match", "flow", "assembly"])
+def test_killed_as_a_stage_starts(work, stage):
+    """Killed while the model runs (the timed kills above may all land after it on a loaded machine):
+    the old file stays, whole, and nothing of the new one appears."""
+    out = "out.npz"
+    prepare(work, out, had_old=True)
+    argv = command(work, out)[3:]
+    proc = subprocess.run([sys.executable, "-c", HOOK, f"stage:{stage}", out, *argv], cwd=work, capture_output=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+    assert assert_old_or_new(work, out, had_old=True) == "old"
+    assert not list(work.glob(f".{out}.*"))  # killed before the write began
 
 
 @pytest.mark.parametrize(("out", "mode"), [*INSIDE, ("out_points.ply", "mid_write")])

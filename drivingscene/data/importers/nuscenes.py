@@ -60,11 +60,17 @@ def _record(nusc, table: str, token: str, where: str) -> dict:
         raise InputError(f"{nusc.dataroot}/{nusc.version}/{table}.json: expected a record {token!r} ({where}), found none") from None
 
 
-def _pose(record: dict, where: str) -> np.ndarray:
+def _pose(nusc, table: str, record: dict) -> np.ndarray:
+    """The rigid transform of an ego_pose or calibrated_sensor ``record``; InputError naming the
+    table's file, the record and what is wrong."""
+    where = f"{nusc.dataroot}/{nusc.version}/{table}.json: {record.get('token', '?')}"
     try:
         return rigid_from_quaternion(record["rotation"], record["translation"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"{where}: expected rotation (w, x, y, z) and translation, found {e}") from None
+    except KeyError as e:
+        raise InputError(f"{where}: expected a rotation (w, x, y, z) and a translation (x, y, z), found no {e}") from None
+    except (TypeError, ValueError) as e:
+        detail = str(e) if str(e).startswith("expected") else f"expected a rotation (w, x, y, z) and a translation (x, y, z) ({e})"
+        raise InputError(f"{where}: {detail}") from None
 
 
 @dataclass(frozen=True)
@@ -91,8 +97,8 @@ class _Image:
                 f"{nusc.dataroot}/{nusc.version}/calibrated_sensor.json: {cs['token']}: camera_intrinsic: "
                 f"expected a 3x3 matrix of finite numbers, found {cs.get('camera_intrinsic')!r:.80}"
             )
-        where = f"{nusc.version}/sample_data {token}"
-        return cls(Path(nusc.dataroot) / sd["filename"], sd["timestamp"] * 1e-6, _pose(ego, where), _pose(cs, where), k)
+        pose = _pose(nusc, "ego_pose", ego)
+        return cls(Path(nusc.dataroot) / sd["filename"], sd["timestamp"] * 1e-6, pose, _pose(nusc, "calibrated_sensor", cs), k)
 
 
 def _scene_samples(nusc, name: str) -> list[dict]:
@@ -138,7 +144,7 @@ def _lidar_world(nusc, token: str) -> tuple[np.ndarray, float]:
         raise InputError(f"{path}: expected float32 points x y z intensity ring, found unreadable data ({e})") from None
     cs = _record(nusc, "calibrated_sensor", sd["calibrated_sensor_token"], LIDAR)
     ego = _record(nusc, "ego_pose", sd["ego_pose_token"], LIDAR)
-    lidar_to_world = _pose(ego, str(path)) @ _pose(cs, str(path))
+    lidar_to_world = _pose(nusc, "ego_pose", ego) @ _pose(nusc, "calibrated_sensor", cs)
     return points @ lidar_to_world[:3, :3].T + lidar_to_world[:3, 3], sd["timestamp"] * 1e-6
 
 
@@ -209,7 +215,7 @@ def _reference(nusc, frame: _Frame, lidar_token: str, sweep: bool) -> tuple[np.n
     if lidar_token:
         sd = _record(nusc, "sample_data", lidar_token, LIDAR)
         ego = _record(nusc, "ego_pose", sd["ego_pose_token"], LIDAR)
-        return _pose(ego, f"{nusc.version}/sample_data {lidar_token}"), sd["timestamp"] * 1e-6
+        return _pose(nusc, "ego_pose", ego), sd["timestamp"] * 1e-6
     return frame.front().ego_to_world, frame.front().seconds
 
 
