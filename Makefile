@@ -65,6 +65,10 @@ BENCH_ABLATION ?= $(if $(ABLATION_RUNS),--two-stage-weights runs/dynamic-match2/
 # Network width against quality and speed: the two width runs of docs/training-notes.md, when present.
 WIDTH_RUNS := $(wildcard runs/width16/model.safetensors runs/width32/model.safetensors)
 BENCH_WIDTHS ?= $(if $(WIDTH_RUNS),--width-weights $(WIDTH_RUNS),)
+# Without those runs (they are not in the repository), the ablation models' points and the widths of
+# the run that scored them (2026-11-26, kept as docs/benchmark-ablation-models.json) are carried over,
+# marked as that run's.
+BENCH_CARRY ?= $(if $(ABLATION_RUNS)$(WIDTH_RUNS),,--carry-from docs/benchmark-ablation-models.json)
 benchmark: setup
 	$(VENV)/bin/drivingscene bench report --force --scenes $(REAL_OUT)/ddad02_0-2.npz --names "DDAD scene_02, 0->2 (1 held out)" \
-		$(BENCH_ABLATION) $(BENCH_WIDTHS) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images
+		$(BENCH_ABLATION) $(BENCH_WIDTHS) $(BENCH_CARRY) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images

@@ -55,9 +55,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--headless", action="store_true", help="render to files through EGL, no window")
     p.add_argument("-o", "--out", type=Path, default=None, metavar="DIR", help="output folder of --headless")
     p.add_argument(
-        "--time", type=unit_interval, action="append", metavar="T", help="normalised time (repeatable; default 0, 0.5, 1)"
+        "--time",
+        type=unit_interval,
+        action="extend",
+        nargs="+",
+        metavar="T",
+        help="normalised times, space-separated (default 0 0.5 1)",
     )
-    p.add_argument("--camera", action="append", metavar="NAME", help="rig camera to render (repeatable; default all)")
+    p.add_argument("--camera", action="extend", nargs="+", metavar="NAME", help="rig cameras to render, space-separated (default all)")
     p.add_argument("--mode", choices=MODES, default="rgb", help="what to render (headless)")
     p.add_argument("--blend", choices=BLEND_MODES, default=DEFAULT_BLEND, help="how both keyframes' Gaussians combine at time t")
     p.add_argument("--size", type=image_size, default=(1280, 720), metavar="WxH", help="overview / window size")

@@ -82,6 +82,7 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     v = win.viewer
     v.open(scene)
     loading_shot(win, out)
+    first_picture_shot(win, out)
     settle(win)
     v.viewport.wait_lod()
     wait_geometry_check(win)
@@ -122,6 +123,20 @@ def loading_shot(win: ViewerWindow, out: Path, timeout: float = 120.0) -> None:
         if fraction is not None and fraction > 0:
             win.step()  # the frame that draws the stage just reported
             path = out / "viewer_loading.png"
+            save_png(path, win.screenshot())
+            print(path)
+            return
+
+
+def first_picture_shot(win: ViewerWindow, out: Path, timeout: float = 120.0) -> None:
+    """viewer_first_picture.png: the scene just opened, its full-quality pass on screen while it is
+    drawn (between a third and most of the Gaussians), before the picture is finished."""
+    v = win.viewer
+    start = time.time()
+    while time.time() - start < timeout and not (v.doc is not None and v.viewport.settled):
+        win.step()
+        if v.doc is not None and v.viewport.target is not None and 0.3 <= v.viewport.stats.refining < 0.9:
+            path = out / "viewer_first_picture.png"
             save_png(path, win.screenshot())
             print(path)
             return

@@ -195,7 +195,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, nargs="+", required=True, help="validation pair folders or single scene files (each reported apart)")
     p.add_argument("--count", type=int, default=6, help="pairs per folder (default 6)")
     p.add_argument("--weights", type=Path, default=None, help="model (default: the shipped weights)")
-    p.add_argument("--variant", action="append", default=None, metavar="KEY=VALUE,...", help="repeatable; default: a built-in list")
+    p.add_argument(
+        "--variant",
+        action="extend",
+        nargs="+",
+        default=None,
+        metavar="KEY=VALUE,...",
+        help="variants to score, space-separated, each a comma-separated list of choices ('' the defaults; default: a built-in list)",
+    )
     p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
@@ -248,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
             "",
         ]
     cmd = "drivingscene bench choices --data " + " ".join(str(d) for d in args.data) + f" --count {args.count}"
-    cmd += "".join(f" --variant '{v}'" for v in args.variant or [])
+    cmd += " --variant " + " ".join(f"'{v}'" for v in args.variant) if args.variant else ""
     cmd += f" --weights {args.weights}" if args.weights else ""
     text = "\n".join(
         [

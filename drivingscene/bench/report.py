@@ -77,11 +77,12 @@ class Profile:
     stability_seeds: int
     ends_only: bool  # stability: only the easiest and the hardest setting of each axis
     perceptual: bool
+    stability_budget: float  # seconds of the refinement methods in the stability sweeps
 
 
 PROFILES = {
-    "full": Profile(8, (176, 320), (1.0, 0.5), (5.0, 15.0), (15.0,), ("fast", "medium"), (0.5, 0.25), (96, 176), 2, False, True),
-    "quick": Profile(1, (48, 88), (1.0,), (1.0,), (1.0,), ("fast",), (0.5,), (48, 88), 1, True, False),
+    "full": Profile(8, (176, 320), (1.0, 0.5), (5.0, 15.0), (15.0,), ("fast", "medium"), (0.5, 0.25), (96, 176), 2, False, True, 3.0),
+    "quick": Profile(1, (48, 88), (1.0,), (1.0,), (1.0,), ("fast",), (0.5,), (48, 88), 1, True, False, 0.5),
 }
 
 
@@ -114,6 +115,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="models at different network widths trained with one schedule (parsimony: width against quality and speed)",
     )
     p.add_argument("--no-stability", action="store_true", help="skip the stability sweeps")
+    p.add_argument(
+        "--carry-from",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="an earlier report whose ablation models and network widths this run keeps, marked as that run's, "
+        "where their weights are not given (they are not in the repository)",
+    )
     p.add_argument("-o", "--out", type=Path, default=None, help="markdown report (e.g. docs/benchmark.md)")
     p.add_argument("--json", type=Path, default=None, help="the report as JSON (e.g. docs/benchmark.json)")
     p.add_argument("--charts", type=Path, default=None, help="folder for the charts (e.g. docs/images)")
@@ -495,9 +504,7 @@ def build_report(args) -> dict:
     mark_fronts(points)
     axes = []
     if not args.no_stability:
-        names = (FULL, STATIC, CLASSICAL, BLEND)
-        chosen = [m for m in methods if m.name in names and m.setting in ("native", "-", f"DIS {profile.classical[0]}")]
-        axes = stability(chosen, profile.stability_size, profile.stability_seeds, profile.ends_only)
+        axes = stability(stability_methods(model, methods, profile), profile.stability_size, profile.stability_seeds, profile.ends_only)
     command = "drivingscene bench report" + (" --quick" if args.quick else "")
     flags = (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights), ("--no-warp-weights", args.no_warp_weights))
     for flag, value in flags:
@@ -519,6 +526,47 @@ def build_report(args) -> dict:
         "parsimony": par,
         "ablations": ablations(points),
     }
+
+
+def stability_methods(model, methods: list[Method], profile: Profile) -> list[Method]:
+    """Every method of the comparison at its first setting (the model at its native input), the two
+    refinements with ``profile.stability_budget`` seconds (their budgets of the speed chart, over
+    every setting of every axis, would take hours)."""
+    from drivingscene.methods.feedforward import reconstruct
+    from drivingscene.methods.refine import RefineConfig, refine
+    from drivingscene.methods.scratch import refine_from_scratch
+
+    seconds = profile.stability_budget
+    out, seen = [], set()
+    for m in methods:
+        if m.name in seen or m.family.endswith("+ LiDAR"):
+            continue
+        seen.add(m.name)
+        if m.name == REFINED:
+            m = Method(REFINED, f"{seconds:g} s", REFINED, lambda p: refine(model, p, reconstruct(model, p), RefineConfig(seconds=seconds)))
+        elif m.name == SCRATCH:
+            m = Method(SCRATCH, f"flat start, {seconds:g} s", SCRATCH, lambda p: refine_from_scratch(p, seconds))
+        out.append(m)
+    return out
+
+
+def carry_ablations(report: dict, path: Path) -> None:
+    """Keep the ablation models' points and the network widths of the earlier report at ``path``
+    where this run measured none (their weights are not in the repository): the points go to
+    ``carried`` (not onto this run's charts or fronts, whose code they predate), the ablations are
+    computed from them beside this run's points, and ``carried`` says which run they come from."""
+    old = load_report(path)
+    names = {SINGLE, TWO_STAGE, NO_WARP}
+    points = report["sets"]["procedural"]["points"]
+    measured = {p["method"] for p in points}
+    kept = [p for p in old["sets"].get("procedural", {}).get("points", []) if p["method"] in names - measured]
+    widths = [] if report["parsimony"].get("widths") else old.get("parsimony", {}).get("widths", [])
+    if not kept and not widths:
+        return
+    report["carried"] = {"from": str(path), "created": old.get("created"), "command": old.get("command"), "points": kept, "widths": widths}
+    if widths:
+        report["parsimony"]["widths"] = widths
+    report["ablations"] = ablations(points + kept)
 
 
 def add_ablation_models(report: dict, args) -> None:
@@ -615,7 +663,13 @@ def run(args: argparse.Namespace) -> int:
         # derived from the saved points, so that their wording follows the code that renders them
         report["ablations"] = finite_or_none(ablations(report["sets"].get("procedural", {}).get("points", [])))
     else:
-        report = finite_or_none(build_report(args))
+        start = time.perf_counter()
+        report = build_report(args)
+        report["run_seconds"] = time.perf_counter() - start
+        if args.carry_from is not None:
+            carry_ablations(report, args.carry_from)
+            report["command"] += f" --carry-from {args.carry_from}"
+        report = finite_or_none(report)
     charts: dict[str, Path] = {}
     if args.charts is not None:
         from drivingscene.bench.report_charts import write_charts

@@ -532,13 +532,52 @@ def parsimony_chart(report: dict, path: str | os.PathLike) -> Path:
         return _save(fig, path)
 
 
+# --- ablations ------------------------------------------------------------------------------------
+
+
+def ablation_chart(report: dict, path: str | os.PathLike) -> Path:
+    """The paper's ablations as bars: ours (in-between PSNR, all pixels) beside the paper's, in dB;
+    an ablation this run did not measure is labelled so.
+
+    Raises:
+        InputError: the report has no ablation.
+    """
+    rows = report.get("ablations", [])
+    if not rows:
+        raise InputError("benchmark report: no ablation to chart")
+    with _figure(1, 1, max(3.2, 0.9 * len(rows) + 2.0)) as (fig, axes):
+        ax = axes[0][0]
+        ys = list(range(len(rows)))[::-1]
+        for y, row in zip(ys, rows):
+            bars = ((0.18, "ours_db", "ours (all pixels)", "not measured in this run", _colour(0)),
+                    (-0.18, "paper_db", "paper", "no figure in the paper", _colour(2)))  # fmt: skip
+            for offset, key, label, missing, colour in bars:
+                value = row.get(key)
+                if _finite(value):
+                    ax.barh(y + offset, value, height=0.34, color=colour, label=label)
+                    ax.annotate(f"{value:+.2f}", (value, y + offset), textcoords="offset points", xytext=(4 if value >= 0 else -4, -3),
+                                ha="left" if value >= 0 else "right", fontsize=8)  # fmt: skip
+                else:
+                    ax.annotate(f"{label}: {missing}", (0, y + offset), textcoords="offset points", xytext=(4, -3), fontsize=8, color="0.4")
+        ax.axvline(0, color="0.3", linewidth=0.8)
+        ax.set_yticks(ys, [row["name"] for row in rows])
+        ax.set_ylim(-0.6, len(rows) - 0.4)
+        ax.set_xlabel("in-between PSNR difference (dB; linear within ±1, logarithmic beyond)")
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.xaxis.set_major_formatter(lambda v, _pos: f"{v:g}")
+        handles, names = _unique_handles(fig.axes)
+        _legend_below(fig, handles, names)
+        _title(fig, f"The paper's ablations (machine: {report.get('machine', '?')})")
+        return _save(fig, path)
+
+
 # --- all of them ---------------------------------------------------------------------------------
 
 
 def write_charts(report: dict, folder: str | os.PathLike) -> dict[str, Path]:
     """Every chart the report has data for, into ``folder``: ``benchmark_speed_<set>.png``,
-    ``benchmark_stability.png`` and ``benchmark_parsimony.png``; keyed ``speed_<set>``,
-    ``stability`` and ``parsimony``. Charts without data are left out."""
+    ``benchmark_stability.png``, ``benchmark_parsimony.png`` and ``benchmark_ablations.png``; keyed
+    ``speed_<set>``, ``stability``, ``parsimony`` and ``ablations``. Charts without data are left out."""
     folder = Path(folder)
     out = {}
     for name, s in report.get("sets", {}).items():
@@ -549,4 +588,6 @@ def write_charts(report: dict, folder: str | os.PathLike) -> dict[str, Path]:
     budgets = report.get("parsimony", {}).get("budgets", [])
     if any(_finite(b.get("gaussians")) and _finite(b.get("psnr")) for b in budgets):
         out["parsimony"] = parsimony_chart(report, folder / "benchmark_parsimony.png")
+    if report.get("ablations"):
+        out["ablations"] = ablation_chart(report, folder / "benchmark_ablations.png")
     return out

@@ -12,6 +12,9 @@ Top level::
       "stability": {"axes": [AXIS, ...], "break_db": float, "size": "WxH", "seeds": int},
       "parsimony": {"budgets": [BUDGET, ...], "chosen": str | None, "widths": [WIDTH, ...]},
       "ablations": [ABLATION, ...],
+      "run_seconds": float,                 # wall-clock seconds of the whole run (absent in re-renders of old reports)
+      "carried": {"from": str, "created": str, "command": str,   # optional (--carry-from): an earlier
+                  "points": [POINT, ...], "widths": [WIDTH, ...]},  # run's ablation models and widths
     }
 
 POINT: one method at one setting, means over the set's pairs::

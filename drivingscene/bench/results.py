@@ -55,10 +55,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joint-weights", type=Path, default=None, help="single-stage (joint) model for the ablation")
     p.add_argument(
         "--extra",
-        action="append",
+        action="extend",
+        nargs="+",
         default=[],
         metavar="NAME=WEIGHTS",
-        help="another trained model to score beside the others (repeatable), e.g. a stage 2 trained another way",
+        help="other trained models to score beside the others, space-separated, e.g. a stage 2 trained another way",
     )
     p.add_argument(
         "--diagnostics",
@@ -284,7 +285,7 @@ def report(scores: dict[str, list[dict]], seconds: dict[str, list[float]], lpips
     cmd = f"drivingscene bench results --data {args.data} --count {args.count}"
     cmd += f" --weights {args.weights}" if args.weights else ""
     cmd += f" --joint-weights {args.joint_weights}" if args.joint_weights else ""
-    cmd += "".join(f" --extra '{e}'" for e in args.extra)
+    cmd += " --extra " + " ".join(f"'{e}'" for e in args.extra) if args.extra else ""
     cmd += " --diagnostics" if args.diagnostics else ""
     cmd += f" --notes {args.notes}" if args.notes else ""
     parts = [

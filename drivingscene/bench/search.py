@@ -44,10 +44,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", type=Path, default=None, help="model (default: the shipped weights)")
     p.add_argument(
         "--setting",
-        action="append",
+        action="extend",
+        nargs="+",
         default=None,
         metavar="KEY=VALUE,...",
-        help="MotionSearchConfig fields to change from the defaults (repeatable; default: a built-in list)",
+        help="settings to score, space-separated, each MotionSearchConfig fields changed from the defaults (default: a built-in list)",
     )
     p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     default = MotionSearchConfig()
     defaults = ", ".join(f"{f.name}={getattr(default, f.name)}" for f in fields(default))
     cmd = f"drivingscene bench search --data {args.data} --count {args.count}"
-    cmd += "".join(f" --setting '{s}'" for s in args.setting or [])
+    cmd += " --setting " + " ".join(f"'{s}'" for s in args.setting) if args.setting else ""
     text = "\n".join(
         [
             "# The search along the rigid flow: choosing its settings",

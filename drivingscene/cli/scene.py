@@ -109,7 +109,15 @@ def check_geometry(path: Path) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    if source_kind(args.file) != "scene":
+    kind = source_kind(args.file)
+    if kind == "ply":
+        from drivingscene.export.ply import describe_point_cloud
+
+        points = describe_point_cloud(args.file)  # export --kind points: says so instead of a 3DGS error
+        if points is not None:
+            print(points)
+            return 0
+    if kind != "scene":
         from drivingscene.sources import open_source
 
         print(describe_gaussians(open_source(args.file)))

@@ -219,6 +219,22 @@ def _column(vertex, path: Path, name: str) -> np.ndarray:
     return values
 
 
+def describe_point_cloud(path: str | os.PathLike) -> str | None:
+    """One line on a PLY that holds points, not 3D Gaussians (x, y, z without the 3DGS properties,
+    as `export --kind points` writes), or None for any other file; InputError where it is no
+    readable PLY."""
+    path = Path(path)
+    vertex = _vertex_element(path)
+    props = [p.name for p in vertex.properties]
+    if not {"x", "y", "z"} <= set(props) or all(p in props for p in REQUIRED_3DGS):
+        return None
+    colour = " with colours" if {"red", "green", "blue"} <= set(props) else ""
+    return (
+        f"{path}: a point cloud PLY, {len(vertex.data)} points{colour} ({', '.join(props)}): not 3D Gaussians "
+        "(drivingscene-view and export read 3DGS PLYs)"
+    )
+
+
 def read_ply(path: str | os.PathLike) -> Gaussians:
     """Read a standard (or dynamic) 3DGS PLY with SH degree 0-3; extra properties are ignored.
     Trailing SH bands that are zero for every Gaussian (a file padded to degree 3) are dropped."""

@@ -70,3 +70,23 @@ def test_bad_list_item_is_one_line(capsys):
     assert info.value.code == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "--max-layers" in err
+
+
+def test_no_list_option_needs_its_flag_repeated():
+    """Every list-valued option of ``drivingscene`` and ``drivingscene-view`` takes its values
+    space-separated (repeating the flag still adds to the list); none only appends one per flag."""
+    pytest.importorskip("drivingscene_view")
+    from drivingscene_view.__main__ import build_parser as build_view_parser
+
+    parsers = ((build_parser(), "drivingscene"), (build_view_parser(), "drivingscene-view"))
+    repeat_only = [
+        f"{command}: {'/'.join(action.option_strings)}"
+        for parser, prog in parsers
+        for command, action in walk(parser, prog)
+        if isinstance(action, argparse._AppendAction) and action.nargs is None
+    ]
+    assert repeat_only == []
+    view = build_view_parser().parse_args(["s.npz", "--time", "0", "0.25", "--time", "1", "--camera", "A", "B"])
+    assert view.time == [0.0, 0.25, 1.0] and view.camera == ["A", "B"]
+    bench = build_parser().parse_args(["bench", "choices", "--data", "d", "--variant", "", "match=off"])
+    assert bench.variant == ["", "match=off"]

@@ -173,3 +173,14 @@ def test_info_and_validate_say_what_a_ply_is(tmp_path, capsys):
     bad.write_text("ply\nformat junk\n")
     assert main(["validate", str(bad)]) == 2
     assert capsys.readouterr().err.strip().startswith(f"{bad}: expected a PLY file")
+    # a point cloud (export --kind points): info says what it holds; validate, that it is no 3DGS input
+    from drivingscene.export.ply import write_ply
+
+    _, _, g = _recon_and_ply(tmp_path)
+    points = write_ply(g, tmp_path / "points.ply", kind="points")
+    assert main(["info", str(points)]) == 0
+    out = capsys.readouterr().out.strip()
+    assert out.startswith(f"{points}: a point cloud PLY, 30 points with colours (x, y, z, red, green, blue)"), out
+    assert main(["validate", str(points)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "expected 3DGS properties" in err and "point cloud" in err

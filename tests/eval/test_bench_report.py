@@ -17,8 +17,10 @@ from drivingscene.bench.report import (
     FULL,
     NO_WARP,
     ORACLE,
+    R_ALONE,
     REFINED,
     SCRATCH,
+    SEARCH_ALONE,
     SINGLE,
     STATIC,
     TWO_STAGE,
@@ -55,17 +57,20 @@ def test_bench_report_quick(synth_pair, tmp_path):
         assert any(p["pareto"][key] for p in points)
     real_points = report["sets"]["real"]["points"]
     assert any(p["method"] == SCRATCH and "LiDAR" in p["setting"] for p in real_points)
-    # stability: at least six knobs; our methods never raise or emit NaN on any of them
+    # stability: at least six knobs, a curve per method; our methods never raise or emit NaN on any of them
     axes = report["stability"]["axes"]
     assert len(axes) >= 6 and len(axes) == len(AXES)
+    ours = (FULL, STATIC, R_ALONE, SEARCH_ALONE, REFINED, SCRATCH, CLASSICAL)
     for axis in axes:
-        for name in (FULL, STATIC, CLASSICAL):
+        assert set(axis["curves"]) == {*ours, ORACLE, COPY, BLEND}, axis["name"]
+        for name in ours:
             curve = axis["curves"][name]
             assert curve["error"] == [None] * len(axis["values"]), (axis["name"], name, curve["error"])
             assert all(v is not None and math.isfinite(v) for v in curve["psnr"]), (axis["name"], name)
     par = report["parsimony"]
     assert par["budgets"][0]["level"] == "per-pixel" and par["chosen"] in {b["level"] for b in par["budgets"]}
     assert len(report["ablations"]) == 3
+    assert 0 < report["run_seconds"] < 3600
     page = md.read_text()
     for needle in ("## Speed against accuracy: procedural", "## Speed against accuracy: real", "## Stability", "## Parsimony", "## The paper's ablations"):
         assert needle in page
@@ -162,3 +167,35 @@ def test_network_widths_are_scored_and_reported(synth_pair, tiny_weights, tmp_pa
     row = next(line for line in page.splitlines() if line.startswith("| 8 |"))
     assert f"`{tiny_weights}`" in row and f"{width['psnr']:.2f}" in row
     assert (tmp_path / "benchmark_parsimony.png").exists()
+
+
+def test_carried_ablation_models_keep_their_run(tmp_path):
+    """Without the ablation weights, ``--carry-from`` keeps an earlier run's ablation points and
+    widths: off this run's points, in the ablation rows, and the report says whose they are."""
+    from drivingscene.bench.report import carry_ablations
+    from drivingscene.bench.report_markdown import markdown
+    from drivingscene.bench.report_schema import example_report
+
+    def point(method, psnr, abs_rel):
+        return {"method": method, "setting": "native", "family": method, "seconds": 0.5, "psnr": psnr, "psnr_dyn": 15.0,
+                "ssim": 0.7, "lpips": 0.2, "abs_rel": abs_rel, "epe_dyn": 20.0, "gaussians": 1e5}  # fmt: skip
+
+    old = example_report()
+    old["created"] = "2026-11-26T02:07:42+00:00"
+    old["sets"]["procedural"]["points"] += [point(SINGLE, 20.5, 0.19), point(TWO_STAGE, 21.0, 0.15), point(NO_WARP, 21.0, 0.15)]
+    old["parsimony"]["widths"] = [{"width": 16, "parameters": 2e6, "psnr": 20.0, "psnr_dyn": 16.0, "abs_rel": 0.3, "epe_dyn": 20.0,
+                                   "seconds": 0.5, "weights": "runs/width16/model.safetensors"}]  # fmt: skip
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(old))
+    new = example_report()
+    new["parsimony"]["widths"] = []
+    new["ablations"] = []
+    before = [p["method"] for p in new["sets"]["procedural"]["points"]]
+    carry_ablations(new, path)
+    assert [p["method"] for p in new["sets"]["procedural"]["points"]] == before  # not on this run's charts
+    assert new["carried"]["created"] == old["created"] and len(new["carried"]["points"]) == 3
+    rows = {a["name"]: a for a in new["ablations"]}
+    assert rows["two-stage − single-stage"]["ours_db"] == pytest.approx(0.5) and rows["with L_warp − without"]["ours_db"] == 0.0
+    assert new["parsimony"]["widths"][0]["width"] == 16
+    page = markdown(new, {}, None)
+    assert "from the earlier run of 2026-11-26T02:07:42+00:00" in page and "by the earlier run of" in page

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from drivingscene.bench.report_charts import (
+    ablation_chart,
     family_styles,
     report_styles,
     speed_panels,
@@ -32,11 +33,12 @@ def _check_png(path) -> np.ndarray:
 
 def test_write_charts_example(tmp_path):
     out = write_charts(example_report(), tmp_path)
-    assert set(out) == {"speed_procedural", "stability", "parsimony"}
+    assert set(out) == {"speed_procedural", "stability", "parsimony", "ablations"}
     assert {p.name for p in out.values()} == {
         "benchmark_speed_procedural.png",
         "benchmark_stability.png",
         "benchmark_parsimony.png",
+        "benchmark_ablations.png",
     }
     for path in out.values():
         _check_png(path)
@@ -47,6 +49,7 @@ def test_write_charts_skips_missing_parts(tmp_path):
     report = example_report()
     report["stability"] = {"axes": []}
     report["parsimony"] = {"budgets": [], "chosen": None, "widths": []}
+    report["ablations"] = []
     real = copy.deepcopy(report["sets"]["procedural"])
     for p in real["points"]:
         p["psnr"] = p["abs_rel"] = p["epe_dyn"] = None  # no accuracy at all: no chart
@@ -56,6 +59,8 @@ def test_write_charts_skips_missing_parts(tmp_path):
     assert set(write_charts(report, tmp_path)) == {"speed_procedural"}
     with pytest.raises(InputError, match="stability"):
         stability_chart(report, tmp_path / "x.png")
+    with pytest.raises(InputError, match="ablation"):
+        ablation_chart(report, tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
 
 
