@@ -54,6 +54,27 @@ def ply_reconstruction(gaussians) -> Reconstruction:
     )
 
 
+def _kind_of_arrays(arrays: dict) -> str:
+    from drivingscene.gaussians.recon import is_reconstruction_file
+
+    return "recon" if is_reconstruction_file(arrays) else "scene"
+
+
+def source_kind(path: str | Path) -> str:
+    """"scene", "recon" or "ply" by the rule of `open_source` (the suffix, then the .npz's
+    ``format``), without building what it holds; "scene" where the file cannot be read as one of
+    them, so that the scene reader says what is wrong."""
+    path = Path(path)
+    if path.suffix.lower() == ".ply":
+        return "ply"
+    from drivingscene.data.npz import load_npz
+
+    try:
+        return _kind_of_arrays(load_npz(path))
+    except InputError:
+        return "scene"
+
+
 def open_source(path: str | Path) -> Source:
     """Read ``path`` (scene.npz, recon.npz or .ply). Raises ``InputError`` naming the file and what
     was expected where it is none of these or cannot be read."""
@@ -70,9 +91,9 @@ def open_source(path: str | Path) -> Source:
     if suffix != ".npz":
         raise InputError(f"{path}: expected a .npz (scene or reconstruction) or a .ply file, found '{path.suffix}'")
     from drivingscene.data.npz import load_npz
-    from drivingscene.gaussians.recon import is_reconstruction_file, recon_from_arrays
+    from drivingscene.gaussians.recon import recon_from_arrays
 
     arrays = load_npz(path)
-    if is_reconstruction_file(arrays):
+    if _kind_of_arrays(arrays) == "recon":
         return Source(path, "recon", recon=recon_from_arrays(arrays, str(path)))
     return Source(path, "scene", pair=FramePair.from_arrays(arrays, str(path)))

@@ -28,28 +28,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_info)
 
 
-def source_kind(path: Path) -> str:
-    """ "scene", "recon" or "ply" by the rule of ``drivingscene.sources`` (suffix, then the .npz's
-    ``format``); "scene" where the file cannot be read, so the scene reader says what is wrong."""
-    from drivingscene.errors import InputError
-
-    if path.suffix.lower() == ".ply":
-        return "ply"
-    try:
-        from drivingscene.data.npz import load_npz
-        from drivingscene.gaussians.recon import is_reconstruction_file
-
-        return "recon" if is_reconstruction_file(load_npz(path)) else "scene"
-    except InputError:
-        return "scene"
-
-
 def describe_gaussians(source) -> str:
     """One line on a recon.npz or PLY opened by ``open_source``: what it is and what it holds."""
     recon = source.recon
     g = recon.gaussians
     counts = f"{len(g)} Gaussians ({int(g.dynamic.sum())} dynamic), SH degree {g.sh_degree}"
     if source.kind == "ply":
+        from drivingscene.export.ply import ply_stored_sh_degree
+
+        stored = ply_stored_sh_degree(source.path)
+        if stored is not None and stored > g.sh_degree:  # graphdeco's layout: higher bands written as zeros
+            counts += f" (stored as degree {stored}, the higher bands all zero)"
         return f"{source.path}: a 3DGS PLY, {counts}, frame {FRAMES.get(source.up, source.up)}"
     h, w = recon.image_size
     hidden = int(recon.hidden.sum()) if recon.hidden is not None else 0
@@ -64,7 +53,7 @@ def describe_gaussians(source) -> str:
 def run_validate(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import validate_frame_pair_file
     from drivingscene.errors import InputError, SceneFormatError
-    from drivingscene.sources import open_source
+    from drivingscene.sources import open_source, source_kind
 
     bad = disagree = 0
     for path in args.files:
@@ -109,6 +98,8 @@ def check_geometry(path: Path) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    from drivingscene.sources import source_kind
+
     kind = source_kind(args.file)
     if kind == "ply":
         from drivingscene.export.ply import describe_point_cloud

@@ -75,6 +75,19 @@ def ply_up_axis(path: str | os.PathLike) -> str:
     return "z" if ours else FOREIGN_UP
 
 
+def ply_stored_sh_degree(path: str | os.PathLike) -> int | None:
+    """The SH degree a 3DGS PLY's header declares (its f_rest_* count), before `read_ply` drops
+    bands that are zero for every Gaussian; None for another count."""
+    rest = 0
+    with open(path, "rb") as f:
+        for _ in range(HEADER_LINES):
+            words = f.readline().decode("ascii", "replace").split()
+            if not words or words[0] == "end_header":
+                break
+            rest += words[0] == "property" and len(words) == 3 and words[2].startswith("f_rest_")
+    return {0: 0, 9: 1, 24: 2, 45: 3}.get(rest)
+
+
 def _gaussian_fields(g: Gaussians, sh_degree: int) -> list[tuple[str, np.ndarray]]:
     """(name, float32 column) pairs of the standard layout, SH truncated or zero-padded to ``sh_degree``."""
     g = g.detach().to("cpu")

@@ -166,7 +166,8 @@ def test_info_and_validate_say_what_a_recon_is(tmp_path, capsys):
 def test_info_and_validate_say_what_a_ply_is(tmp_path, capsys):
     _, ply, _ = _recon_and_ply(tmp_path)
     assert main(["info", str(ply)]) == 0
-    assert capsys.readouterr().out.strip() == f"{ply}: a 3DGS PLY, 30 Gaussians (0 dynamic), SH degree 1, frame z-up (DrivingScene's world)"
+    expected = "30 Gaussians (0 dynamic), SH degree 1 (stored as degree 3, the higher bands all zero), frame z-up (DrivingScene's world)"
+    assert capsys.readouterr().out.strip() == f"{ply}: a 3DGS PLY, {expected}"  # written padded, graphdeco's layout
     assert main(["validate", str(ply)]) == 0
     assert "a 3DGS PLY" in capsys.readouterr().out
     bad = tmp_path / "bad.ply"
@@ -184,3 +185,7 @@ def test_info_and_validate_say_what_a_ply_is(tmp_path, capsys):
     assert main(["validate", str(points)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "expected 3DGS properties" in err and "point cloud" in err
+    # written at the Gaussians' own degree, nothing padded: no note
+    own = write_ply(g, tmp_path / "own.ply", sh_degree=1)
+    assert main(["info", str(own)]) == 0
+    assert "SH degree 1, frame z-up" in capsys.readouterr().out
