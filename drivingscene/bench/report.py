@@ -660,8 +660,11 @@ def run(args: argparse.Namespace) -> int:
             add_ablation_models(report, args)
         if args.width_weights:
             add_width_models(report, args)
-        # derived from the saved points, so that their wording follows the code that renders them
-        report["ablations"] = finite_or_none(ablations(report["sets"].get("procedural", {}).get("points", [])))
+        # derived from the saved points (and the carried ones), so that their wording follows the code that renders them
+        points = report["sets"].get("procedural", {}).get("points", [])
+        measured = {p["method"] for p in points}
+        carried = [p for p in report.get("carried", {}).get("points", []) if p["method"] not in measured]
+        report["ablations"] = finite_or_none(ablations(points + carried))
     else:
         start = time.perf_counter()
         report = build_report(args)

@@ -199,3 +199,9 @@ def test_carried_ablation_models_keep_their_run(tmp_path):
     assert new["parsimony"]["widths"][0]["width"] == 16
     page = markdown(new, {}, None)
     assert "from the earlier run of 2026-11-26T02:07:42+00:00" in page and "by the earlier run of" in page
+    # re-rendered from its JSON, the report keeps the carried rows
+    saved = tmp_path / "new.json"
+    saved.write_text(json.dumps(new))
+    assert main(["bench", "report", "--from-json", str(saved), "--json", str(tmp_path / "again.json")]) == 0
+    again = {a["name"]: a for a in json.loads((tmp_path / "again.json").read_text())["ablations"]}
+    assert again["two-stage − single-stage"]["ours_db"] == pytest.approx(0.5)
