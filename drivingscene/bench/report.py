@@ -672,6 +672,8 @@ def run(args: argparse.Namespace) -> int:
         if args.carry_from is not None:
             carry_ablations(report, args.carry_from)
             report["command"] += f" --carry-from {args.carry_from}"
+        outputs = (("--notes", args.notes), ("--out", args.out), ("--json", args.json), ("--charts", args.charts))
+        report["command"] += "".join(f" {flag} {value}" for flag, value in outputs if value is not None)  # what to copy to redo it
         report = finite_or_none(report)
     charts: dict[str, Path] = {}
     if args.charts is not None:
