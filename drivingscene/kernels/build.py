@@ -10,7 +10,7 @@ the depth network's matching (``csrc/matching.cpp``). Callers use the typed wrap
 ``drivingscene.kernels`` (one per op), never the op names.
 
 Built on first use with ``torch.utils.cpp_extension.load`` (g++/clang with OpenMP, ninja) into
-``~/.cache/drivingscene/torch_extensions/<python>-<torch>/`` (override with the environment variable
+``~/.cache/drivingscene/torch_extensions/<python>-<torch>-<hash of the sources' folder>/`` (override with the environment variable
 ``DRIVINGSCENE_BUILD_DIR``); later processes reuse the build (~15 s on 2 cores the first time).
 Any failure (no compiler, no ninja, missing source, compile error) is logged once as a warning and
 ``load_extension`` returns False, so callers fall back to the pure-torch (or numpy) path. Setting
@@ -41,10 +41,16 @@ CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapp
 
 
 def default_build_dir() -> Path:
-    """Per-python, per-torch build directory under ``~/.cache/drivingscene``."""
+    """Per-python, per-torch, per-copy build directory under ``~/.cache/drivingscene``: torch
+    rebuilds when the source paths change, so two copies of the package (two checkouts, a checkout
+    and an installed wheel) sharing one folder would each rebuild it (~50 s) whenever the other ran
+    last; the folder's name ends with a short hash of where the sources are."""
     if os.environ.get("DRIVINGSCENE_BUILD_DIR"):
         return Path(os.environ["DRIVINGSCENE_BUILD_DIR"])
-    tag = f"py{sys.version_info.major}{sys.version_info.minor}-torch{torch.__version__.replace('+', '_')}"
+    import hashlib
+
+    where = hashlib.sha1(str(SOURCES[0].parent.resolve()).encode()).hexdigest()[:8]
+    tag = f"py{sys.version_info.major}{sys.version_info.minor}-torch{torch.__version__.replace('+', '_')}-{where}"
     return Path.home() / ".cache" / "drivingscene" / "torch_extensions" / tag
 
 

@@ -38,6 +38,10 @@ def test_the_build_directory_follows_the_environment(tmp_path, monkeypatch):
     assert build.default_build_dir() == tmp_path
     monkeypatch.delenv("DRIVINGSCENE_BUILD_DIR")
     assert build.default_build_dir().parent.name == "torch_extensions"
+    # one folder per copy of the sources: another checkout does not rebuild this one's kernels
+    here = build.default_build_dir()
+    monkeypatch.setattr(build, "SOURCES", tuple(tmp_path / "elsewhere" / "csrc" / s.name for s in build.SOURCES))
+    assert build.default_build_dir() != here and build.default_build_dir().parent == here.parent
 
 
 def test_the_sources_are_the_packaged_csrc_files():
