@@ -177,12 +177,26 @@ def at_full_size(recon, pair):
     )
 
 
+def refined_method(model, seconds: float) -> Method:
+    """The model, then refinement for ``seconds``."""
+    from drivingscene.methods.feedforward import reconstruct
+    from drivingscene.methods.refine import RefineConfig, refine
+
+    return Method(REFINED, f"{seconds:g} s", REFINED, lambda p: refine(model, p, reconstruct(model, p), RefineConfig(seconds=seconds)))
+
+
+def scratch_method(seconds: float) -> Method:
+    """Refinement from a flat start for ``seconds``."""
+    from drivingscene.methods.scratch import refine_from_scratch
+
+    return Method(SCRATCH, f"flat start, {seconds:g} s", SCRATCH, lambda p: refine_from_scratch(p, seconds))
+
+
 def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
     from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
     from drivingscene.methods.classical import ClassicalConfig, classical_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
     from drivingscene.methods.matched_depth import match_mode
-    from drivingscene.methods.refine import RefineConfig, refine
     from drivingscene.methods.scratch import refine_from_scratch
     from drivingscene.models.pipeline import MotionSearchConfig
 
@@ -214,9 +228,9 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
         no_warp = load_model(args.no_warp_weights)
         out.append(Method(NO_WARP, "native", NO_WARP, lambda p: reconstruct(no_warp, p)))
     for seconds in profile.refine:
-        out.append(Method(REFINED, f"{seconds:g} s", REFINED, lambda p, s=seconds: refine(model, p, reconstruct(model, p), RefineConfig(seconds=s))))
+        out.append(refined_method(model, seconds))
     for seconds in profile.scratch:
-        out.append(Method(SCRATCH, f"flat start, {seconds:g} s", SCRATCH, lambda p, s=seconds: refine_from_scratch(p, s)))
+        out.append(scratch_method(seconds))
         if real:
             from drivingscene.bench.real_refine import lidar_halves
 
@@ -532,10 +546,6 @@ def stability_methods(model, methods: list[Method], profile: Profile) -> list[Me
     """Every method of the comparison at its first setting (the model at its native input), the two
     refinements with ``profile.stability_budget`` seconds (their budgets of the speed chart, over
     every setting of every axis, would take hours)."""
-    from drivingscene.methods.feedforward import reconstruct
-    from drivingscene.methods.refine import RefineConfig, refine
-    from drivingscene.methods.scratch import refine_from_scratch
-
     seconds = profile.stability_budget
     out, seen = [], set()
     for m in methods:
@@ -543,9 +553,9 @@ def stability_methods(model, methods: list[Method], profile: Profile) -> list[Me
             continue
         seen.add(m.name)
         if m.name == REFINED:
-            m = Method(REFINED, f"{seconds:g} s", REFINED, lambda p: refine(model, p, reconstruct(model, p), RefineConfig(seconds=seconds)))
+            m = refined_method(model, seconds)
         elif m.name == SCRATCH:
-            m = Method(SCRATCH, f"flat start, {seconds:g} s", SCRATCH, lambda p: refine_from_scratch(p, seconds))
+            m = scratch_method(seconds)
         out.append(m)
     return out
 
@@ -566,7 +576,15 @@ def carry_ablations(report: dict, path: Path) -> None:
     report["carried"] = {"from": str(path), "created": old.get("created"), "command": old.get("command"), "points": kept, "widths": widths}
     if widths:
         report["parsimony"]["widths"] = widths
-    report["ablations"] = ablations(points + kept)
+    report["ablations"] = report_ablations(report)
+
+
+def report_ablations(report: dict) -> list[dict]:
+    """`ablations` of a report's procedural points and the carried points of methods it did not
+    measure itself (``carried``, `carry_ablations`)."""
+    points = report["sets"].get("procedural", {}).get("points", [])
+    measured = {p["method"] for p in points}
+    return ablations(points + [p for p in report.get("carried", {}).get("points", []) if p["method"] not in measured])
 
 
 def add_ablation_models(report: dict, args) -> None:
@@ -661,10 +679,7 @@ def run(args: argparse.Namespace) -> int:
         if args.width_weights:
             add_width_models(report, args)
         # derived from the saved points (and the carried ones), so that their wording follows the code that renders them
-        points = report["sets"].get("procedural", {}).get("points", [])
-        measured = {p["method"] for p in points}
-        carried = [p for p in report.get("carried", {}).get("points", []) if p["method"] not in measured]
-        report["ablations"] = finite_or_none(ablations(points + carried))
+        report["ablations"] = finite_or_none(report_ablations(report))
     else:
         start = time.perf_counter()
         report = build_report(args)

@@ -56,35 +56,43 @@ def frame_comment(up: str) -> str:
     return f"{PLY_MARKER} frame {FRAMES[up]}"
 
 
-def ply_up_axis(path: str | os.PathLike) -> str:
-    """The up axis of a PLY's world by the rule in the module docstring: "z" or "-y"."""
-    ours = False
+def _header_words(path: str | os.PathLike) -> list[list[str]]:
+    """The words of each line of a PLY's header before ``end_header`` (at most ``HEADER_LINES``,
+    up to the first empty line), read without the data."""
+    lines = []
     with open(path, "rb") as f:
         for _ in range(HEADER_LINES):
             words = f.readline().decode("ascii", "replace").split()
             if not words or words[0] == "end_header":
                 break
-            if words[0] == "comment" and PLY_MARKER in words[1:2]:
-                ours = True
-                if words[2:3] == ["frame"] and len(words) > 3:
-                    named = {name: up for up, name in FRAMES.items()}
-                    if words[3] not in named:
-                        expected = ", ".join(named)
-                        raise InputError(f"{path}: header comment 'frame': expected one of {expected}, found {words[3]!r}")
-                    return named[words[3]]
+            lines.append(words)
+    return lines
+
+
+def _header_properties(path: str | os.PathLike) -> list[str]:
+    """The names of the scalar properties a PLY's header declares (every element's)."""
+    return [words[2] for words in _header_words(path) if words[0] == "property" and len(words) == 3]
+
+
+def ply_up_axis(path: str | os.PathLike) -> str:
+    """The up axis of a PLY's world by the rule in the module docstring: "z" or "-y"."""
+    ours = False
+    for words in _header_words(path):
+        if words[0] == "comment" and PLY_MARKER in words[1:2]:
+            ours = True
+            if words[2:3] == ["frame"] and len(words) > 3:
+                named = {name: up for up, name in FRAMES.items()}
+                if words[3] not in named:
+                    expected = ", ".join(named)
+                    raise InputError(f"{path}: header comment 'frame': expected one of {expected}, found {words[3]!r}")
+                return named[words[3]]
     return "z" if ours else FOREIGN_UP
 
 
 def ply_stored_sh_degree(path: str | os.PathLike) -> int | None:
     """The SH degree a 3DGS PLY's header declares (its f_rest_* count), before `read_ply` drops
     bands that are zero for every Gaussian; None for another count."""
-    rest = 0
-    with open(path, "rb") as f:
-        for _ in range(HEADER_LINES):
-            words = f.readline().decode("ascii", "replace").split()
-            if not words or words[0] == "end_header":
-                break
-            rest += words[0] == "property" and len(words) == 3 and words[2].startswith("f_rest_")
+    rest = sum(name.startswith("f_rest_") for name in _header_properties(path))
     return {0: 0, 9: 1, 24: 2, 45: 3}.get(rest)
 
 
@@ -237,9 +245,15 @@ def describe_point_cloud(path: str | os.PathLike) -> str | None:
     as `export --kind points` writes), or None for any other file; InputError where it is no
     readable PLY."""
     path = Path(path)
-    vertex = _vertex_element(path)
+
+    def points_only(props: list[str]) -> bool:
+        return {"x", "y", "z"} <= set(props) and not all(p in props for p in REQUIRED_3DGS)
+
+    if path.is_file() and not points_only(_header_properties(path)):
+        return None  # decided from the header: a 3DGS PLY is not read twice (`info` reads it next)
+    vertex = _vertex_element(path)  # a missing, unreadable or malformed file: its error
     props = [p.name for p in vertex.properties]
-    if not {"x", "y", "z"} <= set(props) or all(p in props for p in REQUIRED_3DGS):
+    if not points_only(props):
         return None
     colour = " with colours" if {"red", "green", "blue"} <= set(props) else ""
     return (

@@ -318,21 +318,23 @@ ADVICE = {
 
 
 def problem_line(check: ImageCheck, config: RigCheckConfig = RigCheckConfig()) -> str:
-    """One line on a flagged image: what was found, what was expected, and what to look at."""
+    """One line on a flagged image: what was found (each part of its verdict, `_verdict`), what was
+    expected (``config``'s bounds), and what to look at."""
+    parts = check.verdict.split(", ")
     found = []
-    if check.in_front is not None and check.in_front < config.min_in_front:
+    if "matches behind the cameras" in parts:
         found.append(f"{check.in_front:.0%} of its matches in front of the cameras, expected at least {config.min_in_front:.0%}")
-    if check.off_line_px is not None and check.off_line_px > config.max_off_line_px:
+    if "off the epipolar lines" in parts:
         found.append(
             f"matches {check.off_line_px:.2f} px off their epipolar lines (median), expected at most {config.max_off_line_px}"
         )
-    if "implausible motion" in check.verdict:
+    if "implausible motion" in parts:
         found.append(f"the poses move it {check.baseline_m:g} m between the keyframes, faster than {config.max_speed_mps:g} m/s")
-    if check.lidar_scale is not None and "LiDAR scale" in check.verdict:
+    if "LiDAR scale" in parts:
         found.append(
             f"its LiDAR agrees best at {check.lidar_scale:.2f} x its depth, expected 1 within {config.max_scale_error:.0%}"
         )
-    advice = "; ".join(ADVICE[part] for part in check.verdict.split(", ") if part in ADVICE)
+    advice = "; ".join(ADVICE[part] for part in parts if part in ADVICE)
     return f"camera {check.camera}, keyframe {check.keyframe}: {', '.join(found)}: {advice}"
 
 
