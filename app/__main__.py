@@ -40,6 +40,17 @@ def image_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def magnification(text: str) -> int:
+    """argparse type: an integer magnification 1-8 of the rig views."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer 1-8, found {text!r}") from None
+    if not 1 <= value <= 8:
+        raise argparse.ArgumentTypeError(f"expected an integer 1-8 (8 x 320x176 is 2560x1408), found {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog=PROG, description="DrivingScene viewer and editor: scrub time, inspect depth and flow, edit, export.")
     p.add_argument(
@@ -66,6 +77,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=MODES, default="rgb", help="what to render (headless)")
     p.add_argument("--blend", choices=BLEND_MODES, default=DEFAULT_BLEND, help="how both keyframes' Gaussians combine at time t")
     p.add_argument("--size", type=image_size, default=(1280, 720), metavar="WxH", help="overview / window size")
+    p.add_argument(
+        "--scale",
+        type=magnification,
+        default=1,
+        metavar="K",
+        help="headless: rig views at K times the input resolution (1-8; what a larger window shows)",
+    )
     p.add_argument("--no-ply", action="store_true", help="headless: skip the PLY")
     p.add_argument("--force", action="store_true", help="headless/bench: overwrite existing output files")
     p.add_argument("--bench", type=Path, default=None, metavar="OUT.md", help="measure rendering performance, write a table")
@@ -86,6 +104,8 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
 
     if args.headless and args.out is None:
         parser.error("--headless needs -o/--out DIR")
+    if args.scale != 1 and not args.headless:
+        parser.error("--scale is only used with --headless (the window draws at its own size)")
     if args.out is not None and not args.headless:
         parser.error("-o/--out is only used with --headless")
     if args.benchmark is not None and (args.headless or args.bench):

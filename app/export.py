@@ -86,8 +86,10 @@ def iter_rig_views(
     depth_range=(2.0, 80.0),
     names: list[str] | None = None,
     overwrite: bool = False,
+    scale: int = 1,
 ):
-    """Generator: one PNG per rig camera at time t (rig resolution, exact intrinsics); yields each path."""
+    """Generator: one PNG per rig camera at time t (rig resolution times ``scale``, the rig's
+    intrinsics scaled exactly: what a larger window shows of that camera); yields each path."""
     if not doc.num_views:
         raise InputError("this file has no rig cameras (a PLY from another tool); export the current view instead")
     views = rig_views(doc, t)
@@ -97,6 +99,8 @@ def iter_rig_views(
             raise InputError(f"--camera: unknown camera {unknown[0]!r}; expected one of {', '.join(doc.recon.camera_names)}")
         views = [(n, c) for n, c in views if n in names]
     for name, cam in views:
+        if scale != 1:
+            cam = cam.resized(cam.width * scale, cam.height * scale)
         image = viewport.image(doc, cam, t, _clean(opts), depth_range)
         yield save_png(_prepare(Path(folder) / f"{name}_t{t:.3f}.png", overwrite), image)
 
@@ -110,8 +114,9 @@ def export_rig_views(
     depth_range=(2.0, 80.0),
     names: list[str] | None = None,
     overwrite: bool = False,
+    scale: int = 1,
 ) -> list[Path]:
-    return list(iter_rig_views(viewport, doc, t, opts, folder, depth_range, names, overwrite))
+    return list(iter_rig_views(viewport, doc, t, opts, folder, depth_range, names, overwrite, scale))
 
 
 def iter_video(

@@ -1,7 +1,7 @@
 """``drivingscene-view SCENE --headless --out DIR``: render views and a PLY without a window.
 
 Uses an EGL standalone context (no X server). Writes, for every requested time t:
-``DIR/<camera>_t<t>.png`` for each rig camera (rig resolution, exact intrinsics),
+``DIR/<camera>_t<t>.png`` for each rig camera (rig resolution times ``--scale``, exact intrinsics),
 ``DIR/overview_t<t>.png`` from the default chase camera, and ``DIR/gaussians_t<t0>.ply`` (standard
 3DGS at the first time). Where time changes nothing (`time_changes_nothing`: a PLY of static
 Gaussians, no rig), only the first time is rendered, with a note on stdout. Existing files are an
@@ -25,6 +25,7 @@ from drivingscene_view.state import SceneDoc
 
 from drivingscene.errors import InputError
 from drivingscene.gaussians.timing import LAYERED_BLENDS
+from drivingscene.render.project import EPS2D
 
 log = logging.getLogger(__name__)
 
@@ -84,13 +85,13 @@ def run_headless(args) -> int:
         )
     ctx = create_offscreen_context()
     viewport = Viewport(ctx)
-    opts = RenderOptions(mode=args.mode, blend=args.blend)
+    opts = RenderOptions(mode=args.mode, blend=args.blend, eps2d=loaded.info.get("low_pass", EPS2D))
     controller = CameraController(up=loaded.info.get("up", "z"))  # as the window does (viewer.set_loaded)
     written = []
     try:
         for t in times:
             if names:
-                written += export_rig_views(viewport, doc, t, opts, out, names=names, overwrite=args.force)
+                written += export_rig_views(viewport, doc, t, opts, out, names=names, overwrite=args.force, scale=args.scale)
             controller.reset(doc.recon, t, doc.splats.means_at(t))
             cam = controller.view(doc.recon, t, *args.size)
             written.append(export_view(viewport, doc, cam, t, opts, out / f"overview_t{t:.3f}.png", overwrite=args.force))

@@ -20,6 +20,7 @@ from pathlib import Path
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.errors import DrivingSceneError, InputError
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.render.project import EPS2D
 from drivingscene.sources import open_source
 
 log = logging.getLogger(__name__)
@@ -41,7 +42,7 @@ class MissingWeightsError(InputError):
 class Loaded:
     recon: Reconstruction
     source: Path | None
-    info: dict = field(default_factory=dict)  # kind, method, seconds, up
+    info: dict = field(default_factory=dict)  # kind, method, seconds, up, low_pass
     pair: FramePair | None = None
 
 
@@ -77,7 +78,7 @@ def reconstruct_pair(pair: FramePair, source: Path | None, method: str, weights:
         recon = reconstruct(model, pair, progress=stage)
     seconds = time.perf_counter() - start
     return Loaded(
-        recon, source, {"kind": "scene", "method": recon.meta.get("method", method), "seconds": seconds, "up": "z"}, pair
+        recon, source, {"kind": "scene", "method": recon.meta.get("method", method), "seconds": seconds, "up": "z", "low_pass": EPS2D}, pair
     )
 
 
@@ -90,7 +91,7 @@ def open_path(path: Path, method: str = "auto", weights: Path | None = None, pro
     if source.kind == "scene":
         return reconstruct_pair(source.pair, source.path, method, weights, progress)
     info = {"kind": source.kind, "method": source.recon.meta.get("method", "?"), "seconds": time.perf_counter() - start}
-    return Loaded(source.recon, source.path, info | {"up": source.up})
+    return Loaded(source.recon, source.path, info | {"up": source.up, "low_pass": source.low_pass})
 
 
 class LoadJob:

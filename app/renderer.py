@@ -27,6 +27,8 @@ from drivingscene_view.splats import SplatArrays, covariances
 
 from drivingscene.gaussians.timing import DEFAULT_BLEND, LAYERED_BLENDS, shader_blend_code, shader_blend_defines
 from drivingscene.gl import load_program
+from drivingscene.render.project import EPS2D
+from drivingscene.render.scene import LayerBlend
 
 TEX_W = 4096
 MODES = ("rgb", "depth", "dynamic", "flow")
@@ -40,7 +42,8 @@ class RenderOptions:
     flow_max: float = 1.0  # metres at the top of the flow-magnitude colour map
     near: float = 0.01  # metres (camera z), as the torch rasterizer
     far: float = 1e10
-    eps2d: float = 0.3
+    eps2d: float = EPS2D  # the screen-space low-pass, px^2 (EPS2D_3DGS for 3DGS files from other tools)
+    layer_blend: LayerBlend = LayerBlend()  # the layered blends' rule, as the CPU renderer's
 
 
 def _rows(n: int) -> int:
@@ -276,7 +279,7 @@ class SplatRenderer:
 
     def _layers(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions):
         """``(name, weight, [(start, end) back to front], keyframe filter)`` of each layer to draw."""
-        from drivingscene.render.scene import CAMERA_ANGLE_SCALE, layer_time_weight
+        from drivingscene.render.scene import layer_time_weight
 
         n = splats.count
         if splats.segments is None:  # an order not grouped by layer: each keyframe over the whole range
@@ -291,7 +294,7 @@ class SplatRenderer:
         for (k, c), ranges in sorted(groups.items()):
             weight = layer_time_weight(k, t)
             if c >= 0 and c < self.source_axes.shape[1]:
-                weight *= float(np.exp((axis @ self.source_axes[k, c] - 1.0) / CAMERA_ANGLE_SCALE))
+                weight *= opts.layer_blend.view_weight(float(axis @ self.source_axes[k, c]), k, t)
             layers.append((f"k{k}c{c}", weight, ranges, -1))
         return layers
 
@@ -315,7 +318,7 @@ class SplatRenderer:
                 if hi > lo:
                     self._draw(splats, camera, t, opts, layer, lo, hi - lo, layer=keyframe, sky=False)
             if start < max(b for _, b in ranges) <= end:  # the layer is complete: add it once
-                self._accumulate(layer, acc_fbo, weight)
+                self._accumulate(layer, acc_fbo, weight, opts.layer_blend.coverage_full)
         self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
         self._resolve(acc, target)
 
@@ -349,7 +352,7 @@ class SplatRenderer:
             self._draw_splats(splats, cam, t, opts, start, count, layer)
         return target
 
-    def _accumulate(self, layer: Target, acc_fbo, weight: float) -> None:
+    def _accumulate(self, layer: Target, acc_fbo, weight: float, coverage_full: float) -> None:
         acc_fbo.use()
         self.ctx.viewport = (0, 0, layer.width, layer.height)
         self.ctx.enable(self.ctx.BLEND)
@@ -359,6 +362,7 @@ class SplatRenderer:
         layer.texture.use(0)
         prog = self.compose_prog
         prog["u_pass"].value, prog["u_layer"].value, prog["u_weight"].value = 0, 0, float(weight)
+        prog["u_coverage_full"].value = coverage_full
         self.compose_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
         self.ctx.blend_equation = self.ctx.FUNC_ADD
         self.ctx.disable(self.ctx.BLEND)

@@ -23,6 +23,7 @@ from drivingscene_view.textures import TextureCache
 from drivingscene_view.viewport import Viewport
 
 from drivingscene.errors import DrivingSceneError
+from drivingscene.render.project import EPS2D
 
 PROG = "drivingscene-view"
 TOOLS = ("navigate", "rect", "brush", "sphere")
@@ -296,7 +297,8 @@ class Viewer:
 
     def render_options(self) -> RenderOptions:
         v = self.view
-        return RenderOptions(mode=v.mode, blend=v.blend, show_selection=v.show_selection, flow_max=v.flow_max)
+        eps2d = self.doc.info.get("low_pass", EPS2D) if self.doc is not None else EPS2D
+        return RenderOptions(mode=v.mode, blend=v.blend, show_selection=v.show_selection, flow_max=v.flow_max, eps2d=eps2d)
 
     # --- drawing the 3D view -------------------------------------------------------------------
     def draw_view(self, window_height: int) -> None:

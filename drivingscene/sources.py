@@ -24,6 +24,7 @@ import numpy as np
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.errors import InputError
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.render.project import EPS2D, EPS2D_3DGS
 
 KINDS = ("scene", "recon", "ply")
 
@@ -38,6 +39,9 @@ class Source:
     pair: FramePair | None = None
     recon: Reconstruction | None = None
     up: str = "z"  # the world's up axis: "z" (ours), "-y" (a y-down PLY: graphdeco / COLMAP); export.ply.ply_up_axis
+    # The renderer's screen-space low-pass (px^2) the Gaussians were made for: ours carry a 3D
+    # footprint floor (render.project.EPS2D); 3DGS files from other tools expect 3DGS's EPS2D_3DGS.
+    low_pass: float = EPS2D
 
 
 def ply_reconstruction(gaussians) -> Reconstruction:
@@ -85,9 +89,10 @@ def open_source(path: str | Path) -> Source:
         raise InputError(f"{path}: is a directory; expected a scene.npz, recon.npz or .ply file")
     suffix = path.suffix.lower()
     if suffix == ".ply":
-        from drivingscene.export.ply import ply_up_axis, read_ply
+        from drivingscene.export.ply import ply_is_ours, ply_up_axis, read_ply
 
-        return Source(path, "ply", recon=ply_reconstruction(read_ply(path)), up=ply_up_axis(path))
+        low_pass = EPS2D if ply_is_ours(path) else EPS2D_3DGS
+        return Source(path, "ply", recon=ply_reconstruction(read_ply(path)), up=ply_up_axis(path), low_pass=low_pass)
     if suffix != ".npz":
         raise InputError(f"{path}: expected a .npz (scene or reconstruction) or a .ply file, found '{path.suffix}'")
     from drivingscene.data.npz import load_npz

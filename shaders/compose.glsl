@@ -1,10 +1,11 @@
 #version 330 core
 // The layered blends (drivingscene.render.scene: "layers", "cameras"). Each layer's splats were
-// drawn alone over transparent black (premultiplied colour C_l, coverage a_l).
+// drawn alone over transparent black (premultiplied colour C_l, accumulated alpha a_l); its
+// coverage is k_l = min(1, a_l / u_coverage_full) (render.scene.COVERAGE_FULL).
 // u_pass 0 adds one layer with its weight w_l into two accumulation targets (blend ONE, ONE with
-// equation ADD for colour and MAX for alpha): acc0 = (sum w_l C_l, max a_l), acc1.r = sum w_l a_l.
-// u_pass 1 resolves them over the sky already in the target (blend SRC_ALPHA, ONE_MINUS_SRC_ALPHA):
-// colour sum w_l C_l / sum w_l a_l with alpha max a_l (render.scene._compose).
+// equation ADD for colour and MAX for alpha): acc0 = (sum w_l k_l C_l / a_l, max k_l),
+// acc1.r = sum w_l k_l. u_pass 1 resolves them over the sky already in the target (blend
+// SRC_ALPHA, ONE_MINUS_SRC_ALPHA): colour acc0.rgb / acc1.r with alpha max k_l (render.scene._compose).
 
 #if defined VERTEX_SHADER
 
@@ -23,6 +24,7 @@ uniform sampler2D u_layer;
 uniform sampler2D u_acc0;
 uniform sampler2D u_acc1;
 uniform float u_weight;
+uniform float u_coverage_full;
 in vec2 v_uv;
 layout(location = 0) out vec4 out0;
 layout(location = 1) out vec4 out1;
@@ -30,8 +32,9 @@ layout(location = 1) out vec4 out1;
 void main() {
     if (u_pass == 0) {
         vec4 c = texture(u_layer, v_uv);
-        out0 = vec4(u_weight * c.rgb, c.a);
-        out1 = vec4(u_weight * c.a, 0.0, 0.0, 0.0);
+        float coverage = min(1.0, c.a / u_coverage_full);
+        out0 = vec4((u_weight / max(c.a, u_coverage_full)) * c.rgb, coverage);
+        out1 = vec4(u_weight * coverage, 0.0, 0.0, 0.0);
         return;
     }
     vec4 acc = texture(u_acc0, v_uv);

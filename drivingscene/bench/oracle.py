@@ -23,7 +23,7 @@ from drivingscene.machine import machine_description
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, required=True, help="folder of scenes (pair_*.npz) or one scene.npz")
     p.add_argument("--count", type=int, default=5, help="scenes to use from --data (default 5)")
-    p.add_argument("--refine", type=int, default=1, help="oracle colour deconvolution steps")
+    p.add_argument("--refine", type=int, default=2, help="iterations of the oracle's colour solve")
     p.add_argument("--target", type=int, default=None, help="also test the budget with this Gaussian count")
     p.add_argument("--image", type=Path, default=None, help="write input | oracle render | error for one camera")
     p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here")

@@ -16,6 +16,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.choices",
         "inference/rendering choices (blend, carving, search) on validation pairs: input views, in-between frame, dynamic share",
     ),
+    "magnify": (
+        "drivingscene.bench.magnify",
+        "footprints, colour solve and layer blend against magnified views (docs/magnification.md)",
+    ),
     "raster": ("drivingscene.bench.raster_speed", "CPU Gaussian rasterizer: forward / forward+backward time, peak memory"),
     "synth": (
         "drivingscene.bench.synth_speed",
@@ -61,6 +65,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "results": (
         "drivingscene.bench.results",
         "accuracy of the model vs ablations and the oracle on test pairs (docs/results.md)",
+    ),
+    "views": (
+        "drivingscene.bench.views",
+        "quality where the viewer's user looks: moved, raised, overview and magnified views vs ground truth and a depth-mesh baseline",
     ),
 }
 

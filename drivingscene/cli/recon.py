@@ -137,7 +137,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--out", type=Path, required=True, metavar="RECON", help="the recon.npz to write")
     p.add_argument("--no-flow", action="store_true", help="ignore gt_scene_flow (every Gaussian static)")
     p.add_argument(
-        "--refine", type=int, default=1, metavar="N", help="colour deconvolution steps (default 1; 0 = raw pixel colours)"
+        "--refine", type=int, default=2, metavar="N", help="iterations of the colour solve (default 2; 0 = raw pixel colours)"
     )
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_oracle)
@@ -158,9 +158,9 @@ def _register_classical(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--refine",
         type=non_negative_int,
-        default=0,
+        default=2,
         metavar="N",
-        help="colour deconvolution steps (default 0 = raw pixel colours)",
+        help="iterations of the colour solve (default 2; 0 = raw pixel colours)",
     )
     p.add_argument("--force", action="store_true", help="overwrite RECON if it exists")
     p.set_defaults(func=run_classical)

@@ -74,6 +74,11 @@ def _header_properties(path: str | os.PathLike) -> list[str]:
     return [words[2] for words in _header_words(path) if words[0] == "property" and len(words) == 3]
 
 
+def ply_is_ours(path: str | os.PathLike) -> bool:
+    """Whether a PLY was written by DrivingScene (a ``comment DrivingScene`` line in its header)."""
+    return any(words[0] == "comment" and PLY_MARKER in words[1:2] for words in _header_words(path))
+
+
 def ply_up_axis(path: str | os.PathLike) -> str:
     """The up axis of a PLY's world by the rule in the module docstring: "z" or "-y"."""
     ours = False

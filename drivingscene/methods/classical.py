@@ -65,7 +65,7 @@ from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.geometry.flow import forward_backward_consistency, vector_length
 from drivingscene.geometry.se3 import rotate_vectors
-from drivingscene.methods.oracle import refine_colors
+from drivingscene.methods.oracle import refine_colors, surfel_maps
 from drivingscene.models.depth import DepthConfig
 from drivingscene.models.pipeline import (
     LiftConfig,
@@ -77,6 +77,7 @@ from drivingscene.models.pipeline import (
     sky_mask,
     texture_along,
 )
+from drivingscene.render.color_solve import ITERATIONS as COLOR_ITERATIONS
 from drivingscene.render.sky import fit_sky_from_pixels
 
 DIS_PRESETS = {
@@ -120,9 +121,9 @@ class ClassicalConfig:
     # Also call sky what the model calls sky (`sky_mask`: depth beyond LiftConfig.sky_depth at
     # the depth network's reference focal length).
     model_sky_rule: bool = True
-    # Colour deconvolution steps as in the oracle (`refine_colors`: one render per keyframe and
-    # step); 0: the pixel colours as they are (the oracle's default is 1).
-    refine: int = 0
+    # Iterations of the colour solve, as the oracle and the model (`refine_colors`,
+    # render/color_solve.py); 0: the pixel colours as they are.
+    refine: int = COLOR_ITERATIONS
 
     def __post_init__(self):
         if self.preset not in DIS_PRESETS:
@@ -363,21 +364,23 @@ def _assemble(
     batch: PairTensors, depth: Tensor, sky: Tensor, sky_pixels: Tensor, scene_flow: Tensor, refine: int
 ) -> tuple[Gaussians, Tensor]:
     """Gaussians of both keyframes in the world frame, one per non-sky world pixel with its colour
-    (after ``refine`` deconvolution steps), and the sky SH fitted to ``sky_pixels``."""
+    (after ``refine`` iterations of the colour solve), and the sky SH fitted to ``sky_pixels``."""
     num_views = batch.num_views
     c2w = world_cameras(batch)  # [2, V, 4, 4]
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, c2w, batch.intrinsics)
-    colors = batch.images.permute(0, 1, 3, 4, 2)  # [2, V, H, W, 3]
-    if refine > 0:
-        colors = torch.stack(
-            [refine_colors(depth[k], batch.intrinsics, c2w[k].float(), colors[k], ~sky[k], sky_sh, refine) for k in (0, 1)]
-        )
+    colors = batch.images.permute(0, 1, 3, 4, 2).flatten(0, 1)  # [2V, H, W, 3]
+    depths, intrinsics = depth.flatten(0, 1), batch.intrinsics.repeat(2, 1, 1)
+    quats, log_scales = surfel_maps(depths, intrinsics)
+    colors = refine_colors(depths, intrinsics, colors, ~sky.flatten(0, 1), refine, (quats, log_scales))
     flows = rotate_vectors(batch.local_to_world[:3, :3].float(), scene_flow.float())
     gaussians = gaussians_from_pixels(
-        depth.flatten(0, 1),
-        batch.intrinsics.repeat(2, 1, 1),
+        depths,
+        intrinsics,
         c2w.flatten(0, 1).float(),
-        colors.flatten(0, 1),
+        colors,
+        quats=quats,
+        log_scales=log_scales,
+        footprints=None,
         keyframe=torch.arange(2).repeat_interleave(num_views),
         camera_ids=torch.arange(num_views).repeat(2),
         flows=flows.flatten(0, 1),

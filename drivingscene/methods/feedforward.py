@@ -23,6 +23,7 @@ from safetensors.torch import load_file
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.tensors import pair_to_tensors, world_cameras
 from drivingscene.errors import InputError
+from drivingscene.gaussians.assembly import FootprintRule
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
@@ -42,6 +43,7 @@ from drivingscene.models.pipeline import (
     without_gaussian_head,
 )
 from drivingscene.precision import resolve_amp
+from drivingscene.render.color_solve import ITERATIONS as COLOR_ITERATIONS
 from drivingscene.render.sky import fit_sky_from_pixels
 from drivingscene.resources import asset_path
 
@@ -69,6 +71,11 @@ class InferenceOptions:
     # D's depth corrected by classical matching between the keyframes (methods/matched_depth.py);
     # None: D's depth as it is.
     match: MatchedDepthConfig | None = MatchedDepthConfig()
+    # Iterations of the colour solve that makes each input image's own Gaussians re-render it
+    # (render/color_solve.py, docs/magnification.md); 0: P's colours as they are.
+    fit_colors: int = COLOR_ITERATIONS
+    # The footprint rule on P's scales (gaussians/assembly.py); NO_FOOTPRINT_RULE: as 3DGS (ablation).
+    footprints: FootprintRule = FootprintRule()
 
 
 def resolve_device(name: str) -> torch.device:
@@ -287,7 +294,10 @@ def reconstruct(
     timings["flow_s"] = time.perf_counter() - t0
     report("assembly")
     t0 = time.perf_counter()
-    gaussians = assemble(static, batch, sky, scene_flow, local_to_world=batch.local_to_world)
+    gaussians = assemble(
+        static, batch, sky, scene_flow, local_to_world=batch.local_to_world, fit_colors=options.fit_colors,
+        footprints=options.footprints,
+    )  # fmt: skip
     if options.carve is not None:
         t1 = time.perf_counter()
         gaussians = _carved(gaussians, batch, depth, sky_pixels, options.carve)

@@ -13,40 +13,42 @@ import torch
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.tensors import pair_to_tensors, world_cameras
 from drivingscene.errors import InputError
-from drivingscene.gaussians.assembly import gaussians_from_pixels
+from drivingscene.gaussians.assembly import DEFAULT_OPACITY, gaussians_from_pixels, pixel_footprints, surfel_frames
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
-from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.models.pipeline import rigid_flows
-from drivingscene.render.scene import render_gaussians
+from drivingscene.render.color_solve import ITERATIONS as COLOR_ITERATIONS
+from drivingscene.render.color_solve import solve_pixel_colors
 from drivingscene.render.sky import fit_sky_from_pixels
+
+
+def surfel_maps(depth: torch.Tensor, intrinsics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Default surfels of depth maps ``[V, H, W]`` as `gaussians_from_pixels` makes them, footprint
+    rule included: camera-axis quaternions ``[V, H, W, 4]`` and log scales ``[V, H, W, 3]``."""
+    quats, log_scales = surfel_frames(depth, intrinsics)
+    return quats, pixel_footprints(depth, intrinsics, quats, log_scales)
 
 
 def refine_colors(
     depth: torch.Tensor,  # [V, H, W]
     intrinsics: torch.Tensor,  # [V, 3, 3]
-    cam_to_world: torch.Tensor,  # [V, 4, 4]
     images: torch.Tensor,  # [V, H, W, 3]
     valid: torch.Tensor,  # [V, H, W]
-    sky_sh: torch.Tensor,
     iterations: int,
+    surfels: tuple[torch.Tensor, torch.Tensor] | None = None,  # `surfel_maps` when already made
 ) -> torch.Tensor:
-    """Per-pixel colours ``[V, H, W, 3]`` whose splats re-render the input views (Van Cittert
-    deconvolution: c <- c + (image - render(c))). Splatting blurs by the splat footprint and the
-    renderer's low-pass; this undoes most of it, bounding what per-pixel colours can reach."""
-    height, width = depth.shape[-2:]
-    world_to_cam = invert_rigid(cam_to_world.double()).float()
-    colors = images.clone()
-    for _ in range(iterations):
-        g = gaussians_from_pixels(depth, intrinsics, cam_to_world, colors, keyframe=0, valid=valid)
-        rendered = render_gaussians(g, 0.0, world_to_cam, intrinsics, height, width, sky_sh=sky_sh).colors
-        colors = colors + torch.where(valid[..., None], images - rendered, torch.zeros_like(images))
-    return colors
+    """Per-pixel colours ``[V, H, W, 3]`` whose default surfels re-render each input image in its
+    own layer: the colour solve of `render.color_solve` (the deconvolution of the splatting blur)."""
+    if iterations <= 0:
+        return images
+    quats, log_scales = surfels if surfels is not None else surfel_maps(depth, intrinsics)
+    opacities = torch.full_like(depth, DEFAULT_OPACITY)
+    return solve_pixel_colors(depth, intrinsics, quats, log_scales, opacities, images, images, valid, iterations)
 
 
-def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refine: int = 1) -> Reconstruction:
+def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refine: int = COLOR_ITERATIONS) -> Reconstruction:
     """Gaussians from ``gt_depth`` (and ``gt_scene_flow``) of both keyframes, in the world frame;
-    ``refine`` deconvolution steps for the colours (0 = the pixel colours as they are)."""
+    ``refine`` iterations of the colour solve (0 = the pixel colours as they are)."""
     if pair.gt_depth is None:
         raise InputError("oracle: the scene has no gt_depth; the oracle needs ground-truth depth")
     if use_scene_flow and pair.gt_scene_flow is None:
@@ -65,9 +67,13 @@ def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refin
     for k in (0, 1):
         flows = torch.from_numpy(pair.gt_scene_flow[k]) if use_scene_flow else None
         images = batch.images[k].permute(0, 2, 3, 1)
-        colors = refine_colors(depth[k], batch.intrinsics, c2w[k].float(), images, ~sky[k], sky_sh, refine)
+        quats, log_scales = surfel_maps(depth[k], batch.intrinsics)
+        colors = refine_colors(depth[k], batch.intrinsics, images, ~sky[k], refine, (quats, log_scales))
         parts.append(
-            gaussians_from_pixels(depth[k], batch.intrinsics, c2w[k].float(), colors, keyframe=k, flows=flows, valid=~sky[k])
+            gaussians_from_pixels(
+                depth[k], batch.intrinsics, c2w[k].float(), colors, keyframe=k, flows=flows, valid=~sky[k],
+                quats=quats, log_scales=log_scales, footprints=None,
+            )
         )
     gaussians = Gaussians.cat(parts)
     rigid = torch.where(sky[..., None], 0.0, rigid_flows(depth, batch))

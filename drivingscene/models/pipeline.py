@@ -22,7 +22,7 @@ from torch import Tensor
 
 from drivingscene import kernels
 from drivingscene.data.tensors import PairTensors
-from drivingscene.gaussians.assembly import gaussians_from_pixels
+from drivingscene.gaussians.assembly import FootprintRule, gaussians_from_pixels, pixel_footprints
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
 from drivingscene.geometry.flow import (
@@ -43,6 +43,7 @@ from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
 from drivingscene.models.matching import ViewGeometry, neighbour_views
 from drivingscene.models.model import DrivingSceneModel
+from drivingscene.render.sh import SH_C0
 
 EPIPOLAR_DEPTHS = ("triangulated", "unmatched", "keep")
 
@@ -685,9 +686,14 @@ def assemble(
     scene_flow: Tensor | None = None,  # [2, V, H, W, 3]
     keyframes: tuple[int, ...] = (0, 1),
     local_to_world: Tensor | None = None,  # [4, 4]: build them in the world frame directly
+    fit_colors: int = 0,
+    footprints: FootprintRule = FootprintRule(),
 ) -> Gaussians:
     """Gaussians of the requested keyframes in the local frame, or the world frame with
-    ``local_to_world`` (one pass, not a second transform of every Gaussian); sky pixels excluded."""
+    ``local_to_world`` (one pass, not a second transform of every Gaussian); sky pixels excluded.
+    ``fit_colors`` > 0: that many iterations of the colour solve (`render.color_solve`) that makes
+    each input image's own Gaussians re-render it (inference; training leaves the colours to P).
+    ``footprints``: the footprint rule applied to P's scales (`gaussians.assembly`)."""
     num_views = batch.num_views
     p = static.params
     cams = batch.cam_to_local
@@ -703,16 +709,38 @@ def assemble(
     def per_view(x: Tensor) -> Tensor:  # [2V, ...] (keyframe-major) -> the requested views
         return x[first : first + count] if contiguous else x[views]
 
+    depth = per_view(static.depth.flatten(0, 1))
+    intrinsics = batch.intrinsics.repeat(len(keyframes), 1, 1)
+    quats, valid, sh = per_view(p.quats), ~per_view(sky.flatten(0, 1)), per_view(p.sh)
+    log_scales = pixel_footprints(depth.detach(), intrinsics, quats, per_view(p.log_scales), footprints)
+    if fit_colors > 0:
+        sh = _fitted_sh(depth, intrinsics, quats, log_scales, per_view(p.opacity_logits), sh, per_view(batch.images.flatten(0, 1)), valid, fit_colors)
     return gaussians_from_pixels(
-        per_view(static.depth.flatten(0, 1)),
-        batch.intrinsics.repeat(len(keyframes), 1, 1),
+        depth,
+        intrinsics,
         per_view(cams.flatten(0, 1)),
-        per_view(p.sh),
+        sh,
         keyframe=views // num_views,
         camera_ids=views % num_views,
-        log_scales=per_view(p.log_scales),
-        quats=per_view(p.quats),
+        log_scales=log_scales,
+        quats=quats,
         opacity_logits=per_view(p.opacity_logits),
         flows=None if scene_flow is None else per_view(scene_flow.flatten(0, 1)),
-        valid=~per_view(sky.flatten(0, 1)),
+        valid=valid,
+        footprints=None,
     )
+
+
+def _fitted_sh(depth, intrinsics, quats, log_scales, opacity_logits, sh, images, valid, iterations: int) -> Tensor:
+    """``sh`` ``[I, H, W, K, 3]`` with the DC colour solved by `solve_pixel_colors` (images ``[I, 3, H, W]``)."""
+    from drivingscene.render.color_solve import solve_pixel_colors
+
+    start = SH_C0 * sh[..., 0, :].float() + 0.5  # the view-independent colour, unclamped
+    solved = solve_pixel_colors(
+        depth.detach().float(), intrinsics, quats.detach(), log_scales.detach(), torch.sigmoid(opacity_logits.detach().float()),
+        start.detach().clamp(min=0.0), images.permute(0, 2, 3, 1).float(), valid, iterations,
+    )
+    change = torch.where(solved > 0, solved - start, (-start).clamp(max=0.0))
+    out = sh.clone()
+    out[..., 0, :] = sh[..., 0, :] + (change / SH_C0).to(sh.dtype)
+    return out

@@ -8,7 +8,10 @@ Semantics (shared by every backend and by the float64 reference):
   ``Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I`` where ``J`` is the Jacobian of the pinhole projection at the
   centre. As in 3DGS/gsplat, ``J`` is evaluated at the centre's ``x/z, y/z`` clamped to the image
   extent plus 30 % of the half field of view on each side; this matters only for Gaussians centred
-  outside the image. ``eps2d = 0.3`` px² is the low-pass filter of gsplat's non-antialiased mode.
+  outside the image. ``eps2d`` (px²) is the screen-space low-pass: ``EPS2D`` = 0.1 for our
+  reconstructions, whose Gaussians carry a 3D footprint floor from their input's sampling rate
+  (``gaussians.assembly.FOOTPRINT_FLOOR``, Mip-Splatting's 3D filter), ``EPS2D_3DGS`` = 0.3 (gsplat's
+  non-antialiased mode, as 3DGS files from other tools were trained with).
 - ``conics`` are the upper triangle ``(a, b, c)`` of ``Σ2D⁻¹ = [[a, b], [b, c]]`` in px⁻².
 - ``radii = 3·sqrt(λmax(Σ2D))`` px, the bounding circle of the 3σ ellipse; it is 0 for culled
   Gaussians: camera ``z < near`` or ``z > far`` (metres), or a circle that contains no pixel centre
@@ -28,6 +31,10 @@ from drivingscene.geometry import project, quat_to_matrix
 
 # Off-image Jacobian clamp of 3DGS/gsplat: image extent plus this fraction of the half field of view.
 JACOBIAN_CLAMP_MARGIN = 0.3
+# The screen-space low-pass (px^2, module docstring): ours, and that of 3DGS files from other tools.
+# EPS2D + FOOTPRINT_FLOOR is the 0.3 px^2 that 3DGS adds, so a view at the input's size is unchanged.
+EPS2D = 0.1
+EPS2D_3DGS = 0.3
 
 
 @dataclass(frozen=True)
@@ -61,7 +68,7 @@ def project_covariances(
     *,
     near: float = 0.01,
     far: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
 ) -> Projection:
     """Project Gaussians; all leading dims broadcast (e.g. means ``[1, N, 3]`` with viewmats ``[B, 1, 4, 4]``)."""
     rot = viewmats[..., :3, :3]
@@ -138,11 +145,34 @@ def cull_bound(
     Uses ``λmax(Σ2D) <= ||J||² max(scales)² + eps2d`` with ``||J|| <= ||K[:2, :2]||_F sqrt(1 + tx² + ty²) / z``.
     """
     p_cam = torch.einsum("nj,bij->bni", means, viewmats[:, :3, :3]) + viewmats[:, None, :3, 3]  # [B, N, 3]
+    return _cull(p_cam, max_scales, Ks[:, None], width, height, near, far, eps2d, project(p_cam, Ks)[0])
+
+
+def cull_bound_pairs(
+    means: Tensor,  # [M, 3] world
+    max_scales: Tensor,  # [M]
+    viewmats: Tensor,  # [M, 4, 4] the camera of each pair
+    Ks: Tensor,  # [M, 3, 3]
+    width: int,
+    height: int,
+    *,
+    near: float,
+    far: float,
+    eps2d: float,
+) -> Tensor:
+    """`cull_bound` ``[M]`` of given (camera, Gaussian) pairs."""
+    p_cam = (viewmats[:, :3, :3] @ means[:, :, None])[..., 0] + viewmats[:, :3, 3]
+    return _cull(p_cam, max_scales, Ks, width, height, near, far, eps2d, project(p_cam[:, None], Ks)[0][:, 0])
+
+
+def _cull(
+    p_cam: Tensor, max_scales: Tensor, k: Tensor, width: int, height: int, near: float, far: float, eps2d: float, means2d: Tensor
+) -> Tensor:
+    """The bound of `cull_bound` from camera points ``[..., 3]``, their intrinsics ``[..., 3, 3]``
+    (broadcast) and projections ``[..., 2]`` (only used where ``near <= z <= far``)."""
     z = p_cam[..., 2]
     in_depth = (z >= near) & (z <= far)
     p_cam = torch.where(in_depth[..., None] & (z[..., None] > 0), p_cam, torch.ones_like(p_cam))
-    k = Ks[:, None]
-    means2d = project(p_cam, Ks)[0]  # [B, N, 2]
     tx, ty = _clamped_directions(p_cam, k, width, height)
     k_norm = torch.sqrt(k[..., 0, 0] ** 2 + k[..., 0, 1] ** 2 + k[..., 1, 1] ** 2)
     j_norm = k_norm * torch.sqrt(1 + tx * tx + ty * ty) / p_cam[..., 2]
@@ -161,7 +191,7 @@ def project_gaussians(
     *,
     near: float = 0.01,
     far: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
 ) -> Projection:
     """Project every Gaussian into every camera; returns ``[B, N, ...]`` fields (see module docstring)."""
     covars = covariances_3d(quats, scales)  # [N, 3, 3]

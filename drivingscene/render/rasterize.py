@@ -3,8 +3,9 @@
 Semantics (every backend but gsplat, and the float64 reference ``rasterize_reference``):
 
 1. World covariance ``Σ = R S Sᵀ Rᵀ``, ``R`` from the normalised quaternion (w, x, y, z), ``S = diag(scales)``.
-2. EWA projection (``project.py``): ``Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I`` (0.3 px² low-pass, gsplat's
-   non-antialiased mode), ``J`` the pinhole Jacobian at the centre with the 3DGS off-image clamp.
+2. EWA projection (``project.py``): ``Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I`` (``EPS2D`` = 0.1 px² low-pass by
+   default; 0.3, gsplat's non-antialiased mode, for 3DGS files from other tools), ``J`` the
+   pinhole Jacobian at the centre with the 3DGS off-image clamp.
    Pixel centres are at integer coordinates.
 3. Culling: camera ``z < near`` or ``z > far``; a 3σ bounding circle (radius ``3·sqrt(λmax(Σ2D))``)
    that contains no pixel centre; opacity < 1/255.
@@ -44,6 +45,7 @@ from torch import Tensor
 
 from drivingscene import kernels
 from drivingscene.errors import InputError
+from drivingscene.render.project import EPS2D
 
 DEFAULT_MAX_LAYERS = 32
 BACKENDS = ("auto", "torch", "cpp", "gsplat")
@@ -73,21 +75,28 @@ def rasterize(
     sh_degree: int | None = None,
     near: float = 0.01,
     far: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
     max_layers: int = DEFAULT_MAX_LAYERS,
     backend: str = "auto",
+    views: Tensor | None = None,  # [N] int: the one camera of the batch each Gaussian is drawn into
 ) -> RenderOutput:
     """Render RGB, expected depth and alpha of Gaussians into ``B`` cameras.
 
     ``near``/``far`` are camera-z limits in metres, ``eps2d`` the 2D low-pass in px², ``max_layers``
     the most Gaussians composited per pixel (the front-most contributing ones). With SH colours the
-    view direction is from each camera centre to the Gaussian. Raises ``InputError`` on bad shapes.
+    view direction is from each camera centre to the Gaussian. ``views`` draws each Gaussian into
+    one camera of the batch only (its source image, say; -1: none), so that a batch of images each
+    of its own Gaussians is one call (not on the gsplat backend). Raises ``InputError`` on bad shapes.
     """
     backgrounds = check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, sh_degree)
     if max_layers < 1:
         raise InputError(f"max_layers must be >= 1, found {max_layers}")
     chosen = choose_backend(backend, means)
+    if views is not None and tuple(views.shape) != (means.shape[0],):
+        raise InputError(f"views: expected shape [{means.shape[0]}] (one camera per Gaussian), found {list(views.shape)}")
     if chosen == "gsplat":
+        if views is not None:
+            raise InputError("views: not supported by the gsplat backend; use backend 'torch' or 'cpp'")
         from drivingscene.render.gsplat_backend import rasterize_gsplat
 
         return rasterize_gsplat(
@@ -99,7 +108,8 @@ def rasterize(
     dtype = means.dtype
     viewmats, Ks, backgrounds = viewmats.to(dtype), Ks.to(dtype), backgrounds.to(dtype)
     s = make_splats(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=sh_degree, near=near, far=far, eps2d=eps2d
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=sh_degree, near=near, far=far, eps2d=eps2d,
+        views=views,
     )
     inp = pair_inputs(s, width, height)
     if chosen == "cpp":

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from drivingscene.geometry import quat_to_matrix
+from drivingscene.render.project import EPS2D
 from drivingscene.render.rasterize import RenderOutput, check_inputs
 from drivingscene.render.sh import sh_to_color
 
@@ -34,7 +35,7 @@ def rasterize_reference(
     sh_degree: int | None = None,
     near: float = 0.01,
     far: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
 ) -> RenderOutput:
     """Float64 dense rendering with the semantics of ``rasterize`` and no ``max_layers`` cap."""
     backgrounds = check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, sh_degree)

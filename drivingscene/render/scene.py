@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -26,6 +29,7 @@ def render_gaussians(
     background: Tensor | None = None,  # [3], used when there is no sky model
     blend: str = "all",  # how both keyframes' Gaussians combine at t (Gaussians.time_weights, "layers", "cameras")
     source_axes: Tensor | None = None,  # [2, V, 3] world optical axes of the input cameras ("cameras")
+    layer_blend: LayerBlend | None = None,  # the layered blends' rule (default LayerBlend())
     **raster_kwargs,
 ) -> RenderOutput:
     """Colour, depth and alpha ``[B, H, W, ...]`` of the Gaussians moved to normalised time t."""
@@ -34,11 +38,12 @@ def render_gaussians(
             raise InputError("blend 'cameras': needs source_axes, the input cameras' world optical axes [2, V, 3]")
         return render_camera_layers(
             gaussians, t, world_to_cam, intrinsics, height, width, source_axes,
-            sky_sh=sky_sh, background=background, **raster_kwargs,
+            sky_sh=sky_sh, background=background, layer_blend=layer_blend, **raster_kwargs,
         )
     if blend == "layers":
         return render_layers(
-            gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **raster_kwargs
+            gaussians, t, world_to_cam, intrinsics, height, width,
+            sky_sh=sky_sh, background=background, layer_blend=layer_blend, **raster_kwargs,
         )
     g = gaussians
     opacities = g.opacities * g.time_weights(t, blend)
@@ -81,6 +86,7 @@ def render_layers(
     *,
     sky_sh: Tensor | None = None,
     background: Tensor | None = None,
+    layer_blend: LayerBlend | None = None,
     **kwargs,
 ) -> RenderOutput:
     """Each keyframe's Gaussians rendered on their own at time t (occlusion within a keyframe's set
@@ -93,7 +99,10 @@ def render_layers(
     partly transparent splats do not bring their own background into the mix (`_compose`)."""
     t = float(t)
     sets = [(gaussians.keyframes == k, torch.full((world_to_cam.shape[0],), layer_time_weight(k, t))) for k in (0, 1)]
-    return _render_sets(gaussians, t, world_to_cam, intrinsics, height, width, sets, sky_sh=sky_sh, background=background, **kwargs)
+    return _render_sets(
+        gaussians, t, world_to_cam, intrinsics, height, width, sets,
+        sky_sh=sky_sh, background=background, layer_blend=layer_blend, **kwargs,
+    )  # fmt: skip
 
 
 def layer_time_weight(keyframe: int, t: float) -> float:
@@ -102,8 +111,38 @@ def layer_time_weight(keyframe: int, t: float) -> float:
 
 
 # "cameras": how fast a layer's weight falls with the angle between its camera's optical axis and
-# the target's: exp((cos - 1) / CAMERA_ANGLE_SCALE).
+# the target's, exp((cos - 1) / scale) (`LayerBlend.view_weight`). The scale is CAMERA_ANGLE_SCALE
+# mid-way between the keyframes, where every layer has been moved by estimated motion and
+# neighbouring cameras' layers average each other's errors, and CAMERA_ANGLE_SCALE_AT_KEYFRAME at
+# the layer's own keyframe, where a camera's own layer is its input image re-rendered and a
+# neighbour's, on real frames often at a slightly wrong depth, only blurs it (docs/magnification.md).
 CAMERA_ANGLE_SCALE = 0.5
+CAMERA_ANGLE_SCALE_AT_KEYFRAME = 0.1
+
+
+# A layer's coverage counts as full from this accumulated alpha on. Inside the part of the world
+# an input image saw, its layer is a closed surface; where a view magnifies it, the gaps between
+# neighbouring splats lower the layer's alpha without anything being missing, and the sky or
+# another camera's layer would show through them as a screen-door (docs/magnification.md).
+COVERAGE_FULL = 0.7
+
+
+
+
+@dataclass(frozen=True)
+class LayerBlend:
+    """How the layered blends combine their layers (the constants above; docs/magnification.md)."""
+
+    coverage_full: float = COVERAGE_FULL  # 1: a layer's alpha is its coverage (as before the rule)
+    angle_scale: float = CAMERA_ANGLE_SCALE
+    angle_scale_at_keyframe: float = CAMERA_ANGLE_SCALE_AT_KEYFRAME
+
+    def view_weight(self, cos, keyframe: int, t: float):
+        """View weight of a layer of ``keyframe`` at normalised time ``t`` whose camera's optical
+        axis makes ``cos`` (a float or tensor) with the target's: ``exp((cos - 1) / scale)``."""
+        near = min(1.0, 2.0 * abs(float(t) - keyframe))
+        scale = self.angle_scale_at_keyframe + (self.angle_scale - self.angle_scale_at_keyframe) * near
+        return torch.exp((cos - 1.0) / scale) if torch.is_tensor(cos) else math.exp((cos - 1.0) / scale)
 
 
 def render_camera_layers(
@@ -117,16 +156,18 @@ def render_camera_layers(
     *,
     sky_sh: Tensor | None = None,
     background: Tensor | None = None,
+    layer_blend: LayerBlend | None = None,
     **kwargs,
 ) -> RenderOutput:
     """Like ``render_layers`` with one layer per keyframe and input camera: the Gaussians of each
     input image rendered on their own, blended per pixel with weight time x view x alpha, the view
-    weight ``exp((cos - 1) / CAMERA_ANGLE_SCALE)`` falling with the angle between the optical axes of
+    weight `LayerBlend.view_weight` falling with the angle between the optical axes of
     the layer's camera and of the target. Where a camera's own Gaussians cover a pixel they decide
     its colour; a neighbour's Gaussians, which on real frames often float in front at a wrong depth,
     only fill what the nearer cameras did not see. Gaussians of an unknown camera (-1) form one
     layer per keyframe with view weight 1."""
     t = float(t)
+    rule = layer_blend or LayerBlend()
     target_axes = world_to_cam[:, 2, :3].float()  # camera z axis in world: the third row of R_w2c
     num_cameras = source_axes.shape[1]
     sets = []
@@ -137,9 +178,12 @@ def render_camera_layers(
             if c < 0:
                 view_weight = torch.ones(len(target_axes))
             else:
-                view_weight = torch.exp((target_axes @ source_axes[k, c].to(target_axes) - 1.0) / CAMERA_ANGLE_SCALE)
+                view_weight = rule.view_weight(target_axes @ source_axes[k, c].to(target_axes), k, t)
             sets.append(((gaussians.keyframes == k) & (gaussians.cameras == c), layer_time_weight(k, t) * view_weight))
-    return _render_sets(gaussians, t, world_to_cam, intrinsics, height, width, sets, sky_sh=sky_sh, background=background, **kwargs)
+    return _render_sets(
+        gaussians, t, world_to_cam, intrinsics, height, width, sets,
+        sky_sh=sky_sh, background=background, layer_blend=rule, **kwargs,
+    )  # fmt: skip
 
 
 def _render_sets(
@@ -153,6 +197,7 @@ def _render_sets(
     *,
     sky_sh: Tensor | None,
     background: Tensor | None,
+    layer_blend: LayerBlend | None = None,
     **kwargs,
 ) -> RenderOutput:
     """Each set of Gaussians rendered alone over black and the layers composed (`_compose`) over the
@@ -165,7 +210,8 @@ def _render_sets(
         for part in _layer_parts(gaussians, [mask for mask, _ in sets])
     ]
     weights = torch.stack([w for _, w in sets])
-    return _compose(layers, weights, _background(world_to_cam, intrinsics, height, width, sky_sh, background))
+    background = _background(world_to_cam, intrinsics, height, width, sky_sh, background)
+    return _compose(layers, weights, background, (layer_blend or LayerBlend()).coverage_full)
 
 
 def _layer_parts(gaussians: Gaussians, masks: list[Tensor]) -> list[Gaussians]:
@@ -179,16 +225,22 @@ def _layer_parts(gaussians: Gaussians, masks: list[Tensor]) -> list[Gaussians]:
     return gaussians.split([int(mask.sum()) for mask in masks])
 
 
-def _compose(layers: list[RenderOutput], weights: Tensor, background: Tensor) -> RenderOutput:
-    """Layers rendered over black (premultiplied colours) blended per pixel: colour and depth
-    weighted by ``weights[l, b] * alpha_l``, coverage the largest layer alpha, over ``background``."""
+def _compose(
+    layers: list[RenderOutput], weights: Tensor, background: Tensor, coverage_full: float = COVERAGE_FULL
+) -> RenderOutput:
+    """Layers rendered over black (premultiplied colours) blended per pixel: each layer's own colour
+    ``C_l / alpha_l`` and depth weighted by ``weights[l, b] * coverage_l`` with ``coverage_l =
+    min(1, alpha_l / coverage_full)``; the largest coverage over ``background``."""
     w = weights.to(background)[..., None, None]  # [L, B, 1, 1]
     alphas = torch.stack([layer.alphas for layer in layers])  # [L, B, H, W]
-    total = (w * alphas).sum(0)
+    coverage = (alphas / coverage_full).clamp(max=1.0)
+    total = (w * coverage).sum(0)
     norm = torch.where(total > 1e-12, total, torch.ones_like(total))
-    colors = sum(wi[..., None] * layer.colors for wi, layer in zip(w, layers)) / norm[..., None]
-    depths = sum(wi * layer.alphas * layer.depths for wi, layer in zip(w, layers)) / norm
-    alpha = alphas.amax(0)
+    # w * coverage * C / alpha, written so that no division by a vanishing alpha appears
+    gain = w / torch.maximum(alphas, torch.full_like(alphas, coverage_full))  # [L, B, H, W]
+    colors = sum(gi[..., None] * layer.colors for gi, layer in zip(gain, layers)) / norm[..., None]
+    depths = sum(wi * ci * layer.depths for wi, ci, layer in zip(w, coverage, layers)) / norm
+    alpha = coverage.amax(0)
     return RenderOutput(colors=alpha[..., None] * colors + (1 - alpha[..., None]) * background, depths=depths, alphas=alpha)
 
 

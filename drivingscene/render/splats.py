@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from drivingscene.render.project import covariances_3d, cull_bound, project_covariances
+from drivingscene.render.project import covariances_3d, cull_bound, cull_bound_pairs, project_covariances
 from drivingscene.render.sh import sh_to_color
 
 MIN_ALPHA = 1.0 / 255.0
@@ -58,14 +58,26 @@ def make_splats(
     near: float,
     far: float,
     eps2d: float,
+    views: Tensor | None = None,  # [N] int: the only camera each Gaussian may be drawn into (-1: none)
 ) -> Splats:
     """Cull, sort and project (with grad) the visible pairs; SH colours evaluated per camera."""
     num_cams = viewmats.shape[0]
     with torch.no_grad():
         # Conservative cull without covariances; the exact rule (radii > 0) is applied after projection.
-        maybe = cull_bound(means.detach(), scales.detach().amax(-1), viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d)
-        maybe &= (opacities.detach() >= MIN_ALPHA)[None]  # [B, N]
-        cam_ids, gs_ids = maybe.nonzero(as_tuple=True)
+        if views is None:
+            maybe = cull_bound(means.detach(), scales.detach().amax(-1), viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d)
+            maybe &= (opacities.detach() >= MIN_ALPHA)[None]  # [B, N]
+            cam_ids, gs_ids = maybe.nonzero(as_tuple=True)
+        else:  # one camera per Gaussian: only those pairs (listed camera by camera, Gaussians ascending)
+            views = views.to(means.device)
+            gs_ids = ((views >= 0) & (views < num_cams) & (opacities.detach() >= MIN_ALPHA)).nonzero().squeeze(1)
+            gs_ids = gs_ids[torch.sort(views[gs_ids], stable=True).indices]
+            cam_ids = views[gs_ids]
+            keep = cull_bound_pairs(
+                means.detach()[gs_ids], scales.detach()[gs_ids].amax(-1), viewmats[cam_ids], Ks[cam_ids], width, height,
+                near=near, far=far, eps2d=eps2d,
+            )
+            cam_ids, gs_ids = cam_ids[keep], gs_ids[keep]
         # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a
         # fronto-parallel wall, a ground-plane row) does not depend on float32 rounding.
         rot_z = viewmats[:, 2, :3].double()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -177,7 +179,8 @@ def test_default_surfels_lie_in_the_surface_and_project_to_round_pixel_splats():
     points = unproject(depth, k[None])
     torch.testing.assert_close(surface_normals(points)[0], normal.expand(32, 48, 3), atol=1e-6, rtol=0)
     g = gaussians_from_pixels(
-        depth, k[None], torch.eye(4, dtype=torch.float64)[None], torch.rand(1, 32, 48, 3, dtype=torch.float64), keyframe=0
+        depth, k[None], torch.eye(4, dtype=torch.float64)[None], torch.rand(1, 32, 48, 3, dtype=torch.float64), keyframe=0,
+        footprints=None,
     )
     torch.testing.assert_close((q2m(g.quats)[:, :, 2] @ normal).abs(), torch.ones(len(g), dtype=torch.float64), atol=1e-6, rtol=0)
     proj = project_covariances(
@@ -191,6 +194,41 @@ def test_default_surfels_lie_in_the_surface_and_project_to_round_pixel_splats():
     torch.testing.assert_close(eig.sqrt(), torch.full_like(eig, FOOTPRINT), rtol=1e-2, atol=0)
     assert (eig.sqrt() - FOOTPRINT).abs().min() < 1e-6  # the axis in the surface is exact
     assert MIN_COS > 0
+
+
+def _own_view_cov(g, k):
+    """``[N, 2, 2]`` 2D covariances (px^2, no low-pass) of Gaussians seen by a camera at the origin."""
+    from drivingscene.render.project import covariances_3d, project_covariances
+
+    proj = project_covariances(g.means, covariances_3d(g.quats, g.scales), torch.eye(4, dtype=torch.float64), k, 48, 32, eps2d=0.0)
+    a, b, c = proj.conics.unbind(-1)
+    return torch.stack([c, -b, -b, a], -1).view(-1, 2, 2) / (a * c - b * b)[:, None, None]
+
+
+def test_the_footprint_rule_widens_every_splat_by_the_floor_and_caps_wide_ones():
+    from drivingscene.gaussians.assembly import FOOTPRINT_FLOOR, MAX_FOOTPRINT
+
+    k = torch.tensor([[60.0, 0, 23.5], [0, 60.0, 15.5], [0, 0, 1]], dtype=torch.float64)
+    normal = torch.nn.functional.normalize(torch.tensor([0.0, -1.0, -0.6], dtype=torch.float64), dim=0)
+    depth = _plane_depth(normal, -1.5, k, 32, 48)[None]
+    eye, colors = torch.eye(4, dtype=torch.float64)[None], torch.rand(1, 32, 48, 3, dtype=torch.float64)
+    plain = gaussians_from_pixels(depth, k[None], eye, colors, keyframe=0, footprints=None)
+    ruled = gaussians_from_pixels(depth, k[None], eye, colors, keyframe=0)
+    # the floor is an isotropic 3D variance floor * (z / f)^2: in the own view J J^T (z/f)^2 * floor more
+    points = unproject(depth, k[None]).reshape(-1, 3)
+    x, y, z = points.unbind(-1)
+    jac = torch.stack([torch.stack([60 / z, 0 * z, -60 * x / z**2], -1), torch.stack([0 * z, 60 / z, -60 * y / z**2], -1)], -2)
+    expected = _own_view_cov(plain, k) + FOOTPRINT_FLOOR * (z / 60.0)[:, None, None] ** 2 * (jac @ jac.transpose(-1, -2))
+    torch.testing.assert_close(_own_view_cov(ruled, k), expected, rtol=1e-6, atol=1e-9)
+    # a Gaussian far wider than its pixel (P may make one) is shrunk, shape kept, to MAX_FOOTPRINT
+    wide = torch.log(torch.tensor([6.0, 3.0, 0.1], dtype=torch.float64) * 5.0 / 60.0).expand(1, 32, 48, 3)
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(1, 32, 48, 4)
+    capped = gaussians_from_pixels(depth, k[None], eye, colors, keyframe=0, log_scales=wide, quats=quats)
+    unfloored = torch.exp(2 * capped.log_scales) - FOOTPRINT_FLOOR * (z / 60.0)[:, None] ** 2
+    largest = torch.linalg.eigvalsh(_own_view_cov(replace(capped, log_scales=0.5 * torch.log(unfloored)), k))[:, -1]
+    torch.testing.assert_close(largest.sqrt(), torch.full_like(largest, MAX_FOOTPRINT), rtol=1e-6, atol=0)
+    ratios = unfloored / unfloored[:, :1]
+    torch.testing.assert_close(ratios, torch.tensor([1.0, 0.25, (0.1 / 6.0) ** 2], dtype=torch.float64).expand_as(ratios), rtol=1e-6, atol=0)
 
 
 def test_transform_moves_means_flows_and_rotations_consistently():

@@ -10,7 +10,7 @@ import torch
 
 from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
-from drivingscene.render.scene import CAMERA_ANGLE_SCALE, LAYER_FLOOR, render_gaussians
+from drivingscene.render.scene import COVERAGE_FULL, LAYER_FLOOR, LayerBlend, render_gaussians
 
 HEIGHT, WIDTH = 16, 24
 K = torch.tensor([[[20.0, 0.0, (WIDTH - 1) / 2], [0.0, 20.0, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]]])
@@ -68,33 +68,48 @@ def test_a_hole_in_one_layer_is_filled_by_the_other():
 
 @pytest.mark.parametrize("blend", ["layers", "cameras"])
 @pytest.mark.parametrize("t", [0.0, 0.5])
-def test_with_one_layer_the_blend_is_the_plain_render(t, blend):
-    # half-transparent splats: a layer's own background must not leak into the blend
-    g = _wall(5.0, (0.2, 0.4, 0.6), 0, x_range=(-1.0, 1.0), camera=0, opacity=0.5)
+@pytest.mark.parametrize("opacity", [0.5, 0.998])
+def test_with_one_layer_the_blend_is_its_colour_at_its_coverage(t, blend, opacity):
+    # one layer shows its own colour C / alpha over the background with coverage min(1, alpha /
+    # COVERAGE_FULL): its own background never leaks in, and an alpha lowered by gaps between
+    # splats (a magnified view) does not let the background through once it passes COVERAGE_FULL
+    g = _wall(5.0, (0.2, 0.4, 0.6), 0, x_range=(-1.0, 1.0), camera=0, opacity=opacity)
     bg = torch.tensor([0.1, 0.8, 0.1])
-    plain = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=bg)
+    alone = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3))
     layers = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=bg, blend=blend, source_axes=_axes(30.0))
-    torch.testing.assert_close(layers.colors, plain.colors, atol=1e-5, rtol=0)
-    torch.testing.assert_close(layers.depths, plain.depths, atol=1e-4, rtol=0)
+    coverage = (alone.alphas / COVERAGE_FULL).clamp(max=1.0)[..., None]
+    own = alone.colors / alone.alphas.clamp(min=1e-12)[..., None]
+    torch.testing.assert_close(layers.colors, coverage * own + (1 - coverage) * bg, atol=1e-5, rtol=0)
+    torch.testing.assert_close(layers.alphas, coverage[..., 0], atol=1e-6, rtol=0)
+    torch.testing.assert_close(layers.depths, alone.depths, atol=1e-4, rtol=0)
+    inside = alone.alphas >= COVERAGE_FULL
+    assert inside.any()
+    torch.testing.assert_close(layers.colors[inside], own[inside], atol=1e-5, rtol=0)
 
 
 def test_cameras_blend_weighs_each_camera_by_its_direction():
     # camera 1 (60 degrees off the target's axis) put a green wall in front of camera 0's red one
     g = Gaussians.cat([_wall(5.0, (1.0, 0.0, 0.0), 0, camera=0), _wall(3.0, (0.0, 1.0, 0.0), 0, camera=1)])
     axes = _axes(0.0, 60.0)
-    out = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=axes)
-    w1 = torch.exp(torch.tensor((0.5 - 1.0) / CAMERA_ANGLE_SCALE))
-    red, green = (render_gaussians(g.index(g.cameras == c), 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)) for c in (0, 1))
-    coverage = torch.maximum(red.alphas, green.alphas)[..., None]  # over a black background
-    expected = coverage * (red.colors + w1 * green.colors) / (red.alphas + w1 * green.alphas)[..., None]
+    out = render_gaussians(g, 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=axes)
+    # mid-way between the keyframes (t = 0.5) the view weight has its widest scale
+    w1 = LayerBlend().view_weight(torch.tensor(0.5), 0, 0.5)
+    red, green = (render_gaussians(g.index(g.cameras == c), 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)) for c in (0, 1))
+    k_red, k_green = ((x.alphas / COVERAGE_FULL).clamp(max=1.0)[..., None] for x in (red, green))
+    own_red, own_green = (x.colors / x.alphas.clamp(min=1e-12)[..., None] for x in (red, green))
+    coverage = torch.maximum(k_red, k_green)  # over a black background
+    expected = coverage * (k_red * own_red + w1 * k_green * own_green) / (k_red + w1 * k_green).clamp(min=1e-12)
     torch.testing.assert_close(out.colors, expected, atol=1e-5, rtol=0)
     centre = out.colors[0, HEIGHT // 2, WIDTH // 2]
     assert 0.6 < centre[0] < 0.9 and 0.1 < centre[1] < 0.4  # red weighs more, green still shows
     # rendered together the nearer wall wins; seen from camera 1's direction, camera 1 dominates
-    together = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)).colors[0, HEIGHT // 2, WIDTH // 2]
+    together = render_gaussians(g, 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)).colors[0, HEIGHT // 2, WIDTH // 2]
     assert together[1] > 3 * together[0]
-    turned = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(60.0, 0.0))
+    turned = render_gaussians(g, 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(60.0, 0.0))
     assert turned.colors[0, HEIGHT // 2, WIDTH // 2, 1] > 2 * turned.colors[0, HEIGHT // 2, WIDTH // 2, 0]
+    # at the layers' own keyframe a camera's own layer is its input re-rendered: it decides
+    at_key = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=axes)
+    assert at_key.colors[0, HEIGHT // 2, WIDTH // 2, 0] > 0.98
 
 
 def test_cameras_blend_fills_a_cameras_hole_from_its_neighbour():

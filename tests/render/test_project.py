@@ -7,6 +7,7 @@ import torch
 
 from drivingscene.geometry import quat_to_matrix
 from drivingscene.render import covariances_3d, project_gaussians
+from drivingscene.render.project import EPS2D
 
 W, H = 40, 30
 
@@ -36,7 +37,7 @@ def test_isotropic_gaussian_on_the_optical_axis():
         torch.tensor([[0.0, 0.0, z]], dtype=torch.float64), torch.tensor([[0.3, 0.1, -0.5, 0.2]], dtype=torch.float64),
         torch.full((1, 3), s, dtype=torch.float64), viewmats, Ks, W, H,
     )  # fmt: skip
-    var = (f * s / z) ** 2 + 0.3  # px², rotation-invariant
+    var = (f * s / z) ** 2 + EPS2D  # px², rotation-invariant (the default low-pass)
     torch.testing.assert_close(p.means2d[0, 0], torch.tensor([19.0, 14.0], dtype=torch.float64))
     torch.testing.assert_close(p.conics[0, 0], torch.tensor([1 / var, 0.0, 1 / var], dtype=torch.float64))
     torch.testing.assert_close(p.radii[0, 0], torch.tensor(3 * var**0.5, dtype=torch.float64))
@@ -69,7 +70,7 @@ def test_jacobian_is_clamped_far_outside_the_image():
     p = project_gaussians(mean, quat, scale, viewmats, Ks, W, H)
     lim = (W - 0.5 - 19.0) / 50.0 + 0.3 * 0.5 * W / 50.0
     jac = torch.autograd.functional.jacobian(_pinhole(Ks[0]), torch.tensor([lim * 2.0, 0.5, 2.0], dtype=torch.float64))
-    cov2d = jac @ torch.diag(scale[0] ** 2) @ jac.T + 0.3 * torch.eye(2, dtype=torch.float64)
+    cov2d = jac @ torch.diag(scale[0] ** 2) @ jac.T + EPS2D * torch.eye(2, dtype=torch.float64)
     conic = torch.linalg.inv(cov2d)
     torch.testing.assert_close(p.conics[0, 0], torch.stack([conic[0, 0], conic[0, 1], conic[1, 1]]))
 

@@ -8,6 +8,7 @@ import torch
 from drivingscene.bench.raster_speed import surround_scene
 from drivingscene.errors import InputError
 from drivingscene.render import rasterize, rasterize_reference
+from drivingscene.render.project import EPS2D
 from tests.render.conftest import max_contributors, random_scene
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
@@ -86,7 +87,7 @@ def test_single_isotropic_gaussian_is_analytic(renderer, opacity, request):
         out = rasterize_reference(**scene, background=bg)
     else:
         out = rasterize(**scene, background=bg, backend=renderer)
-    var = (50.0 * 0.08 / 4.0) ** 2 + 0.3  # px²: EWA footprint plus the low-pass
+    var = (50.0 * 0.08 / 4.0) ** 2 + EPS2D  # px²: EWA footprint plus the default low-pass
     v, u = torch.meshgrid(torch.arange(24.0), torch.arange(32.0), indexing="ij")
     d2 = (u - 15) ** 2 + (v - 11) ** 2
     raw = opacity * torch.exp(-0.5 * d2 / var)

@@ -1,0 +1,237 @@
+"""``drivingscene bench magnify``: which footprints, colours and layer blend hold up when the view is
+larger than the input (docs/magnification.md).
+
+Every approach is one `Variant`: the footprint rule on the Gaussians (`gaussians.assembly`), the
+colour solve (`render.color_solve`), the renderer's screen-space low-pass and the layered blend's
+rule (`render.scene.LayerBlend`). Each is scored on the same pairs, at the rig poses: the input
+views re-rendered (both keyframes), the in-between frame, and each rig camera at t = 0 at 1, 2 and 4
+times the input size, against the generator's ground truth rendered at that size (procedural) or
+against the input upsampled bicubically (real, and procedural too), with the share of holes (world
+pixels whose coverage is below 0.95) and that of the image's own layer alone (its raw accumulated
+alpha, before the blend's coverage rule). The first row is the renderer as it was (3DGS footprints
+and low-pass); the row marked default is what the model, the viewer and every benchmark use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from drivingscene.arguments import positive_int
+from drivingscene.data.atomic import atomic_write_text
+from drivingscene.gaussians.assembly import NO_FOOTPRINT_RULE, FootprintRule
+from drivingscene.render.project import EPS2D, EPS2D_3DGS
+from drivingscene.render.scene import LayerBlend
+
+MAGNIFICATIONS = (1, 2, 4)
+BEFORE_BLEND = LayerBlend(coverage_full=1.0, angle_scale=0.5, angle_scale_at_keyframe=0.5)
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    footprints: FootprintRule = FootprintRule()
+    fit_colors: int = 2
+    eps2d: float = EPS2D
+    blend: LayerBlend = LayerBlend()
+    note: str = ""
+
+
+VARIANTS = (
+    Variant("3DGS footprints and low-pass (before)", NO_FOOTPRINT_RULE, 0, EPS2D_3DGS, BEFORE_BLEND),
+    Variant("colour solve alone", NO_FOOTPRINT_RULE, 2, EPS2D_3DGS, BEFORE_BLEND),
+    Variant("3D floor 0.15 px² (Mip-Splatting filter), low-pass 0.1", FootprintRule(0.0, 0.15), 0, EPS2D, BEFORE_BLEND),
+    Variant("floor + cap at 1 px", FootprintRule(), 0, EPS2D, BEFORE_BLEND),
+    Variant("floor + cap + colour solve", FootprintRule(), 2, EPS2D, BEFORE_BLEND),
+    Variant("+ coverage rule (0.7)", FootprintRule(), 2, EPS2D, LayerBlend(angle_scale_at_keyframe=0.5)),
+    Variant("+ own camera at its keyframe (default)", note="default"),
+    Variant("floor 0.45 px², no coverage rule", FootprintRule(1.0, 0.45), 2, 0.05, LayerBlend(coverage_full=1.0)),
+    Variant("floor 0.3 px² instead of 0.15", FootprintRule(1.0, 0.3), 2, EPS2D),
+    Variant("cap at 2.5 px instead of 1", FootprintRule(2.5, 0.15), 2, EPS2D),
+    Variant("sharp view weights at all times (0.1)", blend=LayerBlend(angle_scale=0.1, angle_scale_at_keyframe=0.1)),
+)
+QUICK = (VARIANTS[0], VARIANTS[6])
+
+
+@dataclass
+class Scores:
+    """Per variant and pair set: lists of per-pair means, averaged in the report."""
+
+    values: dict[str, list[float]] = field(default_factory=dict)
+
+    def add(self, key: str, value: float) -> None:
+        self.values.setdefault(key, []).append(float(value))
+
+    def mean(self, key: str) -> float:
+        v = [x for x in self.values.get(key, []) if not math.isnan(x)]
+        return float(np.mean(v)) if v else math.nan
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="1 small pair, the first and the default variant (a smoke test)")
+    p.add_argument("--count", type=positive_int, default=4, help="procedural test pairs (default 4)")
+    p.add_argument("--start", type=int, default=0, help="skip the test split's first seeds")
+    p.add_argument("--scenes", type=Path, nargs="+", default=[], metavar="SCENE", help="real scenes (rows against the input)")
+    p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
+    p.add_argument("-o", "--out", type=Path, default=Path("out/bench/magnify.md"), help="markdown report")
+    p.add_argument("--json", type=Path, default=None, help="the numbers as JSON")
+
+
+def _psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> float:
+    mse = ((pred.clamp(0, 1) - target) ** 2)[mask].mean()
+    return float(10 * torch.log10(1.0 / mse.clamp(min=1e-12)))
+
+
+def _magnified(intrinsics: np.ndarray, k: int) -> torch.Tensor:
+    from drivingscene.geometry.camera import scale_intrinsics
+
+    return scale_intrinsics(torch.from_numpy(intrinsics).float(), k, k)
+
+
+def score_pair(model, pair, variant: Variant, truth=None) -> dict[str, float]:
+    """Every figure of one variant on one pair (``truth``: a `ProceduralScene` for ground truth at size)."""
+    import cv2
+
+    from drivingscene.methods.feedforward import InferenceOptions, reconstruct
+    from drivingscene.render.scene import render_eval_frames, render_gaussians, render_input_views, source_axes
+
+    opts = InferenceOptions(fit_colors=variant.fit_colors, footprints=variant.footprints)
+    times = []
+    for _ in range(2):  # the second run is timed warm (kernels built, caches filled)
+        start = time.perf_counter()
+        recon = reconstruct(model, pair, opts)
+        times.append(time.perf_counter() - start)
+    out = {"seconds": times[-1]}
+    raster = {"eps2d": variant.eps2d, "layer_blend": variant.blend}
+    height, width = pair.image_size
+    world = torch.from_numpy(pair.valid_mask) if pair.valid_mask is not None else torch.ones(pair.num_views, height, width, dtype=torch.bool)
+    inputs = torch.from_numpy(pair.images).float() / 255
+    views = render_input_views(recon, pair, **raster)
+    out["input_views"] = _psnr(views, inputs, world[None].expand(2, -1, -1, -1))
+    if pair.num_eval:
+        frames = render_eval_frames(recon, pair, **raster)
+        out["in_between"] = _psnr(frames, torch.from_numpy(pair.eval_images).float() / 255, world[None].expand(pair.num_eval, -1, -1, -1))
+    g, axes = recon.visible(), source_axes(recon)
+    w2c = recon.world_to_cam_at(0.0).float()
+    surface = torch.from_numpy(recon.depth[0] > 0) & world  # pixels that see a surface (not sky)
+    for k in MAGNIFICATIONS:
+        kk = _magnified(recon.intrinsics, k)
+        truths = None
+        if truth is not None:
+            cams = np.linalg.inv(w2c.double().numpy())
+            truths = torch.from_numpy(truth.render(cams, kk.double().numpy(), (height * k, width * k), 0.0).images)
+        for v in range(pair.num_views):
+            mask = torch.from_numpy(cv2.resize(world[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0)
+            solid = torch.from_numpy(cv2.resize(surface[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0)
+            res = render_gaussians(
+                g, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k,
+                sky_sh=recon.sky_sh, blend="cameras", source_axes=axes, **raster,
+            )  # fmt: skip
+            image = res.colors[0].clamp(0, 1)
+            up = torch.from_numpy(np.clip(cv2.resize(pair.images[0, v].astype(np.float32) / 255, (width * k, height * k), interpolation=cv2.INTER_CUBIC), 0, 1))
+            _add(out, f"x{k}_vs_bicubic", _psnr(image, up, mask))
+            if truths is not None:
+                _add(out, f"x{k}_vs_truth", _psnr(image, truths[v], mask))
+                _add(out, f"x{k}_bicubic_vs_truth", _psnr(up, truths[v], mask))
+            _add(out, f"x{k}_holes", float(((res.alphas[0] < 0.95) & solid).sum() / solid.sum().clamp(min=1)))
+            own = g.index((g.keyframes == 0) & (g.cameras == v))
+            raw = render_gaussians(own, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k, eps2d=variant.eps2d).alphas[0]
+            _add(out, f"x{k}_raw_holes", float(((raw < 0.95) & solid).sum() / solid.sum().clamp(min=1)))
+    return {key: (float(np.mean(v)) if isinstance(v, list) else v) for key, v in out.items()}
+
+
+def _add(out: dict, key: str, value: float) -> None:
+    out.setdefault(key, []).append(value)
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivingscene.data.frame_pair import load_frame_pair
+    from drivingscene.machine import machine_description
+    from drivingscene.methods.feedforward import load_model
+    from drivingscene.synth.config import resolve_config, split_seeds
+    from drivingscene.synth.generate import generate_pair
+    from drivingscene.synth.novel_view import ProceduralScene
+    from drivingscene.synth.render import SynthRenderer
+
+    wall = time.perf_counter()
+    variants = QUICK if args.quick else VARIANTS
+    count = 1 if args.quick else args.count
+    config = resolve_config("default", **({"height": 64, "width": 112} if args.quick else {}))
+    model = load_model(args.weights)
+    renderer = SynthRenderer()
+    seeds = list(split_seeds("test", count, args.start))
+    sets: dict[str, dict[str, Scores]] = {"procedural": {v.name: Scores() for v in variants}}
+    for seed in seeds:
+        pair = generate_pair(config, seed, renderer)
+        with ProceduralScene(config, seed, renderer) as truth:
+            for v in variants:
+                for key, value in score_pair(model, pair, v, truth).items():
+                    sets["procedural"][v.name].add(key, value)
+    for path in args.scenes:
+        pair = load_frame_pair(path)
+        sets[str(path)] = {v.name: Scores() for v in variants}
+        for v in variants:
+            for key, value in score_pair(model, pair, v).items():
+                sets[str(path)][v.name].add(key, value)
+    minutes = (time.perf_counter() - wall) / 60
+    machine = machine_description()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out, _markdown(args, sets, variants, seeds, config, machine, minutes))
+    if args.json:
+        data = {
+            "format": "drivingscene/bench-magnify", "version": 1, "machine": machine, "minutes": round(minutes, 1),
+            "seeds": seeds, "sets": {s: {n: {k: sc.mean(k) for k in sc.values} for n, sc in rows.items()} for s, rows in sets.items()},
+        }  # fmt: skip
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.json, json.dumps(data, indent=1) + "\n")
+    print(f"drivingscene bench magnify: wrote {args.out} ({minutes:.1f} min)")
+    return 0
+
+
+def _cell(x: float, digits: int = 2) -> str:
+    return "–" if math.isnan(x) else f"{x:.{digits}f}"
+
+
+def _markdown(args, sets, variants, seeds, config, machine, minutes) -> str:
+    flags = " --quick" if args.quick else f" --count {args.count}" + (f" --start {args.start}" if args.start else "")
+    scenes = (" --scenes " + " ".join(map(str, args.scenes))) if args.scenes else ""
+    lines = [
+        f"Measured with `drivingscene bench magnify{flags}{scenes} --out {args.out}` on {machine}, "
+        f"{datetime.now(timezone.utc):%Y-%m-%d}, in {minutes:.1f} min. Procedural: test seeds "
+        f"{seeds[0]}-{seeds[-1]} at {config.height}x{config.width}; each rig camera at t = 0 at 1, 2 and 4 times "
+        "the input size. PSNR in dB over the pixels that see the world; holes: world pixels (not sky) "
+        "whose coverage is below 0.95 in the picture, and in the image's own layer alone (raw alpha).",
+        "",
+    ]
+    for name, rows in sets.items():
+        truth = name == "procedural"
+        lines += [f"### {'Procedural test pairs' if truth else name}", ""]
+        head = "| variant | s/pair | input views | in-between | " + " | ".join(
+            f"{k}x vs {'truth' if truth else 'bicubic'}" for k in MAGNIFICATIONS
+        ) + " | 4x holes | 4x raw holes |"
+        lines += [head, "|" + "---|" * (head.count("|") - 1)]
+        for v in variants:
+            sc = rows[v.name]
+            ref = "vs_truth" if truth else "vs_bicubic"
+            cells = [_cell(sc.mean("seconds")), _cell(sc.mean("input_views")), _cell(sc.mean("in_between"))]
+            cells += [_cell(sc.mean(f"x{k}_{ref}")) for k in MAGNIFICATIONS]
+            cells += [f"{100 * sc.mean('x4_holes'):.2f} %", f"{100 * sc.mean('x4_raw_holes'):.1f} %"]
+            label = f"**{v.name}**" if v.note == "default" else v.name
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        if truth:
+            default = rows[variants[-1].name if args.quick else VARIANTS[6].name]
+            lines += ["", "The input upsampled bicubically, against the same ground truth: " + ", ".join(
+                f"{k}x {_cell(default.mean(f'x{k}_bicubic_vs_truth'))} dB" for k in MAGNIFICATIONS
+            ) + "; the default variant against the input upsampled bicubically: " + ", ".join(
+                f"{k}x {_cell(default.mean(f'x{k}_vs_bicubic'))} dB" for k in MAGNIFICATIONS
+            ) + "."]  # fmt: skip
+        lines.append("")
+    return "\n".join(lines)
