@@ -25,7 +25,7 @@ keyframe-1 vertex at ``x + (1 - t) flow`` (`drivingscene.gaussians.timing.time_s
 Rendering (moderngl, EGL offscreen, ``shaders/depth_mesh.glsl``): each image's mesh into its own
 layer with its own z-buffer, then the layers blended per pixel with the weights of the Gaussians'
 default "cameras" blend (`drivingscene.render.scene.render_camera_layers`): time weight
-``layer_time_weight(k, t)`` x view weight ``exp((cos - 1) / CAMERA_ANGLE_SCALE)`` of the angle between
+``layer_time_weight(k, t)`` x view weight ``LayerBlend.view_weight`` of the angle between
 the layer's camera axis and the target's x coverage, over the reconstruction's sky. Those constants
 are read when rendering, so a retuned blend applies to the baseline too.
 """
@@ -233,16 +233,17 @@ class DepthMeshRenderer:
             self._targets[(width, height)] = (self.ctx.framebuffer([tex], depth), tex, depth)
         return self._targets[(width, height)][0]
 
-    def layer_weights(self, t: float, world_to_cam: np.ndarray) -> np.ndarray:
+    def layer_weights(self, t: float, world_to_cam: np.ndarray, blend=None) -> np.ndarray:
         """``[L, B]`` blend weight of each layer for each target camera at time t: the "cameras"
-        blend's time weight x view weight (`drivingscene.render.scene`, read now)."""
+        blend's time weight x view weight (`drivingscene.render.scene.LayerBlend`, default now)."""
+        rule = blend or render_scene.LayerBlend()
         axes = render_scene.source_axes(self.recon).double().numpy()  # [2, V, 3]
         target_axes = np.asarray(world_to_cam, np.float64)[:, 2, :3]  # [B, 3] optical axes in the world
         out = np.empty((len(self.layers), len(target_axes)))
         for i, layer in enumerate(self.layers):
             cos = target_axes @ axes[layer.keyframe, layer.camera]
-            out[i] = render_scene.layer_time_weight(layer.keyframe, float(t)) * np.exp(
-                (cos - 1.0) / render_scene.CAMERA_ANGLE_SCALE
+            out[i] = render_scene.layer_time_weight(layer.keyframe, float(t)) * np.array(
+                [rule.view_weight(float(c), layer.keyframe, t) for c in cos]
             )
         return out
 
