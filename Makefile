@@ -8,7 +8,7 @@ TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup run test lint clean-venv real-data benchmark
+.PHONY: setup run test lint clean-venv real-data benchmark views
 
 setup: $(STAMP)
 
@@ -50,8 +50,11 @@ real-data: setup
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 1 -o $(REAL_OUT)/ddad02_0-1.npz --force
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 1 2 -o $(REAL_OUT)/ddad02_1-2.npz --force
 	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 2 --eval 1 -o $(REAL_OUT)/ddad02_0-2.npz --force
+	$(VENV)/bin/drivingscene import ddad $(REAL) --samples 0 0 -o $(REAL_OUT)/ddad02_0-0.npz --force
 	$(VENV)/bin/drivingscene bench real --force $(REAL_OUT)/ddad02_0-1.npz $(REAL_OUT)/ddad02_1-2.npz $(REAL_OUT)/ddad02_0-2.npz \
+		$(REAL_OUT)/ddad02_0-0.npz \
 		--names "DDAD scene_02, 0->1" "DDAD scene_02, 1->2" "DDAD scene_02, 0->2 (1 held out)" \
+		"DDAD scene_02, 0->0 (sample 0 twice: no parallax over time)" \
 		--notes docs/real-data-notes.md --out docs/real-data.md --json docs/real-data.json --images $(OUT)/real-data $(REAL_REFINE)
 
 # The whole benchmark (docs/benchmark.md, docs/benchmark.json, docs/images/benchmark_*.png): every
@@ -72,3 +75,14 @@ BENCH_CARRY ?= $(if $(ABLATION_RUNS)$(WIDTH_RUNS),,--carry-from docs/benchmark-a
 benchmark: setup
 	$(VENV)/bin/drivingscene bench report --force --scenes $(REAL_OUT)/ddad02_0-2.npz --names "DDAD scene_02, 0->2 (1 held out)" \
 		$(BENCH_ABLATION) $(BENCH_WIDTHS) $(BENCH_CARRY) --notes docs/benchmark-notes.md --out docs/benchmark.md --json docs/benchmark.json --charts docs/images
+
+# Where the viewer's user looks (docs/magnification.md): the approaches to views larger than the
+# input (bench magnify, procedural test pairs and the real DDAD pair: import it first, `make
+# real-data`), and every method from viewpoints away from the rig against procedural ground truth
+# (bench views into docs/views; the real pair's magnification and overview pictures go to
+# $(OUT)/views-real: real frames are never committed). About 45 minutes on 2 cores.
+views: setup
+	$(VENV)/bin/drivingscene bench magnify --force --count 4 --scenes $(REAL_OUT)/ddad02_0-2.npz \
+		--out docs/magnification-bench.md --json docs/magnification-bench.json
+	$(VENV)/bin/drivingscene bench views --force --count 4 --out docs/views
+	$(VENV)/bin/drivingscene bench views --force --count 1 --scenes $(REAL_OUT)/ddad02_0-2.npz --out $(OUT)/views-real

@@ -4,7 +4,8 @@ e.g. ``xvfb-run -s "-screen 0 1600x900x24" python -m drivingscene_view.screensho
 Writes viewer_loading.png (the progress box naming the model's stage while it runs), viewer_main.png (RGB view, flow panel), viewer_benchmark.png (View > Benchmark over it, when
 docs/benchmark.json exists), viewer_depth.png (depth mode, depth panel), viewer_depth_moving.png and
 viewer_depth_settled.png (a frame while time moves and the settled one),
-viewer_rig.png (snapped to a rig camera, dynamic highlighted), viewer_y_down_ply.png (a y-down PLY opened upright), viewer_edit_before.png (the moving
+viewer_rig.png (snapped to a rig camera, dynamic highlighted), viewer_rig_window.png and viewer_overview.png
+(snapped to a rig camera in colour at window size; the default overview), viewer_y_down_ply.png (a y-down PLY opened upright), viewer_edit_before.png (the moving
 objects selected), viewer_edit_after.png (deleted), viewer_refine_running.png (Refine in progress,
 clicked with xdotool when it is installed) and viewer_refine_after.png (refined).
 """
@@ -90,6 +91,7 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     v.camera.nav.pitch, v.camera.nav.distance = -0.5, 24.0
     v.panels["cameras"] = StripState(kind="total_flow")
     shoot(win, out / "viewer_main.png")
+    rig_and_overview_shots(win, out)
     benchmark_shot(win, out)
     v.view.mode = "depth"
     v.panels["cameras"] = StripState(kind="depth")
@@ -112,6 +114,25 @@ def main(out: Path, scene: Path, method: str = "auto") -> None:
     refine_shots(win, out)
     y_down_shot(win, out)
     win.close()
+
+
+def rig_and_overview_shots(win: ViewerWindow, out: Path) -> None:
+    """viewer_rig_window.png: snapped to the first rig camera at t = 0, in colour, as large as the
+    window draws it (several times the input's size); viewer_overview.png: the default overview at
+    t = 0.5. What a user looks at first, where magnification and off-rig geometry show."""
+    v = win.viewer
+    saved = v.camera.nav.copy()
+    v.view.mode = "rgb"
+    v.panels["cameras"] = StripState(kind="images")
+    v.set_time(0.0)
+    v.snap(0)
+    shoot(win, out / "viewer_rig_window.png")
+    v.snap(None)
+    v.set_time(0.5)
+    v.camera.reset(v.doc.recon, 0.5)
+    shoot(win, out / "viewer_overview.png")
+    v.camera.nav = saved
+    v.panels["cameras"] = StripState(kind="total_flow")
 
 
 def loading_shot(win: ViewerWindow, out: Path, timeout: float = 120.0) -> None:

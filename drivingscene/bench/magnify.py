@@ -48,17 +48,20 @@ class Variant:
 VARIANTS = (
     Variant("3DGS footprints and low-pass (before)", NO_FOOTPRINT_RULE, 0, EPS2D_3DGS, BEFORE_BLEND),
     Variant("colour solve alone", NO_FOOTPRINT_RULE, 2, EPS2D_3DGS, BEFORE_BLEND),
-    Variant("3D floor 0.15 px² (Mip-Splatting filter), low-pass 0.1", FootprintRule(0.0, 0.15), 0, EPS2D, BEFORE_BLEND),
+    Variant("3D floor 0.2 px² (Mip-Splatting filter), low-pass 0.1", FootprintRule(0.0), 0, EPS2D, BEFORE_BLEND),
     Variant("floor + cap at 1 px", FootprintRule(), 0, EPS2D, BEFORE_BLEND),
     Variant("floor + cap + colour solve", FootprintRule(), 2, EPS2D, BEFORE_BLEND),
     Variant("+ coverage rule (0.7)", FootprintRule(), 2, EPS2D, LayerBlend(angle_scale_at_keyframe=0.5)),
     Variant("+ own camera at its keyframe (default)", note="default"),
+    Variant("floor 0.15 px² instead of 0.2", FootprintRule(1.0, 0.15)),
+    Variant("floor 0.3 px² instead of 0.2", FootprintRule(1.0, 0.3)),
     Variant("floor 0.45 px², no coverage rule", FootprintRule(1.0, 0.45), 2, 0.05, LayerBlend(coverage_full=1.0)),
-    Variant("floor 0.3 px² instead of 0.15", FootprintRule(1.0, 0.3), 2, EPS2D),
-    Variant("cap at 2.5 px instead of 1", FootprintRule(2.5, 0.15), 2, EPS2D),
+    Variant("cap at 2.5 px instead of 1", FootprintRule(2.5)),
+    Variant("no cap", FootprintRule(0.0)),
     Variant("sharp view weights at all times (0.1)", blend=LayerBlend(angle_scale=0.1, angle_scale_at_keyframe=0.1)),
 )
-QUICK = (VARIANTS[0], VARIANTS[6])
+DEFAULT = VARIANTS[6]
+QUICK = (VARIANTS[0], DEFAULT)
 
 
 @dataclass
@@ -78,7 +81,8 @@ class Scores:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="1 small pair, the first and the default variant (a smoke test)")
     p.add_argument("--count", type=positive_int, default=4, help="procedural test pairs (default 4)")
-    p.add_argument("--start", type=int, default=0, help="skip the test split's first seeds")
+    p.add_argument("--start", type=int, default=0, help="skip the split's first seeds")
+    p.add_argument("--split", choices=("test", "val"), default="test", help="procedural split (val: to choose settings on)")
     p.add_argument("--scenes", type=Path, nargs="+", default=[], metavar="SCENE", help="real scenes (rows against the input)")
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
     p.add_argument("-o", "--out", type=Path, default=Path("out/bench/magnify.md"), help="markdown report")
@@ -167,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
     config = resolve_config("default", **({"height": 64, "width": 112} if args.quick else {}))
     model = load_model(args.weights)
     renderer = SynthRenderer()
-    seeds = list(split_seeds("test", count, args.start))
+    seeds = list(split_seeds(args.split, count, args.start))
     sets: dict[str, dict[str, Scores]] = {"procedural": {v.name: Scores() for v in variants}}
     for seed in seeds:
         pair = generate_pair(config, seed, renderer)
@@ -202,10 +206,11 @@ def _cell(x: float, digits: int = 2) -> str:
 
 def _markdown(args, sets, variants, seeds, config, machine, minutes) -> str:
     flags = " --quick" if args.quick else f" --count {args.count}" + (f" --start {args.start}" if args.start else "")
+    flags += f" --split {args.split}" if args.split != "test" else ""
     scenes = (" --scenes " + " ".join(map(str, args.scenes))) if args.scenes else ""
     lines = [
         f"Measured with `drivingscene bench magnify{flags}{scenes} --out {args.out}` on {machine}, "
-        f"{datetime.now(timezone.utc):%Y-%m-%d}, in {minutes:.1f} min. Procedural: test seeds "
+        f"{datetime.now(timezone.utc):%Y-%m-%d}, in {minutes:.1f} min. Procedural: {args.split} seeds "
         f"{seeds[0]}-{seeds[-1]} at {config.height}x{config.width}; each rig camera at t = 0 at 1, 2 and 4 times "
         "the input size. PSNR in dB over the pixels that see the world; holes: world pixels (not sky) "
         "whose coverage is below 0.95 in the picture, and in the image's own layer alone (raw alpha).",
@@ -227,7 +232,7 @@ def _markdown(args, sets, variants, seeds, config, machine, minutes) -> str:
             label = f"**{v.name}**" if v.note == "default" else v.name
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         if truth:
-            default = rows[variants[-1].name if args.quick else VARIANTS[6].name]
+            default = rows[DEFAULT.name]
             lines += ["", "The input upsampled bicubically, against the same ground truth: " + ", ".join(
                 f"{k}x {_cell(default.mean(f'x{k}_bicubic_vs_truth'))} dB" for k in MAGNIFICATIONS
             ) + "; the default variant against the input upsampled bicubically: " + ", ".join(

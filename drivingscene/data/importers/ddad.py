@@ -19,7 +19,7 @@ z up; camera frames: OpenCV axes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 
@@ -299,6 +299,9 @@ class _Reader:
         return _Frame(np.stack(images), np.stack(egos), np.array(seconds), depth, fits)
 
 
+STILL_GAP = 0.1  # seconds between the keyframes of a still pair (the same sample twice)
+
+
 def import_ddad(
     scene_dir: str | Path,
     samples: tuple[int, int] = (0, 1),
@@ -307,18 +310,24 @@ def import_ddad(
     fit: str = "crop",
     mask: bool = True,
 ) -> FramePair:
-    """Two samples of a DGP scene as a frame pair, with samples between them as eval frames."""
+    """Two samples of a DGP scene as a frame pair, with samples between them as eval frames.
+
+    The same sample twice makes a still pair: keyframe 1 is keyframe 0's frame again, taken
+    ``STILL_GAP`` seconds later (a stopped car in a scene where nothing moves): time gives no
+    parallax, so depth rests on the overlap of the cameras and on D's prior (docs/depth.md)."""
     scene_dir = Path(scene_dir)
     source = _scene_file(scene_dir)
     scene = read_json(source, "a DGP scene file")
     i, j = samples
-    if i == j:
-        raise InputError(f"--samples: expected two different samples, found {i} {j}")
+    if i == j and eval_samples:
+        raise InputError(f"--eval: a still pair (--samples {i} {j}) has no frames between its keyframes")
     first, cal_key = _sample_data(scene_dir, scene, i, source)
     calibration = _calibration(scene_dir, cal_key)
     names = _camera_names(first, calibration, source)
     reader = _Reader(scene_dir, source, scene, names, calibration, size, fit, mask)
     frames = [reader.frame(i), reader.frame(j)]
+    if i == j:
+        frames[1] = replace(frames[1], camera_seconds=frames[1].camera_seconds + STILL_GAP)
     times = np.array([f.camera_seconds[0] for f in frames])
     if not times[1] > times[0]:
         raise InputError(f"--samples: expected sample {j} after sample {i}, found times {times[0]:.4f} and {times[1]:.4f} s")

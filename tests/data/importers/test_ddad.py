@@ -11,6 +11,7 @@ import pytest
 
 from drivingscene.cli import main
 from drivingscene.data.importers.ddad import EGO_BODY_POLYGONS, ego_body_mask, import_ddad
+from drivingscene.errors import InputError
 
 REAL = Path(__file__).resolve().parents[3].parent / "shared" / "real" / "ddad_scene_02"
 needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"the DDAD development scene is not at {REAL}")
@@ -105,6 +106,20 @@ def test_synthetic_dgp_folder_imports(tmp_path):
     assert np.allclose(pair.ego_to_world[1, :3, 3] - pair.ego_to_world[0, :3, 3], [1, 0, 0])
     # the camera's ego pose: its world pose times the inverse extrinsics (here the camera pose is identity)
     assert np.allclose(pair.camera_ego_to_world[0, 0] @ pair.cam_to_ego[0], np.eye(4), atol=1e-6)
+
+
+def test_the_same_sample_twice_is_a_still_pair(tmp_path):
+    from drivingscene.data.importers.ddad import STILL_GAP
+
+    folder = _write_dgp(tmp_path / "scene")
+    still = import_ddad(folder, (1, 1), size=None)
+    moving = import_ddad(folder, (0, 1), size=None)
+    np.testing.assert_array_equal(still.images[0], still.images[1])
+    np.testing.assert_array_equal(still.images[1], moving.images[1])
+    np.testing.assert_array_equal(still.ego_to_world[0], still.ego_to_world[1])  # no motion: no parallax over time
+    assert still.duration == pytest.approx(STILL_GAP)
+    with pytest.raises(InputError, match="still pair"):
+        import_ddad(folder, (1, 1), (1,), size=None)
 
 
 def test_distorted_cameras_are_undistorted(tmp_path):
