@@ -49,6 +49,13 @@ def _stability_md(axes: list[dict]) -> str:
             b = axis["breaks"][name]
             rows.append([name, *cells, "–" if b is None else str(axis["values"][b])])
         out.append(f"### {axis['name']}{unit}: `{axis['knob']}`\n\n" + _table(header, rows))
+        depth_rows = [
+            [name, *[_f(v, "{:.3f}") for v in c["abs_rel"]]]
+            for name, c in axis["curves"].items()
+            if any(v is not None for v in c.get("abs_rel", []))
+        ]
+        if depth_rows:
+            out.append("Depth AbsRel at the keyframes:\n\n" + _table(["method", *header[1:-1]], depth_rows))
     return "\n".join(out)
 
 

@@ -30,7 +30,7 @@ A score a method or a set does not define is ``null`` (NaN in Python). AXIS: one
 swept from its easiest setting::
 
     {"name": str, "knob": str, "unit": str, "values": [float | str, ...], "easiest": int,  # index into values
-     "curves": {method: {"psnr": [float | null, ...], "error": [str | null, ...]}},
+     "curves": {method: {"psnr": [float | null, ...], "abs_rel": [float | null, ...], "error": [str | null, ...]}},
      "breaks": {method: int | null}}    # first index more than BREAK_DB below the easiest, NaN or an error
 
 BUDGET: one Gaussian budget level ``{"level": str, "gaussians": float, "psnr": float, "budget_s": float, "seconds": float}``

@@ -58,9 +58,9 @@ def _live_cameras(pair, axis: Axis, value):
 
 
 def stability(methods: list, size: tuple[int, int], seeds: int, ends_only: bool = False) -> list[dict]:
-    """Each axis swept on the first ``seeds`` test seeds at ``size`` (H, W); in-between PSNR per method
-    (`report.Method`) and setting, mean over the seeds. ``ends_only``: the easiest and the hardest setting."""
-    from drivingscene.eval.reconstruction import score_frames, score_novel_views
+    """Each axis swept on the first ``seeds`` test seeds at ``size`` (H, W); in-between PSNR and depth
+    AbsRel (methods that reconstruct) per method (`report.Method`) and setting, mean over the seeds. ``ends_only``: the easiest and the hardest setting."""
+    from drivingscene.eval.reconstruction import score_depth, score_frames, score_novel_views
     from drivingscene.synth.config import split_seeds
     from drivingscene.synth.generate import generate_pair
     from drivingscene.synth.render import SynthRenderer
@@ -70,22 +70,27 @@ def stability(methods: list, size: tuple[int, int], seeds: int, ends_only: bool 
     out = []
     for axis in AXES:
         values = (axis.values[axis.easiest], axis.values[-1]) if ends_only else axis.values
-        curves = {m.name: {"psnr": [], "error": []} for m in methods}
+        curves = {m.name: {"psnr": [], "abs_rel": [], "error": []} for m in methods}
         for value in values:
             pairs = [generate_pair(_axis_config(axis, value, size), s, renderer) for s in seed_list]
             for m in methods:
-                scores, error = [], None
+                scores, depths, error = [], [], None
                 for pair in pairs:
                     target = _live_cameras(pair, axis, value)
                     try:
                         result = m.run(pair)
                         psnr = (score_frames(result, target, None) if m.frames else score_novel_views(result, target, None))["psnr"]
                         scores.append(psnr)
+                        if not m.frames and result.depth is not None and pair.gt_depth is not None:
+                            depths.append(score_depth(result, pair)["depth_abs_rel"])
                     except Exception as e:  # a method that raises breaks here: recorded, not fatal
                         error = f"{type(e).__name__}: {e}"[:200]
                         break
                 value_psnr = None if error or not scores or not all(math.isfinite(s) for s in scores) else sum(scores) / len(scores)
                 curves[m.name]["psnr"].append(value_psnr)
+                # depth AbsRel at the keyframes (ego speed 0: no parallax over time, issue 45)
+                finite = [d for d in depths if math.isfinite(d)]
+                curves[m.name]["abs_rel"].append(sum(finite) / len(finite) if finite and not error else None)
                 curves[m.name]["error"].append(error)
         easiest = 0
         breaks = {name: breaks_at(c["psnr"], c["error"], easiest) for name, c in curves.items()}

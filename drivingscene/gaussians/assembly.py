@@ -22,7 +22,7 @@ from torch import Tensor
 from drivingscene import kernels
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
 from drivingscene.geometry.camera import unproject
-from drivingscene.geometry.se3 import matrix_to_quat, matvec, quat_left_matrix, quat_to_matrix, transform_points
+from drivingscene.geometry.se3 import matrix_to_quat, matvec, quat_left_matrix, transform_points
 
 # Splat sigma in pixels in the source view. With the renderer's 0.3 px^2 low-pass a pixel's splat
 # has sigma ~0.65 px, which still closes the surface; larger footprints blur the input views
@@ -209,8 +209,8 @@ def gaussians_from_pixels(
     world_quats = matvec(quat_left_matrix(matrix_to_quat(cam_to_world[:, :3, :3]))[:, None, None], quats)
     log_scales = pick(log_scales, 1)
     if footprints is not None:
-        view_of = per_gaussian(torch.arange(num_views))
-        log_scales = bounded_footprints(pick(cam_points, 1), pick(quats, 1), log_scales, intrinsics[view_of], footprints)
+        focal = per_gaussian(torch.stack([intrinsics[:, 0, 0], intrinsics[:, 1, 1]], -1))
+        log_scales = bounded_footprints(pick(cam_points, 1), pick(quats, 1), log_scales, focal, footprints)
     sh = rgb_to_sh0(colors)[..., None, :] if colors.ndim == 4 else colors
     if opacity_logits is None:
         opacity_logits = torch.full_like(depth, torch.logit(torch.tensor(default_opacity)).item())
@@ -239,40 +239,43 @@ def pixel_footprints(
     rule: FootprintRule = FootprintRule(),
 ) -> Tensor:
     """`bounded_footprints` of per-pixel maps: log scales ``[V, H, W, 3]``."""
-    num_views, height, width = depth.shape
-    points = unproject(depth.clamp(min=1e-3), intrinsics).reshape(-1, 3)
-    k = intrinsics.repeat_interleave(height * width, dim=0)
-    out = bounded_footprints(points, quats.reshape(-1, 4), log_scales.reshape(-1, 3), k, rule)
-    return out.view(num_views, height, width, 3)
+    points = unproject(depth.clamp(min=1e-3), intrinsics)
+    focal = torch.stack([intrinsics[:, 0, 0], intrinsics[:, 1, 1]], -1)[:, None, None]  # [V, 1, 1, 2]
+    return bounded_footprints(points, quats, log_scales, focal, rule)
 
 
 def bounded_footprints(
-    points: Tensor,  # [N, 3] camera axes, metres
-    quats: Tensor,  # [N, 4] w, x, y, z, camera axes
-    log_scales: Tensor,  # [N, 3]
-    intrinsics: Tensor,  # [N, 3, 3] each Gaussian's source camera
+    points: Tensor,  # [..., 3] camera axes, metres
+    quats: Tensor,  # [..., 4] w, x, y, z, camera axes
+    log_scales: Tensor,  # [..., 3]
+    focal: Tensor,  # [..., 2] fx, fy of each Gaussian's source camera (broadcast)
     rule: FootprintRule = FootprintRule(),
 ) -> Tensor:
-    """Log scales ``[N, 3]`` of per-pixel Gaussians with the footprint rule: shrunk, shape kept,
+    """Log scales ``[..., 3]`` of per-pixel Gaussians with the footprint rule: shrunk, shape kept,
     until the splat's largest sigma in its own view is at most ``rule.max_footprint`` pixels, then
     widened by the isotropic 3D variance ``rule.floor * (z / f)^2``. Differentiable."""
-    max_footprint, floor = rule.max_footprint, rule.floor
-    z = points[:, 2].clamp(min=1e-3)
-    focal = 0.5 * (intrinsics[:, 0, 0] + intrinsics[:, 1, 1])
-    if max_footprint > 0:
-        # The splat's 2D covariance in its own view, J R S (J R S)^T, J the projection's Jacobian.
-        fx, fy = intrinsics[:, 0, 0], intrinsics[:, 1, 1]
-        zeros = torch.zeros_like(z)
-        jac = torch.stack(
-            [torch.stack([fx / z, zeros, -fx * points[:, 0] / z**2], -1), torch.stack([zeros, fy / z, -fy * points[:, 1] / z**2], -1)],
-            -2,
-        )  # [N, 2, 3]
-        m = jac @ quat_to_matrix(F.normalize(quats, dim=-1)) * torch.exp(log_scales)[:, None, :]
-        cov = m @ m.transpose(-1, -2)
-        a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    x, y, z = points.movedim(-1, 0)
+    z = z.clamp(min=1e-3)
+    fx, fy = focal.movedim(-1, 0)
+    if rule.max_footprint > 0:
+        # The splat's 2D covariance in its own view, (J R S)(J R S)^T with J the projection's
+        # Jacobian, written out per component (channel-first copies: one pass over contiguous
+        # tensors, no batched 3x3 products).
+        w, qx, qy, qz = F.normalize(quats, dim=-1).movedim(-1, 0).contiguous()
+        rot = (
+            (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + w * qz), 2 * (qx * qz - w * qy)),  # column 0: rows 0, 1, 2
+            (2 * (qx * qy - w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz + w * qx)),  # column 1
+            (2 * (qx * qz + w * qy), 2 * (qy * qz - w * qx), 1 - 2 * (qx * qx + qy * qy)),  # column 2
+        )
+        u, v, gx, gy = x / z, y / z, fx / z, fy / z
+        a = b = c = 0.0
+        for (r0, r1, r2), var in zip(rot, torch.exp(2 * log_scales).movedim(-1, 0)):
+            m0, m1 = gx * (r0 - u * r2), gy * (r1 - v * r2)
+            a, b, c = a + m0 * m0 * var, b + m0 * m1 * var, c + m1 * m1 * var
         largest = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b**2)  # px^2
-        shrink = 0.5 * torch.log((max_footprint**2 / largest.clamp(min=1e-20)).clamp(max=1.0))
-        log_scales = log_scales + shrink[:, None]
-    if floor <= 0:
+        shrink = 0.5 * torch.log((rule.max_footprint**2 / largest.clamp(min=1e-20)).clamp(max=1.0))
+        log_scales = log_scales + shrink[..., None]
+    if rule.floor <= 0:
         return log_scales
-    return 0.5 * torch.log(torch.exp(2 * log_scales) + (floor * (z / focal) ** 2)[:, None])
+    floor = rule.floor * (2 * z / (fx + fy)) ** 2
+    return 0.5 * torch.log(torch.exp(2 * log_scales) + floor[..., None])

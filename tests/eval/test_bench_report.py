@@ -67,11 +67,17 @@ def test_bench_report_quick(synth_pair, tmp_path):
             curve = axis["curves"][name]
             assert curve["error"] == [None] * len(axis["values"]), (axis["name"], name, curve["error"])
             assert all(v is not None and math.isfinite(v) for v in curve["psnr"]), (axis["name"], name)
+        # depth at the keyframes for the methods that reconstruct, the still ego (speed 0) included
+        assert all(v is not None and 0 < v < 5 for v in axis["curves"][FULL]["abs_rel"]), axis["name"]
+        assert all(v is None for v in axis["curves"][BLEND]["abs_rel"])
+    ego = next(a for a in axes if a["knob"] == "ego_speed")
+    assert ego["values"][0] == 0.0
     par = report["parsimony"]
     assert par["budgets"][0]["level"] == "per-pixel" and par["chosen"] in {b["level"] for b in par["budgets"]}
     assert len(report["ablations"]) == 3
     assert 0 < report["run_seconds"] < 3600
     page = md.read_text()
+    assert "Depth AbsRel at the keyframes" in page
     for needle in ("## Speed against accuracy: procedural", "## Speed against accuracy: real", "## Stability", "## Parsimony", "## The paper's ablations"):
         assert needle in page
     pngs = sorted(charts.glob("*.png"))

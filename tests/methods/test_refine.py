@@ -115,8 +115,10 @@ def test_the_steps_render_what_the_reconstruction_shows(synth_pair, start, blend
 
 
 def test_refinement_lowers_the_loss_on_the_input_views(synth_pair, start):
-    refined = refine(None, synth_pair, start, RefineConfig(max_steps=8, **FAST))
-    assert refined.meta["refinement"]["steps"] == 8
+    # 12 steps of two views each: every input view is seen twice (8 steps reached 0.80 exactly once
+    # the spoiled start's own layers got sharper footprints, too close to the bound for other CPUs)
+    refined = refine(None, synth_pair, start, RefineConfig(max_steps=12, **FAST))
+    assert refined.meta["refinement"]["steps"] == 12
     assert _loss(refined, synth_pair) < 0.8 * _loss(start, synth_pair)
     assert refined.meta["method"] == "oracle+refine"
 
