@@ -8,7 +8,7 @@ TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup run test lint clean-venv real-data benchmark views
+.PHONY: setup run test lint clean-venv real-data benchmark views still-ego
 
 setup: $(STAMP)
 
@@ -86,3 +86,15 @@ views: setup
 		--out docs/magnification-bench.md --json docs/magnification-bench.json
 	$(VENV)/bin/drivingscene bench views --force --count 4 --out docs/views
 	$(VENV)/bin/drivingscene bench views --force --count 1 --scenes $(REAL_OUT)/ddad02_0-2.npz --out $(OUT)/views-real
+
+# A stopped ego (docs/still-ego.md): procedural test pairs at ego speed 0, with the usual moving
+# objects and with none, scored like the real pairs; with nothing moving, blending the keyframes is
+# exact, and the in-between frame should be no worse than it minus 1 dB.
+STILL_OUT ?= data
+STILL_NAMES := $(foreach s,200000 200001 200002 200003,"still ego, moving objects $(s)") \
+	$(foreach s,200000 200001 200002 200003,"still ego, nothing moves $(s)")
+still-ego: setup
+	$(VENV)/bin/drivingscene synth --split test --count 4 --ego-speed 0 -o $(STILL_OUT)/test176_still --force --no-progress
+	$(VENV)/bin/drivingscene synth --split test --count 4 --ego-speed 0 --num-moving 0 -o $(STILL_OUT)/test176_still0 --force --no-progress
+	$(VENV)/bin/drivingscene bench real --force $(STILL_OUT)/test176_still/pair_*.npz $(STILL_OUT)/test176_still0/pair_*.npz \
+		--names $(STILL_NAMES) --out docs/still-ego.md --json docs/still-ego.json

@@ -35,6 +35,10 @@ COPY, BLEND = "copy the nearest keyframe", "blend the two keyframes"
 BASELINES = (COPY, BLEND)
 ROAD = "road plane (80 m at and above the horizon)"
 NEAREST = "nearest kept LiDAR return (held-out half)"
+# A camera whose render equals its target (a keyframe blend when nothing moved and the images are
+# noise-free) scores this instead of +inf, so that means over cameras stay finite: about the PSNR of
+# 8-bit rounding alone (58.9 dB), rounded up.
+PSNR_CEILING = 60.0
 DEPTH_COLS = (("abs_rel", "AbsRel", "{:.3f}"), ("sq_rel", "SqRel", "{:.3f}"), ("rmse", "RMSE (m)", "{:.2f}"), ("a1", "δ<1.25", "{:.3f}"))
 
 
@@ -70,6 +74,7 @@ class SceneScores:
     depths: dict[str, dict] = field(default_factory=dict)  # method -> depth scores (the model and refined ones)
     depth_baselines: dict[str, dict] = field(default_factory=dict)  # trivial depth baseline -> depth scores
     refine: dict[str, dict] = field(default_factory=dict)  # refined method -> its refinement meta
+    magnified: dict[int, dict[str, float]] = field(default_factory=dict)  # k -> the model's rig views at k x the input
 
 
 def _per_camera(values: torch.Tensor, num_views: int) -> list[float]:
@@ -93,7 +98,7 @@ def image_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | 
     m = None if mask is None else mask.flatten(0, 1)
     if m is not None:  # as `score_frames`: nothing on the ego's body reaches a counted pixel via SSIM/LPIPS
         p = torch.where(m[:, None], p, t)
-    out = {"psnr": _per_camera(psnr(p, t, m), num_views), "ssim": _per_camera(ssim(p, t, m), num_views)}
+    out = {"psnr": _per_camera(psnr(p, t, m).clamp(max=PSNR_CEILING), num_views), "ssim": _per_camera(ssim(p, t, m), num_views)}
     if perceptual is not None:
         out["lpips"] = _per_camera(lpips_distance(p, t, m, metric=perceptual), num_views)
     return out
@@ -192,6 +197,8 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
             if FULL == method:
                 s.depth = s.depths[method]
                 s.depths[FULL + " (held-out half)"] = _held_out_depth(recon, pair)
+        if FULL == method:
+            s.magnified, renders["overview"] = magnified_scores(recon, pair)
         rendered = render_keyframes(recon, pair)
         s.keyframes[method] = image_scores(rendered, _images(pair.images), keyframe_mask, None, pair.num_views)
         renders[method] = {"recon": recon, "keyframes": rendered}
@@ -205,6 +212,56 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
             renders[method] = {"eval": frames}
             s.novel[method] = image_scores(frames, _images(pair.eval_images), mask, perceptual, pair.num_views)
     return s, renders
+
+
+# What a larger window shows (docs/magnification.md): the rig views at these multiples of the input's size.
+MAGNIFICATIONS = (1, 2, 4)
+OVERVIEW_SIZE = (720, 1280)
+
+
+def magnified_scores(recon, pair) -> tuple[dict[int, dict[str, float]], np.ndarray]:
+    """The model's rig views at t = 0 (each camera at its capture pose) at ``MAGNIFICATIONS`` times
+    the input's size, as `drivingscene bench views` scores real pairs: PSNR against the input
+    upsampled bicubically, PSNR of the render area-downsampled back against the input, holes
+    (world pixels below 0.95 alpha); and the viewer's default overview at t = 0 ``[H, W, 3]``."""
+    from drivingscene.bench.views_run import Plan, gaussian_method, score_real
+
+    plan = Plan((), (0.0,), MAGNIFICATIONS[1:], OVERVIEW_SIZE, 0)
+    result, pictures = score_real(pair, "real", recon, {FULL: gaussian_method(recon)}, plan, None)
+    out = {}
+    for k in MAGNIFICATIONS:
+        rows = [r for r in result.records if r.magnification == k]
+        out[k] = {
+            "psnr_vs_bicubic": float(np.mean([r.psnr for r in rows])),
+            "psnr_area_down": float(np.mean([r.psnr_down for r in rows])),
+            "holes": float(np.nanmean([math.nan if r.holes is None else r.holes for r in rows])),
+        }
+    return out, pictures[FULL]
+
+
+def magnified_table(scenes: list[SceneScores]) -> str:
+    """The model's rig views larger than the input, per scene."""
+    rows = []
+    for s in scenes:
+        if s.magnified:
+            m = {int(k): v for k, v in s.magnified.items()}
+            rows.append(
+                [s.name]
+                + [_fmt(m[k]["psnr_vs_bicubic"], "{:.2f}") for k in MAGNIFICATIONS]
+                + [_fmt(m[k]["psnr_area_down"], "{:.2f}") for k in MAGNIFICATIONS[1:]]
+                + [f"{100 * m[MAGNIFICATIONS[-1]]['holes']:.2f} %"]
+            )
+    if not rows:
+        return ""
+    header = ["scene"] + [f"{k}x vs bicubic" for k in MAGNIFICATIONS] + [f"{k}x area-down vs input" for k in MAGNIFICATIONS[1:]]
+    return (
+        "## Views larger than the input\n\n"
+        "What a larger window shows (docs/magnification.md): each rig camera at t = 0, at its capture pose, rendered at "
+        "1, 2 and 4 times the input's size, against the input upsampled bicubically (there is no ground truth at that "
+        "size), and area-downsampled back against the input; holes: world pixels whose alpha is below 0.95 at 4x. "
+        "With `--images`, the viewer's default overview of each scene is written beside the side-by-side figure.\n\n"
+        + _table(header + [f"{MAGNIFICATIONS[-1]}x holes"], rows)
+    )
 
 
 def _held_out_depth(recon, pair) -> dict:
@@ -308,7 +365,8 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
         "Depth is scored against LiDAR projected into each camera (0.1-80 m; pixels of the ego's own body excluded), "
         "metric and median-scaled per image. Novel views: the real frame between the keyframes (held out from the "
         "input), each camera rendered at its recorded pose and time, against two baselines that use no geometry: "
-        f"*{COPY}* and *{BLEND}*. A method that loses to the better baseline is in **bold**. "
+        f"*{COPY}* and *{BLEND}*. A method that loses to the better baseline is in **bold**. A camera's PSNR "
+        f"is capped at {PSNR_CEILING:.0f} dB (identical images: a keyframe blend where nothing moved). "
         f"Perceptual metric: {lpips_name}.\n",
         "## Summary\n",
     ]
@@ -334,6 +392,8 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
     refined = ""
     if any(s.depth_baselines for s in scenes):
         refined += "\n" + depth_baseline_table(scenes)
+    if any(s.magnified for s in scenes):
+        refined += "\n" + magnified_table(scenes)
     if any(s.refine for s in scenes):
         from drivingscene.bench.real_refine import refine_table
 
@@ -438,6 +498,14 @@ def run(args: argparse.Namespace) -> int:
                     f"Side by side (input, render, real frame, blend baseline; model depth, LiDAR): [{path.name}]({rel}), "
                     "written by the command beside the report's run; real frames are not committed to the repository.\n"
                 )
+            if "overview" in renders:
+                from drivingscene.viz import save_png
+
+                over = save_png(args.images / f"{_slug(name)}_overview.png", _u8(torch.from_numpy(renders["overview"])))
+                if args.out is not None:
+                    s.figure = (s.figure or "") + (
+                        f"\nThe viewer's default overview at t = 0: [{over.name}]({os.path.relpath(over, args.out.parent)}).\n"
+                    )
         scenes.append(s)
         flat[name] = {k: v for k, v in vars(s).items() if k != "figure"}
         print(f"{name}: scored", file=sys.stderr)

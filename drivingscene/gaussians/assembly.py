@@ -244,6 +244,34 @@ def pixel_footprints(
     return bounded_footprints(points, quats, log_scales, focal, rule)
 
 
+def own_view_covariance(
+    points: Tensor,  # [..., 3] camera axes, metres
+    quats: Tensor,  # [..., 4] w, x, y, z, camera axes
+    log_scales: Tensor,  # [..., 3]
+    focal: Tensor,  # [..., 2] fx, fy (broadcast)
+    skew: Tensor | float = 0.0,  # K[0, 1] (broadcast)
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The 2D covariance ``(a, b, c)`` (px^2; [[a, b], [b, c]]) of Gaussians projected into the
+    camera whose axes they are given in, ``(J R S)(J R S)^T`` with J the projection's Jacobian at
+    the mean, written out per component: channel-first copies, one pass over contiguous tensors,
+    no batched 3x3 products (those dominate at a Gaussian per pixel)."""
+    x, y, z = points.movedim(-1, 0)
+    z = z.clamp(min=1e-3)
+    fx, fy = focal.movedim(-1, 0)
+    w, qx, qy, qz = F.normalize(quats, dim=-1).movedim(-1, 0).contiguous()
+    rot = (
+        (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + w * qz), 2 * (qx * qz - w * qy)),  # column 0: rows 0, 1, 2
+        (2 * (qx * qy - w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz + w * qx)),  # column 1
+        (2 * (qx * qz + w * qy), 2 * (qy * qz - w * qx), 1 - 2 * (qx * qx + qy * qy)),  # column 2
+    )
+    u, v, gx, gy, gs = x / z, y / z, fx / z, fy / z, skew / z
+    a = b = c = 0.0
+    for (r0, r1, r2), var in zip(rot, torch.exp(2 * log_scales).movedim(-1, 0)):
+        m0, m1 = gx * (r0 - u * r2) + gs * (r1 - v * r2), gy * (r1 - v * r2)
+        a, b, c = a + m0 * m0 * var, b + m0 * m1 * var, c + m1 * m1 * var
+    return a, b, c
+
+
 def bounded_footprints(
     points: Tensor,  # [..., 3] camera axes, metres
     quats: Tensor,  # [..., 4] w, x, y, z, camera axes
@@ -254,24 +282,10 @@ def bounded_footprints(
     """Log scales ``[..., 3]`` of per-pixel Gaussians with the footprint rule: shrunk, shape kept,
     until the splat's largest sigma in its own view is at most ``rule.max_footprint`` pixels, then
     widened by the isotropic 3D variance ``rule.floor * (z / f)^2``. Differentiable."""
-    x, y, z = points.movedim(-1, 0)
-    z = z.clamp(min=1e-3)
+    z = points[..., 2].clamp(min=1e-3)
     fx, fy = focal.movedim(-1, 0)
     if rule.max_footprint > 0:
-        # The splat's 2D covariance in its own view, (J R S)(J R S)^T with J the projection's
-        # Jacobian, written out per component (channel-first copies: one pass over contiguous
-        # tensors, no batched 3x3 products).
-        w, qx, qy, qz = F.normalize(quats, dim=-1).movedim(-1, 0).contiguous()
-        rot = (
-            (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + w * qz), 2 * (qx * qz - w * qy)),  # column 0: rows 0, 1, 2
-            (2 * (qx * qy - w * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz + w * qx)),  # column 1
-            (2 * (qx * qz + w * qy), 2 * (qy * qz - w * qx), 1 - 2 * (qx * qx + qy * qy)),  # column 2
-        )
-        u, v, gx, gy = x / z, y / z, fx / z, fy / z
-        a = b = c = 0.0
-        for (r0, r1, r2), var in zip(rot, torch.exp(2 * log_scales).movedim(-1, 0)):
-            m0, m1 = gx * (r0 - u * r2), gy * (r1 - v * r2)
-            a, b, c = a + m0 * m0 * var, b + m0 * m1 * var, c + m1 * m1 * var
+        a, b, c = own_view_covariance(points, quats, log_scales, focal)
         largest = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b**2)  # px^2
         shrink = 0.5 * torch.log((rule.max_footprint**2 / largest.clamp(min=1e-20)).clamp(max=1.0))
         log_scales = log_scales + shrink[..., None]

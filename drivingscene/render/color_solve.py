@@ -18,12 +18,11 @@ pixel centre at its depth, so the splats are built from the maps without project
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.errors import InputError
+from drivingscene.gaussians.assembly import own_view_covariance
 from drivingscene.geometry.camera import unproject
-from drivingscene.geometry.se3 import quat_to_matrix
 from drivingscene.render.composite import composite, find_pairs_cpp, find_pairs_torch, pair_inputs
 from drivingscene.render.project import EPS2D
 from drivingscene.render.rasterize import DEFAULT_MAX_LAYERS, choose_backend
@@ -53,26 +52,24 @@ def own_view_splats(
     flat pixel index ``[M]`` of each splat. Colours are left empty."""
     num, height, width = depth.shape
     idx = valid.flatten().nonzero().squeeze(1)
-    z = depth.flatten()[idx].float().clamp(min=0.0)
+    z = depth.flatten().index_select(0, idx).float().clamp(min=0.0)
     image = idx // (height * width)
     # One sort by (image, depth, pixel): a non-negative float's bits order like the float.
     order = torch.sort((image << 32) | z.view(torch.int32).long(), stable=True).indices
-    idx, z, image = idx[order], z[order], image[order]
+    # index_select: a plain gather, several times faster than advanced indexing on CPU
+    idx, z, image = idx.index_select(0, order), z.index_select(0, order), image.index_select(0, order)
     u = (idx % width).float()
     v = ((idx // width) % height).float()
-    k = intrinsics.float()[image]
-    points = unproject(depth.float().clamp(min=1e-3), intrinsics.float()).reshape(-1, 3)[idx]
-    fx, fy = k[:, 0, 0], k[:, 1, 1]
-    zeros = torch.zeros_like(z)
-    jac = torch.stack(
-        [torch.stack([fx / z, k[:, 0, 1] / z, -(fx * points[:, 0] + k[:, 0, 1] * points[:, 1]) / z**2], -1),
-         torch.stack([zeros, fy / z, -fy * points[:, 1] / z**2], -1)],
-        -2,
-    )  # [M, 2, 3]
-    rot = quat_to_matrix(F.normalize(quats.reshape(-1, 4)[idx].float(), dim=-1))
-    m = jac @ rot * torch.exp(log_scales.reshape(-1, 3)[idx].float())[:, None, :]
-    cov = m @ m.transpose(-1, -2)
-    a, b, c = cov[:, 0, 0] + eps2d, cov[:, 0, 1], cov[:, 1, 1] + eps2d
+    k = intrinsics.float()[:, :2, :].flatten(1).index_select(0, image)  # [M, 6]: fx, skew, cx, 0, fy, cy
+    points = unproject(depth.float().clamp(min=1e-3), intrinsics.float()).reshape(-1, 3).index_select(0, idx)
+    a, b, c = own_view_covariance(
+        points,
+        quats.reshape(-1, 4).index_select(0, idx).float(),
+        log_scales.reshape(-1, 3).index_select(0, idx).float(),
+        k[:, [0, 4]],
+        k[:, 1],
+    )
+    a, c = a + eps2d, c + eps2d
     det = (a * c - b * b).clamp(min=1e-12)
     largest = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
     counts = torch.bincount(image, minlength=num)
@@ -81,7 +78,7 @@ def own_view_splats(
         conics=torch.stack([c / det, -b / det, a / det], -1),
         depths=z,
         radii=3.0 * torch.sqrt(largest),
-        opacities=opacities.reshape(-1)[idx].float(),
+        opacities=opacities.reshape(-1).index_select(0, idx).float(),
         colors=torch.zeros(len(idx), 3),
         camera_ids=image,
         gaussian_ids=idx,
@@ -118,16 +115,16 @@ def solve_pixel_colors(
         inp = pair_inputs(splats, width, height)
         compiled = choose_backend(backend, depth) == "cpp"
         pair_ids = (find_pairs_cpp if compiled else find_pairs_torch)(inp, width, height, DEFAULT_MAX_LAYERS)
-        target = images.reshape(-1, 3).float()[pixel]
-        solved = colors.reshape(-1, 3).float()[pixel].clamp(0.0, MAX_COLOR)
+        target = images.reshape(-1, 3).float().index_select(0, pixel)
+        solved = colors.reshape(-1, 3).float().index_select(0, pixel).clamp(0.0, MAX_COLOR)
         black = torch.zeros(depth.shape[0], 3)
         for _ in range(iterations):
             rgb, _, alpha = composite(
                 pair_ids, inp.means2d, inp.conics, inp.opacities, splats.depths, solved, black, width, height, compiled
             )
-            rgb, alpha = rgb.reshape(-1, 3)[pixel], alpha.reshape(-1)[pixel]
+            rgb, alpha = rgb.reshape(-1, 3).index_select(0, pixel), alpha.reshape(-1).index_select(0, pixel)
             covered = (alpha >= MIN_COVERAGE)[:, None]
             solved = torch.where(covered, solved + target - rgb / alpha.clamp(min=1e-6)[:, None], solved).clamp(0.0, MAX_COLOR)
         out = colors.reshape(-1, 3).clone()
-        out[pixel] = solved.to(out.dtype)
+        out.index_copy_(0, pixel, solved.to(out.dtype))
     return out.reshape(colors.shape)

@@ -41,6 +41,13 @@ def test_bench_real_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
     assert set(scores["depth_baselines"]) == {ROAD, NEAREST}
     assert all(math.isfinite(x) for b in scores["depth_baselines"].values() for x in b["metric"]["abs_rel"])
     assert (figs / "tiny.png").stat().st_size > 1000
+    # what a larger window shows: the rig views at 1, 2 and 4 times the input, and the overview
+    assert "## Views larger than the input" in text and "](figs/tiny_overview.png)" in text
+    assert set(scores["magnified"]) == {"1", "2", "4"}
+    for k in ("1", "2", "4"):
+        m = scores["magnified"][k]
+        assert math.isfinite(m["psnr_vs_bicubic"]) and math.isfinite(m["psnr_area_down"]) and 0.0 <= m["holes"] <= 1.0
+    assert (figs / "tiny_overview.png").stat().st_size > 1000
 
 
 def test_bench_real_refuses_bad_arguments(tmp_path, capsys):
@@ -98,3 +105,18 @@ def test_every_refinement_setting_given_names_its_row():
     }
     assert len(names) == 6  # rows of different settings never share a name (nor overwrite in the JSON)
     assert "0.67 of the budget" in method_name(30.0, adapt_share=0.67) and "losses at 1x" in method_name(30.0, adapt_scale=1.0)
+
+
+def test_identical_images_score_the_ceiling_not_infinity():
+    """A keyframe blend where nothing moved equals the target: its cameras score PSNR_CEILING, so a
+    mean over cameras (the summary's) stays finite and comparable; others keep their own figure."""
+    import torch
+
+    from drivingscene.bench.real import PSNR_CEILING, image_scores
+
+    target = torch.rand(1, 2, 16, 24, 3, generator=torch.Generator().manual_seed(0))
+    pred = target.clone()
+    pred[:, 1] = (pred[:, 1] + 0.1).clamp(0, 1)  # the second camera off by about 0.1
+    scores = image_scores(pred, target, None, None, num_views=2)
+    assert scores["psnr"][0] == PSNR_CEILING
+    assert math.isfinite(scores["psnr"][1]) and 15.0 < scores["psnr"][1] < 25.0
