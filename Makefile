@@ -97,4 +97,4 @@ still-ego: setup
 	$(VENV)/bin/drivingscene synth --split test --count 4 --ego-speed 0 -o $(STILL_OUT)/test176_still --force --no-progress
 	$(VENV)/bin/drivingscene synth --split test --count 4 --ego-speed 0 --num-moving 0 -o $(STILL_OUT)/test176_still0 --force --no-progress
 	$(VENV)/bin/drivingscene bench real --force $(STILL_OUT)/test176_still/pair_*.npz $(STILL_OUT)/test176_still0/pair_*.npz \
-		--names $(STILL_NAMES) --out docs/still-ego.md --json docs/still-ego.json
+		--names $(STILL_NAMES) --title "DrivingScene with the ego standing still (procedural pairs)" --notes docs/still-ego-notes.md --out docs/still-ego.md --json docs/still-ego.json

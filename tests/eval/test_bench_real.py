@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from drivingscene.bench.real import BLEND, COPY, FULL, NEAREST, ROAD, losers
+from drivingscene.bench.real import BLEND, COPY, FULL, NEAREST, ROAD, WITHOUT_SKY, losers
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
@@ -44,6 +44,7 @@ def test_bench_real_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
     # what a larger window shows: the rig views at 1, 2 and 4 times the input, and the overview
     assert "## Views larger than the input" in text and "](figs/tiny_overview.png)" in text
     assert set(scores["magnified"]) == {"1", "2", "4"}
+    assert WITHOUT_SKY in scores["keyframes"] and WITHOUT_SKY in text  # the re-render without its sky pixels
     for k in ("1", "2", "4"):
         m = scores["magnified"][k]
         assert math.isfinite(m["psnr_vs_bicubic"]) and math.isfinite(m["psnr_area_down"]) and 0.0 <= m["holes"] <= 1.0
