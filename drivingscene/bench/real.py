@@ -219,22 +219,32 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
     return s, renders
 
 
-# What a larger window shows (docs/magnification.md): the rig views at these multiples of the input's size.
+# What a larger window shows (docs/magnification.md): the rig views at these multiples of the input's
+# size, as far as a window shows them: a magnification whose view is wider than WINDOW_WIDTH pixels
+# is skipped (a full-size camera image is already what a window shows, and its 4x would not fit in
+# memory on the CPU).
 MAGNIFICATIONS = (1, 2, 4)
+WINDOW_WIDTH = 1920
 OVERVIEW_SIZE = (720, 1280)
 
 
+def magnifications_for(width: int) -> tuple[int, ...]:
+    """The `MAGNIFICATIONS` a window shows for images ``width`` pixels wide (1 always)."""
+    return tuple(k for k in MAGNIFICATIONS if k == 1 or k * width <= WINDOW_WIDTH)
+
+
 def magnified_scores(recon, pair) -> tuple[dict[int, dict[str, float]], np.ndarray]:
-    """The model's rig views at t = 0 (each camera at its capture pose) at ``MAGNIFICATIONS`` times
-    the input's size, as `drivingscene bench views` scores real pairs: PSNR against the input
+    """The model's rig views at t = 0 (each camera at its capture pose) at `magnifications_for`
+    times the input's size, as `drivingscene bench views` scores real pairs: PSNR against the input
     upsampled bicubically, PSNR of the render area-downsampled back against the input, holes
     (world pixels below 0.95 alpha); and the viewer's default overview at t = 0 ``[H, W, 3]``."""
     from drivingscene.bench.views_run import Plan, gaussian_method, score_real
 
-    plan = Plan((), (0.0,), MAGNIFICATIONS[1:], OVERVIEW_SIZE, 0)
+    ks = magnifications_for(pair.image_size[1])
+    plan = Plan((), (0.0,), ks[1:], OVERVIEW_SIZE, 0)
     result, pictures = score_real(pair, "real", recon, {FULL: gaussian_method(recon)}, plan, None)
     out = {}
-    for k in MAGNIFICATIONS:
+    for k in ks:
         rows = [r for r in result.records if r.magnification == k]
         out[k] = {
             "psnr_vs_bicubic": float(np.mean([r.psnr for r in rows])),
@@ -245,16 +255,19 @@ def magnified_scores(recon, pair) -> tuple[dict[int, dict[str, float]], np.ndarr
 
 
 def magnified_table(scenes: list[SceneScores]) -> str:
-    """The model's rig views larger than the input, per scene."""
+    """The model's rig views larger than the input, per scene (–: larger than a window shows)."""
+    nan = {"psnr_vs_bicubic": math.nan, "psnr_area_down": math.nan, "holes": math.nan}
     rows = []
     for s in scenes:
         if s.magnified:
             m = {int(k): v for k, v in s.magnified.items()}
+            m = {k: m.get(k, nan) for k in MAGNIFICATIONS}
+            holes = m[MAGNIFICATIONS[-1]]["holes"]
             rows.append(
                 [s.name]
                 + [_fmt(m[k]["psnr_vs_bicubic"], "{:.2f}") for k in MAGNIFICATIONS]
                 + [_fmt(m[k]["psnr_area_down"], "{:.2f}") for k in MAGNIFICATIONS[1:]]
-                + [f"{100 * m[MAGNIFICATIONS[-1]]['holes']:.2f} %"]
+                + [_fmt(100 * holes, "{:.2f} %")]
             )
     if not rows:
         return ""
@@ -264,6 +277,7 @@ def magnified_table(scenes: list[SceneScores]) -> str:
         "What a larger window shows (docs/magnification.md): each rig camera at t = 0, at its capture pose, rendered at "
         "1, 2 and 4 times the input's size, against the input upsampled bicubically (there is no ground truth at that "
         "size), and area-downsampled back against the input; holes: world pixels whose alpha is below 0.95 at 4x. "
+        f"A magnification wider than {WINDOW_WIDTH} pixels is left out (–). "
         "With `--images`, the viewer's default overview of each scene is written beside the side-by-side figure.\n\n"
         + _table(header + [f"{MAGNIFICATIONS[-1]}x holes"], rows)
     )

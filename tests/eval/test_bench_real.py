@@ -121,3 +121,16 @@ def test_identical_images_score_the_ceiling_not_infinity():
     scores = image_scores(pred, target, None, None, num_views=2)
     assert scores["psnr"][0] == PSNR_CEILING
     assert math.isfinite(scores["psnr"][1]) and 15.0 < scores["psnr"][1] < 25.0
+
+
+def test_magnified_rows_stop_at_what_a_window_shows():
+    """A camera image already as wide as a window is scored at 1x only (its 4x would not fit in
+    memory on the CPU); the table marks the missing magnifications instead of failing."""
+    from drivingscene.bench.real import WINDOW_WIDTH, SceneScores, magnifications_for, magnified_table
+
+    assert magnifications_for(320) == (1, 2, 4)
+    assert magnifications_for(640) == (1, 2)
+    assert magnifications_for(WINDOW_WIDTH + 1) == (1,)
+    s = SceneScores("big", {}, magnified={1: {"psnr_vs_bicubic": 30.0, "psnr_area_down": 30.0, "holes": 0.0}})
+    table = magnified_table([s])
+    assert "| big | 30.00 | – | – | – | – | – |" in table
