@@ -199,7 +199,7 @@ def score_scene(pair, name: str, methods, perceptual, repeats: int) -> tuple[Sce
             if FULL == method:
                 s.depth = s.depths[method]
                 s.depths[FULL + " (held-out half)"] = _held_out_depth(recon, pair)
-        if FULL == method:
+        if FULL == method and recon.depth is not None:  # the holes count the pixels its depth calls world
             s.magnified, renders["overview"] = magnified_scores(recon, pair)
         rendered = render_keyframes(recon, pair)
         s.keyframes[method] = image_scores(rendered, _images(pair.images), keyframe_mask, None, pair.num_views)
