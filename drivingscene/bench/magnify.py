@@ -131,8 +131,12 @@ def gaussian_interpolation(image: torch.Tensor, k: int, floor: float = Footprint
     return resample(c, k).to(image.dtype)
 
 
-def score_pair(model, pair, variant: Variant, truth=None) -> dict[str, float]:
-    """Every figure of one variant on one pair (``truth``: a `ProceduralScene` for ground truth at size)."""
+def score_pair(model, pair, variant: Variant, truth=None, references: dict | None = None) -> dict[str, float]:
+    """Every figure of one variant on one pair (``truth``: a `ProceduralScene` for ground truth at size).
+    ``references``: a dict kept across the variants of one pair, in which the images every variant
+    is scored against (ground truth, the input upsampled bicubically, `gaussian_interpolation`) are
+    made once."""
+    references = {} if references is None else references
     import cv2
 
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
@@ -159,10 +163,10 @@ def score_pair(model, pair, variant: Variant, truth=None) -> dict[str, float]:
     surface = torch.from_numpy(recon.depth[0] > 0) & world  # pixels that see a surface (not sky)
     for k in MAGNIFICATIONS:
         kk = _magnified(recon.intrinsics, k)
-        truths = None
-        if truth is not None:
+        if truth is not None and ("truth", k) not in references:  # the rig's poses: the same for every variant
             cams = np.linalg.inv(w2c.double().numpy())
-            truths = torch.from_numpy(truth.render(cams, kk.double().numpy(), (height * k, width * k), 0.0).images)
+            references["truth", k] = torch.from_numpy(truth.render(cams, kk.double().numpy(), (height * k, width * k), 0.0).images)
+        truths = references.get(("truth", k))
         for v in range(pair.num_views):
             mask = torch.from_numpy(cv2.resize(world[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0)
             solid = torch.from_numpy(cv2.resize(surface[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0)
@@ -171,9 +175,12 @@ def score_pair(model, pair, variant: Variant, truth=None) -> dict[str, float]:
                 sky_sh=recon.sky_sh, blend="cameras", source_axes=axes, **raster,
             )  # fmt: skip
             image = res.colors[0].clamp(0, 1)
-            up = torch.from_numpy(np.clip(cv2.resize(pair.images[0, v].astype(np.float32) / 255, (width * k, height * k), interpolation=cv2.INTER_CUBIC), 0, 1))
+            if ("bicubic", k, v) not in references:
+                source = pair.images[0, v].astype(np.float32) / 255
+                references["bicubic", k, v] = torch.from_numpy(np.clip(cv2.resize(source, (width * k, height * k), interpolation=cv2.INTER_CUBIC), 0, 1))
+                references["gauss", k, v] = gaussian_interpolation(torch.from_numpy(source), k).clamp(0, 1)
+            up, gauss = references["bicubic", k, v], references["gauss", k, v]
             _add(out, f"x{k}_vs_bicubic", _psnr(image, up, mask))
-            gauss = gaussian_interpolation(torch.from_numpy(pair.images[0, v].astype(np.float32) / 255), k).clamp(0, 1)
             _add(out, f"x{k}_gauss_vs_bicubic", _psnr(gauss, up, mask))
             if truths is not None:
                 _add(out, f"x{k}_vs_truth", _psnr(image, truths[v], mask))
@@ -210,14 +217,16 @@ def run(args: argparse.Namespace) -> int:
     for seed in seeds:
         pair = generate_pair(config, seed, renderer)
         with ProceduralScene(config, seed, renderer) as truth:
+            references: dict = {}
             for v in variants:
-                for key, value in score_pair(model, pair, v, truth).items():
+                for key, value in score_pair(model, pair, v, truth, references).items():
                     sets["procedural"][v.name].add(key, value)
     for path in args.scenes:
         pair = load_frame_pair(path)
         sets[str(path)] = {v.name: Scores() for v in variants}
+        references = {}
         for v in variants:
-            for key, value in score_pair(model, pair, v).items():
+            for key, value in score_pair(model, pair, v, references=references).items():
                 sets[str(path)][v.name].add(key, value)
     minutes = (time.perf_counter() - wall) / 60
     machine = machine_description()

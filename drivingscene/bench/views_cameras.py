@@ -12,7 +12,7 @@ poses it (`Reconstruction.cam_to_world_at`: the ego pose interpolated between th
 - ``overview``: the viewer's default chase view (`drivingscene_view.camera.CameraController.reset`,
   replicated here: the bench does not import the viewer), one camera,
 - magnification k: the rig pose at k times the input size, intrinsics scaled so that the pixel grid
-  refines in place (`magnified_intrinsics`).
+  refines in place (`synth.rig.scale_intrinsics_np`: f' = k f, c' = (c + 0.5) k - 0.5).
 
 Poses are ``cam_to_world`` ``[B, 4, 4]`` float64 in OpenCV camera axes (x right, y down, z forward);
 the ego frame is x forward, y left, z up; metres.
@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from drivingscene.geometry.se3 import interpolate_pose
+from drivingscene.synth.rig import scale_intrinsics_np
 
 RIG, SIDE_1, SIDE_2, UP_2, UP_10_DOWN, OVERVIEW = "rig", "side 1 m", "side 2 m", "up 2 m", "up 10 m, 45° down", "overview"
 CLASSES = (RIG, SIDE_1, SIDE_2, UP_2, UP_10_DOWN, OVERVIEW)
@@ -96,18 +97,6 @@ def pitched_down(cams_to_world: np.ndarray, degrees: float) -> np.ndarray:
     return out
 
 
-def magnified_intrinsics(intrinsics: np.ndarray, k: float) -> np.ndarray:
-    """Intrinsics ``[..., 3, 3]`` for an image k times larger whose pixel grid refines the input's in
-    place (pixel centres at integer coordinates, OpenCV): f' = k f, c' = (c + 0.5) k - 0.5."""
-    out = np.array(intrinsics, np.float64, copy=True)
-    out[..., 0, 0] *= k
-    out[..., 0, 1] *= k
-    out[..., 1, 1] *= k
-    out[..., 0, 2] = (out[..., 0, 2] + 0.5) * k - 0.5
-    out[..., 1, 2] = (out[..., 1, 2] + 0.5) * k - 0.5
-    return out
-
-
 def overview_camera(ego_to_world: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """The viewer's default chase view of an ego at ``ego_to_world`` ``[4, 4]``: ``(cam_to_world [4, 4],
     intrinsics [3, 3])`` for a ``width`` x ``height`` viewport, z-up world.
@@ -169,4 +158,4 @@ def magnified_rig(
     """The rig cameras at normalised time t at ``k`` times the input ``size`` (H, W)."""
     rig = rig_poses(ego_to_world, cam_to_ego, t)
     big = (int(size[0]) * k, int(size[1]) * k)
-    return Viewpoints(RIG, t, k, rig, magnified_intrinsics(intrinsics, k), big, np.arange(len(rig)))
+    return Viewpoints(RIG, t, k, rig, scale_intrinsics_np(intrinsics, k), big, np.arange(len(rig)))

@@ -72,35 +72,20 @@ def flying_gaussians(recon, gt_depth: np.ndarray, tolerance: float = FLYING_TOLE
     projected with that image's pose (``ego_to_world[k] @ cam_to_ego[c]``) and intrinsics, and its
     camera z compared with ``gt_depth[k, c]`` ``[2, V, H, W]`` at the nearest pixel centre; pixels
     without true depth (0: sky, no LiDAR return) and Gaussians outside the image are not counted."""
-    g = recon.gaussians
-    height, width = recon.image_size
-    means = g.means.double().numpy()
-    keyframes, cameras = g.keyframes.numpy(), g.cameras.numpy()
+    from drivingscene.methods.depth_mesh import source_pixels
+
     flying = counted = 0
-    for k in (0, 1):
-        for c in range(recon.num_views):
-            sel = (keyframes == k) & (cameras == c)
-            if not sel.any():
-                continue
-            pose = np.asarray(recon.ego_to_world[k], np.float64) @ np.asarray(recon.cam_to_ego[c], np.float64)
-            world_to_cam = np.linalg.inv(pose)
-            p = means[sel] @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
-            z = p[:, 2]
-            kk = np.asarray(recon.intrinsics[c], np.float64)
-            zs = np.where(z > 1e-6, z, 1.0)
-            u = np.rint(kk[0, 0] * p[:, 0] / zs + kk[0, 1] * p[:, 1] / zs + kk[0, 2])
-            v = np.rint(kk[1, 1] * p[:, 1] / zs + kk[1, 2])
-            inside = (z > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-            z_gt = np.asarray(gt_depth[k, c], np.float64)[v[inside].astype(int), u[inside].astype(int)]
-            known = z_gt > 0
-            counted += int(known.sum())
-            flying += int((np.abs(z[inside][known] - z_gt[known]) > tolerance * z_gt[known]).sum())
+    for k, c, _, z, u, v, inside in source_pixels(recon):
+        z_gt = np.asarray(gt_depth[k, c], np.float64)[v[inside].astype(int), u[inside].astype(int)]
+        known = z_gt > 0
+        counted += int(known.sum())
+        flying += int((np.abs(z[inside][known] - z_gt[known]) > tolerance * z_gt[known]).sum())
     return Flying(flying, counted)
 
 
 def bicubic_up(images: np.ndarray, k: int) -> Tensor:
     """uint8 images ``[B, H, W, 3]`` resized k times larger with cv2.INTER_CUBIC (whose pixel
-    centres refine in place, as `magnified_intrinsics`), clipped to [0, 1]: float ``[B, kH, kW, 3]``."""
+    centres refine in place, as `synth.rig.scale_intrinsics_np`), clipped to [0, 1]: float ``[B, kH, kW, 3]``."""
     import cv2
 
     height, width = images.shape[1:3]

@@ -42,7 +42,6 @@ from torch import Tensor
 from drivingscene.gaussians import timing
 from drivingscene.gl import create_offscreen_context, load_program
 from drivingscene.render import scene as render_scene
-from drivingscene.render.sky import ray_directions, sky_colors
 from drivingscene.synth.render import gl_projection
 
 MAX_GRAZING_DEG = 88.0  # degrees between a triangle's normal and its source camera's ray
@@ -79,34 +78,44 @@ def source_poses(recon, capture_ego_to_world: np.ndarray | None = None) -> np.nd
     return np.asarray(egos, np.float64) @ np.asarray(recon.cam_to_ego, np.float64)[None]
 
 
-def pixel_scene_flow(recon, poses: np.ndarray | None = None) -> np.ndarray:
-    """``[2, V, H, W, 3]`` float32 world flow per input pixel: each Gaussian of a known source image
-    projected into that image's camera (``poses`` ``[2, V, 4, 4]``, default `source_poses`) and its
-    flow scattered to the nearest pixel centre (the Gaussian nearest the camera wins a pixel); zero
-    where no Gaussian lands."""
+def source_pixels(recon, poses: np.ndarray | None = None):
+    """Each Gaussian of a known source image projected into that image's camera (``poses``
+    ``[2, V, 4, 4]``, default `source_poses`), one image at a time: yields ``(k, c, index, z, u, v,
+    inside)`` with the Gaussians' indices ``[n]``, their camera z, the nearest pixel centre (u, v)
+    and whether it lies in the image in front of the camera."""
     g = recon.gaussians
     poses = source_poses(recon) if poses is None else poses
     height, width = recon.image_size
-    out = np.zeros((2, recon.num_views, height, width, 3), np.float32)
-    means, flows = g.means.double().numpy(), g.flows.float().numpy()
+    means = g.means.double().numpy()
     keyframes, cameras = g.keyframes.numpy(), g.cameras.numpy()
     for k in (0, 1):
         for c in range(recon.num_views):
-            sel = np.flatnonzero((keyframes == k) & (cameras == c))
-            if sel.size == 0:
+            index = np.flatnonzero((keyframes == k) & (cameras == c))
+            if index.size == 0:
                 continue
             world_to_cam = np.linalg.inv(poses[k, c])
-            p = means[sel] @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+            p = means[index] @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
             z = p[:, 2]
             kk = np.asarray(recon.intrinsics[c], np.float64)
             zs = np.where(z > 1e-6, z, 1.0)
             u = np.rint(kk[0, 0] * p[:, 0] / zs + kk[0, 1] * p[:, 1] / zs + kk[0, 2])
             v = np.rint(kk[1, 1] * p[:, 1] / zs + kk[1, 2])
-            ok = (z > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-            key = (v[ok] * width + u[ok]).astype(np.int64)
-            order = np.lexsort((z[ok], key))  # by pixel, then nearest first
-            key, first = np.unique(key[order], return_index=True)
-            out[k, c].reshape(-1, 3)[key] = flows[sel[ok][order[first]]]
+            inside = (z > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+            yield k, c, index, z, u, v, inside
+
+
+def pixel_scene_flow(recon, poses: np.ndarray | None = None) -> np.ndarray:
+    """``[2, V, H, W, 3]`` float32 world flow per input pixel: each Gaussian of a known source image
+    projected into that image's camera (`source_pixels`) and its flow scattered to the nearest
+    pixel centre (the Gaussian nearest the camera wins a pixel); zero where no Gaussian lands."""
+    height, width = recon.image_size
+    out = np.zeros((2, recon.num_views, height, width, 3), np.float32)
+    flows = recon.gaussians.flows.float().numpy()
+    for k, c, index, z, u, v, ok in source_pixels(recon, poses):
+        key = (v[ok] * width + u[ok]).astype(np.int64)
+        order = np.lexsort((z[ok], key))  # by pixel, then nearest first
+        key, first = np.unique(key[order], return_index=True)
+        out[k, c].reshape(-1, 3)[key] = flows[index[ok][order[first]]]
     return out
 
 
@@ -307,18 +316,10 @@ class DepthMeshRenderer:
             colors[b] = torch.from_numpy(rgb / norm[..., None]).float()
             depths[b] = torch.from_numpy(z / norm).float()
             coverage[b] = torch.from_numpy(hit).float()
-        background = self._background(w2c, ks, height, width)
+        sky = None if self.recon.sky_sh is None else self.recon.sky_sh.float()  # black without a sky model
+        background = render_scene.background_colors(torch.from_numpy(w2c), torch.from_numpy(ks), height, width, sky)
         cov = coverage[..., None]
         return DepthMeshRender(colors=(cov * colors + (1 - cov) * background).clamp(0, 1), depths=depths, coverage=coverage)
-
-    def _background(self, world_to_cam: np.ndarray, intrinsics: np.ndarray, height: int, width: int) -> Tensor:
-        """``[B, H, W, 3]`` the reconstruction's sky (black without a sky model)."""
-        if self.recon.sky_sh is None:
-            return torch.zeros(len(world_to_cam), height, width, 3)
-        cam_to_world = torch.from_numpy(np.linalg.inv(world_to_cam)).float()
-        return sky_colors(
-            self.recon.sky_sh.float(), ray_directions(cam_to_world, torch.from_numpy(intrinsics).float(), height, width)
-        )
 
 
 def render_depth_meshes(

@@ -210,7 +210,7 @@ def _render_sets(
         for part in _layer_parts(gaussians, [mask for mask, _ in sets])
     ]
     weights = torch.stack([w for _, w in sets])
-    background = _background(world_to_cam, intrinsics, height, width, sky_sh, background)
+    background = background_colors(world_to_cam, intrinsics, height, width, sky_sh, background)
     return _compose(layers, weights, background, (layer_blend or LayerBlend()).coverage_full)
 
 
@@ -244,7 +244,7 @@ def _compose(
     return RenderOutput(colors=alpha[..., None] * colors + (1 - alpha[..., None]) * background, depths=depths, alphas=alpha)
 
 
-def _background(world_to_cam, intrinsics, height, width, sky_sh, background) -> Tensor:
+def background_colors(world_to_cam, intrinsics, height, width, sky_sh, background=None) -> Tensor:
     """``[B, H, W, 3]`` what shows where no Gaussian covers a pixel: the sky model, else a colour."""
     if sky_sh is None:
         bg = torch.zeros(3) if background is None else background

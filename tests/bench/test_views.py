@@ -18,6 +18,7 @@ from drivingscene.bench.views_run import BICUBIC, CLASSICAL, MESH, MODEL, ORACLE
 from drivingscene.bench.views_scoring import area_down, bicubic_up, flying_gaussians, holes, nearest_up, score_images
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
+from drivingscene.synth.rig import scale_intrinsics_np
 from tests.factories import make_pair
 
 
@@ -112,7 +113,7 @@ def test_magnified_intrinsics_refine_the_pixel_grid_in_place(rig):
 
     for k in (2, 4):
         # pixel (u, v) of the input covers [u - 0.5, u + 0.5]; at k times the size its edges are k times as far
-        np.testing.assert_allclose(project(vc.magnified_intrinsics(k1, k)), (project(k1) + 0.5) * k - 0.5, atol=1e-9)
+        np.testing.assert_allclose(project(scale_intrinsics_np(k1, k)), (project(k1) + 0.5) * k - 0.5, atol=1e-9)
         vp = vc.magnified_rig(0.0, k, ego, cam_to_ego, intrinsics, size)
         assert vp.size == (size[0] * k, size[1] * k) and vp.magnification == k
         np.testing.assert_allclose(vp.cams_to_world, vc.rig_poses(ego, cam_to_ego, 0.0))
