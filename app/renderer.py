@@ -12,7 +12,10 @@ The layered blends ("layers": one layer per keyframe, "cameras": one per keyfram
 ``drivingscene.render.scene``) draw each layer's splats over transparent black into a target of its
 own (premultiplied colour), then ``shaders/compose.glsl`` adds the layers with their weights into
 two accumulation targets and resolves them over the sky. The sorter groups the order by layer, so
-each layer is one contiguous range of it.
+each layer is one contiguous range of it. With surface averaging (``LayerBlend.surface_tolerance``
+> 0, ``drivingscene.render.composite``) a layer is drawn twice: its front depth per pixel (MIN
+blending), then its splats into three targets, the front surface's sums and what lies behind it
+(``shaders/splat.glsl``), which the compose pass combines.
 """
 
 from __future__ import annotations
@@ -79,11 +82,11 @@ def flow_lut() -> np.ndarray:
 
 
 class Target:
-    """An offscreen colour target (RGBA, ``dtype`` 'f1', 'f2' or 'f4') of a given size."""
+    """An offscreen colour target (``components`` channels, ``dtype`` 'f1', 'f2' or 'f4') of a given size."""
 
-    def __init__(self, ctx, width: int, height: int, dtype: str):
+    def __init__(self, ctx, width: int, height: int, dtype: str, components: int = 4):
         self.width, self.height, self.dtype = width, height, dtype
-        self.texture = ctx.texture((width, height), 4, dtype=dtype)
+        self.texture = ctx.texture((width, height), components, dtype=dtype)
         self.texture.repeat_x = self.texture.repeat_y = False
         self.fbo = ctx.framebuffer(color_attachments=[self.texture])
 
@@ -99,6 +102,28 @@ class Target:
             (ctx.screen or ctx.detect_framebuffer(0)).use()
         self.fbo.release()
         self.texture.release()
+
+
+class SurfaceLayer:
+    """A layer's targets for surface averaging: the front depth (R, float32), the front surface's
+    sum of alpha * rgb and its (sum alpha, sum -log(1 - alpha)) (RG, float32), and one framebuffer
+    over the layer's own target and those two (pass 2 of ``shaders/splat.glsl``)."""
+
+    def __init__(self, ctx, layer: Target):
+        self.front = Target(ctx, layer.width, layer.height, "f4", components=1)
+        self.front.texture.filter = (ctx.NEAREST, ctx.NEAREST)
+        self.sums = Target(ctx, layer.width, layer.height, layer.dtype)
+        self.stats = Target(ctx, layer.width, layer.height, "f4", components=2)
+        self.fbo = ctx.framebuffer(color_attachments=[layer.texture, self.sums.texture, self.stats.texture])
+        self.key = layer.texture.glo
+
+    def release(self) -> None:
+        ctx = self.fbo.ctx
+        if ctx.fbo == self.fbo:
+            (ctx.screen or ctx.detect_framebuffer(0)).use()
+        self.fbo.release()
+        for t in (self.front, self.sums, self.stats):
+            t.release()
 
 
 class GpuSplats:
@@ -217,6 +242,7 @@ class SplatRenderer:
         self.flow_lut = _lut_texture(ctx, flow_lut())
         self._targets: dict[str, Target] = {}
         self._acc: dict = {}  # the two-attachment framebuffer over the accumulation targets
+        self._surfaces: dict[str, SurfaceLayer] = {}  # per layer target name (surface averaging)
         self._quads = 0
         self._ibo = self._splat_vao = None
         self.sky = np.zeros((1, 3), np.float32)
@@ -309,18 +335,38 @@ class SplatRenderer:
         acc_fbo = self._acc["fbo"]
         if start == 0:
             acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        tolerance = opts.layer_blend.surface_tolerance
         for name, weight, ranges, keyframe in layers:
-            layer = self.target(target.width, target.height, target.dtype, name=f"layer-{name}@{target.texture.glo}")
+            layer_name = f"layer-{name}@{target.texture.glo}"
+            layer = self.target(target.width, target.height, target.dtype, name=layer_name)
+            surface = self._surface(layer_name, layer) if tolerance > 0 else None
             if start == 0:
-                layer.fbo.clear(0.0, 0.0, 0.0, 0.0)
+                (surface or layer).fbo.clear(0.0, 0.0, 0.0, 0.0)
+            first = min(a for a, _ in ranges)
+            if surface is not None and start <= first < end:  # the front depth of the whole layer, before any of it is drawn
+                surface.front.fbo.clear(3e38, 0.0, 0.0, 0.0)
+                for a, b in ranges:
+                    self._draw(splats, camera, t, opts, surface.front, a, b - a, layer=keyframe, sky=False, surface_pass=1)
             for a, b in ranges:  # this call's part of the layer's range
                 lo, hi = max(a, start), min(b, end)
                 if hi > lo:
-                    self._draw(splats, camera, t, opts, layer, lo, hi - lo, layer=keyframe, sky=False)
+                    if surface is None:
+                        self._draw(splats, camera, t, opts, layer, lo, hi - lo, layer=keyframe, sky=False)
+                    else:
+                        self._draw(splats, camera, t, opts, surface, lo, hi - lo, layer=keyframe, sky=False, surface_pass=2)
             if start < max(b for _, b in ranges) <= end:  # the layer is complete: add it once
-                self._accumulate(layer, acc_fbo, weight, opts.layer_blend.coverage_full)
+                self._accumulate(layer, acc_fbo, weight, opts.layer_blend.coverage_full, surface)
         self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
         self._resolve(acc, target)
+
+    def _surface(self, name: str, layer: Target) -> SurfaceLayer:
+        """The surface-averaging targets of the layer target ``name`` (made again when it was)."""
+        s = self._surfaces.get(name)
+        if s is None or s.key != layer.texture.glo:
+            if s is not None:
+                s.release()
+            s = self._surfaces[name] = SurfaceLayer(self.ctx, layer)
+        return s
 
     def _draw(
         self,
@@ -328,14 +374,16 @@ class SplatRenderer:
         camera: ViewCamera,
         t: float,
         opts: RenderOptions,
-        target: Target,
+        target: Target | SurfaceLayer,
         start: int,
         count: int,
         layer: int = -1,
         sky: bool | None = None,
+        surface_pass: int = 0,
     ) -> Target:
         """Splats ``[start, start + count)`` into ``target``, the sky first when ``start`` is 0 (or as
-        ``sky`` says; False clears to transparent black); ``layer`` >= 0 draws one keyframe only."""
+        ``sky`` says; False clears to transparent black); ``layer`` >= 0 draws one keyframe only;
+        ``surface_pass`` 1 or 2: the passes of surface averaging (module docstring)."""
         target.fbo.use()
         self.ctx.viewport = (0, 0, camera.width, camera.height)
         self.ctx.disable(self.ctx.DEPTH_TEST | self.ctx.CULL_FACE)
@@ -349,10 +397,10 @@ class SplatRenderer:
                 self._draw_sky(cam)
         count = min(count, splats.count - start)
         if count > 0:
-            self._draw_splats(splats, cam, t, opts, start, count, layer)
+            self._draw_splats(splats, cam, t, opts, start, count, layer, surface_pass, target)
         return target
 
-    def _accumulate(self, layer: Target, acc_fbo, weight: float, coverage_full: float) -> None:
+    def _accumulate(self, layer: Target, acc_fbo, weight: float, coverage_full: float, surface: SurfaceLayer | None = None) -> None:
         acc_fbo.use()
         self.ctx.viewport = (0, 0, layer.width, layer.height)
         self.ctx.enable(self.ctx.BLEND)
@@ -361,6 +409,12 @@ class SplatRenderer:
         layer.texture.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
         layer.texture.use(0)
         prog = self.compose_prog
+        prog["u_surface"].value = surface is not None
+        if surface is not None:
+            for unit, t in ((3, surface.sums), (4, surface.stats)):
+                t.texture.filter = (self.ctx.NEAREST, self.ctx.NEAREST)
+                t.texture.use(unit)
+            prog["u_front_sum"].value, prog["u_front_stats"].value = 3, 4
         prog["u_pass"].value, prog["u_layer"].value, prog["u_weight"].value = 0, 0, float(weight)
         prog["u_coverage_full"].value = coverage_full
         self.compose_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
@@ -398,7 +452,16 @@ class SplatRenderer:
         self.sky_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
 
     def _draw_splats(
-        self, splats: GpuSplats, cam: ViewCamera, t: float, opts: RenderOptions, start: int, count: int, layer: int = -1
+        self,
+        splats: GpuSplats,
+        cam: ViewCamera,
+        t: float,
+        opts: RenderOptions,
+        start: int,
+        count: int,
+        layer: int = -1,
+        surface_pass: int = 0,
+        surface: SurfaceLayer | None = None,
     ) -> None:
         prog = self.splat_prog
         units = ("pos", "motion", "cov_a", "cov_b", "sh", "flags", "order")
@@ -421,9 +484,20 @@ class SplatRenderer:
         prog["u_flow_max"].value = max(opts.flow_max, 1e-6)
         prog["u_show_selection"].value = opts.show_selection
         prog["u_near"].value, prog["u_far"].value, prog["u_eps2d"].value = opts.near, min(opts.far, 3e38), opts.eps2d
+        prog["u_surface_pass"].value = surface_pass
         self.ctx.enable(self.ctx.BLEND)
-        self.ctx.blend_func = (self.ctx.SRC_ALPHA, self.ctx.ONE_MINUS_SRC_ALPHA, self.ctx.ONE, self.ctx.ONE_MINUS_SRC_ALPHA)
+        if surface_pass == 1:  # the front depth: the smallest z
+            self.ctx.blend_func = (self.ctx.ONE, self.ctx.ONE)
+            self.ctx.blend_equation = self.ctx.MIN
+        elif surface_pass == 2:  # premultiplied into the three targets (shaders/splat.glsl)
+            surface.front.texture.use(len(units) + 1)
+            prog["u_front"].value = len(units) + 1
+            prog["u_tolerance"].value = opts.layer_blend.surface_tolerance
+            self.ctx.blend_func = (self.ctx.ONE, self.ctx.ONE_MINUS_SRC_ALPHA)
+        else:
+            self.ctx.blend_func = (self.ctx.SRC_ALPHA, self.ctx.ONE_MINUS_SRC_ALPHA, self.ctx.ONE, self.ctx.ONE_MINUS_SRC_ALPHA)
         self._quad_vao(splats.count).render(mode=self.ctx.TRIANGLES, vertices=6 * count, first=6 * start)
+        self.ctx.blend_equation = self.ctx.FUNC_ADD
         self.ctx.disable(self.ctx.BLEND)
 
     def present(
@@ -454,6 +528,9 @@ class SplatRenderer:
     def release(self) -> None:
         if "fbo" in self._acc:
             self._acc.pop("fbo").release()
+        for s in self._surfaces.values():
+            s.release()
+        self._surfaces.clear()
         for t in self._targets.values():
             t.release()
         self._targets.clear()

@@ -4,6 +4,12 @@
 // J W Σ Wᵀ Jᵀ + eps2d I with J clamped off-image as 3DGS, alpha = min(0.99, o exp(-½ dᵀΣ2D⁻¹d)), cut at
 // the 3-sigma ellipse and alpha < 1/255, colour max(SH(d) + 0.5, 0) with d from the camera centre.
 // Pixel (u, v) has its centre at integer coordinates (OpenCV); image row 0 is the top of the viewport.
+// u_surface_pass (drivingscene/render/composite.py, surface averaging; app/renderer.py draws the passes):
+// 0 plain: (rgb, alpha) for back-to-front "over" blending. 1: the splat's camera z, blended with MIN
+// into a front-depth target (the pixel's front-most splat that passes the cut). 2: with premultiplied
+// blending (ONE, ONE_MINUS_SRC_ALPHA) into three targets: a splat within u_tolerance of the front
+// depth adds alpha * rgb to out1 and (alpha, -log(1 - alpha)) to out2 (alpha 0: plain sums) and
+// attenuates out0; one behind it is composited into out0 as in pass 0.
 // Defines: TEX_W (width of the data textures), BLEND_<NAME> (drivingscene.gaussians.timing.shader_blend_defines).
 
 #if defined VERTEX_SHADER
@@ -34,7 +40,8 @@ uniform float u_near;
 uniform float u_far;
 uniform float u_eps2d;
 
-noperspective out vec2 v_offset;  // pixel centre minus the splat's 2D mean (pixels)
+noperspective out vec2 v_offset;
+flat out float v_z;               // camera z of the splat's centre  // pixel centre minus the splat's 2D mean (pixels)
 flat out vec3 v_conic;            // (a, b, c) of Σ2D⁻¹
 flat out vec4 v_color;            // rgb (depth mode: camera z), opacity
 flat out float v_sigma_max;
@@ -89,7 +96,7 @@ vec3 splat_color(int gid, vec3 mean, float z, float flow_mag, bool selected) {
     return rgb;
 }
 
-void cull() { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); v_color = vec4(0.0); v_sigma_max = -1.0; }
+void cull() { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); v_color = vec4(0.0); v_sigma_max = -1.0; v_z = 0.0; }
 
 void main() {
 #if defined INDEXED
@@ -151,16 +158,24 @@ void main() {
     v_offset = offset;
     v_conic = vec3(c, -b, a) / det;
     v_sigma_max = sigma_max;
+    v_z = p.z;
     v_color = vec4(splat_color(gid, mean, p.z, cb.z, (flags & 2u) != 0u), opacity);
 }
 
 #elif defined FRAGMENT_SHADER
 
+uniform int u_surface_pass;
+uniform sampler2D u_front;     // pass 2: the front depth of pass 1
+uniform float u_tolerance;     // relative depth of the front surface
+
 noperspective in vec2 v_offset;
 flat in vec3 v_conic;
 flat in vec4 v_color;
 flat in float v_sigma_max;
-out vec4 fragColor;
+flat in float v_z;
+layout(location = 0) out vec4 out0;
+layout(location = 1) out vec4 out1;
+layout(location = 2) out vec4 out2;
 
 void main() {
     vec2 d = -v_offset;  // the mean relative to the pixel centre; sigma is even in d
@@ -168,7 +183,19 @@ void main() {
     if (sigma > v_sigma_max) discard;
     float alpha = min(0.99, v_color.a * exp(-sigma));
     if (alpha < 1.0 / 255.0) discard;
-    fragColor = vec4(v_color.rgb, alpha);
+    out1 = vec4(0.0);
+    out2 = vec4(0.0);
+    if (u_surface_pass == 0) {
+        out0 = vec4(v_color.rgb, alpha);
+    } else if (u_surface_pass == 1) {
+        out0 = vec4(v_z, 0.0, 0.0, 0.0);
+    } else if (v_z <= texelFetch(u_front, ivec2(gl_FragCoord.xy), 0).r * (1.0 + u_tolerance)) {
+        out0 = vec4(0.0, 0.0, 0.0, alpha);
+        out1 = vec4(alpha * v_color.rgb, 0.0);
+        out2 = vec4(alpha, -log(1.0 - alpha), 0.0, 0.0);
+    } else {
+        out0 = vec4(alpha * v_color.rgb, alpha);
+    }
 }
 
 #endif

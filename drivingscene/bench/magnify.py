@@ -9,12 +9,14 @@ times the input size, against the generator's ground truth rendered at that size
 against the input upsampled bicubically (real, and procedural too), with the share of holes (world
 pixels whose coverage is below 0.95) and that of the image's own layer alone (its raw accumulated
 alpha, before the blend's coverage rule). The first row is the renderer as it was (3DGS footprints
-and low-pass); the row marked default is what the model, the viewer and every benchmark use.
+and low-pass); the row marked default is what the model, the viewer and every benchmark use. Rows
+up to the default add one change each; the rows after it change one thing of the default.
 
 Beside the variants, a reference that knows no geometry: each input image interpolated by
 normalised Gaussians of the splats' smallest size (`gaussian_interpolation`), its samples
-deconvolved as the colour solve does. It is what the splats would draw at the rig poses if a
-surface's Gaussians were averaged instead of composited front to back by depth.
+deconvolved as the colour solve does: what the splats' kernel and the solve give at the rig poses
+without any geometry, against which the surface averaging of each layer (`render.composite`) is
+measured.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import argparse
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -33,11 +35,13 @@ import torch
 from drivingscene.arguments import positive_int
 from drivingscene.data.atomic import atomic_write_text
 from drivingscene.gaussians.assembly import NO_FOOTPRINT_RULE, FootprintRule
+from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.project import EPS2D, EPS2D_3DGS
 from drivingscene.render.scene import LayerBlend
 
 MAGNIFICATIONS = (1, 2, 4)
-BEFORE_BLEND = LayerBlend(coverage_full=1.0, angle_scale=0.5, angle_scale_at_keyframe=0.5)
+BEFORE_BLEND = LayerBlend(coverage_full=1.0, angle_scale=0.5, angle_scale_at_keyframe=0.5, surface_tolerance=0.0)
+COMPOSITED = LayerBlend(surface_tolerance=0.0)  # each layer composited front to back (before surface averaging)
 
 
 @dataclass(frozen=True)
@@ -56,16 +60,20 @@ VARIANTS = (
     Variant("3D floor 0.2 px² (Mip-Splatting filter), low-pass 0.1", FootprintRule(0.0), 0, EPS2D, BEFORE_BLEND),
     Variant("floor + cap at 1 px", FootprintRule(), 0, EPS2D, BEFORE_BLEND),
     Variant("floor + cap + colour solve", FootprintRule(), 2, EPS2D, BEFORE_BLEND),
-    Variant("+ coverage rule (0.7)", FootprintRule(), 2, EPS2D, LayerBlend(angle_scale_at_keyframe=0.5)),
-    Variant("+ own camera at its keyframe (default)", note="default"),
+    Variant("+ coverage rule (0.7)", FootprintRule(), 2, EPS2D, replace(COMPOSITED, angle_scale_at_keyframe=0.5)),
+    Variant("+ own camera at its keyframe", blend=COMPOSITED),
+    Variant(f"+ surface averaging, tolerance {SURFACE_TOLERANCE:g} (default)", note="default"),
+    *(Variant(f"tolerance {tol:g} instead", blend=LayerBlend(surface_tolerance=tol)) for tol in (0.05, 0.1, 0.3) if tol != SURFACE_TOLERANCE),
+    Variant("cap at 0.5 px instead of 1", FootprintRule(0.5)),
     Variant("floor 0.15 px² instead of 0.2", FootprintRule(1.0, 0.15)),
     Variant("floor 0.3 px² instead of 0.2", FootprintRule(1.0, 0.3)),
     Variant("floor 0.45 px², no coverage rule", FootprintRule(1.0, 0.45), 2, 0.05, LayerBlend(coverage_full=1.0)),
     Variant("cap at 2.5 px instead of 1", FootprintRule(2.5)),
     Variant("no cap", FootprintRule(0.0)),
     Variant("sharp view weights at all times (0.1)", blend=LayerBlend(angle_scale=0.1, angle_scale_at_keyframe=0.1)),
+    Variant("one iteration of the colour solve", fit_colors=1),
 )
-DEFAULT = VARIANTS[6]
+DEFAULT = VARIANTS[7]
 QUICK = (VARIANTS[0], DEFAULT)
 
 
@@ -142,7 +150,7 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
     from drivingscene.render.scene import render_eval_frames, render_gaussians, render_input_views, source_axes
 
-    opts = InferenceOptions(fit_colors=variant.fit_colors, footprints=variant.footprints)
+    opts = InferenceOptions(fit_colors=variant.fit_colors, footprints=variant.footprints, surface_tolerance=variant.blend.surface_tolerance)
     times = []
     for _ in range(2):  # the second run is timed warm (kernels built, caches filled)
         start = time.perf_counter()
@@ -188,7 +196,10 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
                 _add(out, f"x{k}_gauss_vs_truth", _psnr(gauss, truths[v], mask))
             _add(out, f"x{k}_holes", float(((res.alphas[0] < 0.95) & solid).sum() / solid.sum().clamp(min=1)))
             own = g.index((g.keyframes == 0) & (g.cameras == v))
-            raw = render_gaussians(own, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k, eps2d=variant.eps2d).alphas[0]
+            raw = render_gaussians(
+                own, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k, eps2d=variant.eps2d,
+                surface_tolerance=variant.blend.surface_tolerance,
+            ).alphas[0]  # fmt: skip
             _add(out, f"x{k}_raw_holes", float(((raw < 0.95) & solid).sum() / solid.sum().clamp(min=1)))
     return {key: (float(np.mean(v)) if isinstance(v, list) else v) for key, v in out.items()}
 

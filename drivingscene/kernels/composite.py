@@ -14,15 +14,18 @@ def composite_forward(
     pair_ids: Tensor,  # [B * H * W, L] int32 splat ids per pixel, front to back, -1 where empty
     width: int,
     height: int,
+    tolerance: float = 0.0,
 ) -> list[Tensor]:
     """Front-to-back compositing of each pixel's splats: colours ``[P, C]`` over the backgrounds,
     expected z-depth ``[P]`` (0 where the accumulated alpha is below 1e-6) and accumulated alpha
-    ``[P]``, float32 (P = B * H * W, pixels row-major per camera).
+    ``[P]``, float32 (P = B * H * W, pixels row-major per camera). ``tolerance`` > 0 averages each
+    pixel's front surface (the splats within that relative depth of its first) instead of
+    compositing it (``drivingscene.render.composite``'s module docstring).
 
     CPU tensors (computed in float32); no autograd (``composite_backward`` is the backward).
     Reference path: ``drivingscene.render.composite.composite_torch`` (the
     same operations, sums in another order: equal up to float rounding)."""
-    return call("composite_forward", packed, backgrounds, pair_ids, width, height)
+    return call("composite_forward", packed, backgrounds, pair_ids, width, height, float(tolerance))
 
 
 @compiled
@@ -37,6 +40,7 @@ def composite_backward(
     grad_rgb: Tensor,  # [P, C] dL/dcolours
     grad_depth: Tensor,  # [P] dL/ddepth
     grad_alpha: Tensor,  # [P] dL/dalpha
+    tolerance: float = 0.0,  # as composite_forward
 ) -> list[Tensor]:
     """The gradients of the loss with respect to ``packed`` ``[M, 7 + C]`` and ``backgrounds``
     ``[B, C]``, float32: per pixel the 3DGS backward (no gradient through alpha where it is
@@ -45,5 +49,6 @@ def composite_backward(
     CPU tensors (computed in float32). Reference path:
     ``drivingscene.render.composite.composite_backward_torch`` (equal up to float rounding)."""
     return call(
-        "composite_backward", packed, backgrounds, pair_ids, width, height, depth, weight_sum, grad_rgb, grad_depth, grad_alpha
+        "composite_backward", packed, backgrounds, pair_ids, width, height, depth, weight_sum, grad_rgb, grad_depth, grad_alpha,
+        float(tolerance),
     )

@@ -44,6 +44,7 @@ from drivingscene.models.pipeline import (
 )
 from drivingscene.precision import resolve_amp
 from drivingscene.render.color_solve import ITERATIONS as COLOR_ITERATIONS
+from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.sky import fit_sky_from_pixels
 from drivingscene.resources import asset_path
 
@@ -74,6 +75,9 @@ class InferenceOptions:
     # Iterations of the colour solve that makes each input image's own Gaussians re-render it
     # (render/color_solve.py, docs/magnification.md); 0: P's colours as they are.
     fit_colors: int = COLOR_ITERATIONS
+    # The surface tolerance the colour solve fits each image's own layer for: the layered blends'
+    # (render.scene.LayerBlend.surface_tolerance); 0: front-to-back compositing.
+    surface_tolerance: float = SURFACE_TOLERANCE
     # The footprint rule on P's scales (gaussians/assembly.py); NO_FOOTPRINT_RULE: as 3DGS (ablation).
     footprints: FootprintRule = FootprintRule()
 
@@ -296,7 +300,7 @@ def reconstruct(
     t0 = time.perf_counter()
     gaussians = assemble(
         static, batch, sky, scene_flow, local_to_world=batch.local_to_world, fit_colors=options.fit_colors,
-        footprints=options.footprints,
+        footprints=options.footprints, surface_tolerance=options.surface_tolerance,
     )  # fmt: skip
     if options.carve is not None:
         t1 = time.perf_counter()

@@ -688,12 +688,14 @@ def assemble(
     local_to_world: Tensor | None = None,  # [4, 4]: build them in the world frame directly
     fit_colors: int = 0,
     footprints: FootprintRule = FootprintRule(),
+    surface_tolerance: float | None = None,
 ) -> Gaussians:
     """Gaussians of the requested keyframes in the local frame, or the world frame with
     ``local_to_world`` (one pass, not a second transform of every Gaussian); sky pixels excluded.
     ``fit_colors`` > 0: that many iterations of the colour solve (`render.color_solve`) that makes
     each input image's own Gaussians re-render it (inference; training leaves the colours to P).
-    ``footprints``: the footprint rule applied to P's scales (`gaussians.assembly`)."""
+    ``footprints``: the footprint rule applied to P's scales (`gaussians.assembly`);
+    ``surface_tolerance``: the own layer's rule the solve fits for (None: the layered blends' default)."""
     num_views = batch.num_views
     p = static.params
     cams = batch.cam_to_local
@@ -714,7 +716,10 @@ def assemble(
     quats, valid, sh = per_view(p.quats), ~per_view(sky.flatten(0, 1)), per_view(p.sh)
     log_scales = pixel_footprints(depth.detach(), intrinsics, quats, per_view(p.log_scales), footprints)
     if fit_colors > 0:
-        sh = _fitted_sh(depth, intrinsics, quats, log_scales, per_view(p.opacity_logits), sh, per_view(batch.images.flatten(0, 1)), valid, fit_colors)
+        sh = _fitted_sh(
+            depth, intrinsics, quats, log_scales, per_view(p.opacity_logits), sh, per_view(batch.images.flatten(0, 1)), valid,
+            fit_colors, surface_tolerance,
+        )  # fmt: skip
     return gaussians_from_pixels(
         depth,
         intrinsics,
@@ -731,14 +736,16 @@ def assemble(
     )
 
 
-def _fitted_sh(depth, intrinsics, quats, log_scales, opacity_logits, sh, images, valid, iterations: int) -> Tensor:
+def _fitted_sh(depth, intrinsics, quats, log_scales, opacity_logits, sh, images, valid, iterations: int, tolerance=None) -> Tensor:
     """``sh`` ``[I, H, W, K, 3]`` with the DC colour solved by `solve_pixel_colors` (images ``[I, 3, H, W]``)."""
     from drivingscene.render.color_solve import solve_pixel_colors
+    from drivingscene.render.composite import SURFACE_TOLERANCE
 
     start = SH_C0 * sh[..., 0, :].float() + 0.5  # the view-independent colour, unclamped
     solved = solve_pixel_colors(
         depth.detach().float(), intrinsics, quats.detach(), log_scales.detach(), torch.sigmoid(opacity_logits.detach().float()),
         start.detach().clamp(min=0.0), images.permute(0, 2, 3, 1).float(), valid, iterations,
+        surface_tolerance=SURFACE_TOLERANCE if tolerance is None else tolerance,
     )
     change = torch.where(solved > 0, solved - start, (-start).clamp(max=0.0))
     out = sh.clone()

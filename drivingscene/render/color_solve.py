@@ -4,8 +4,8 @@ Per-pixel Gaussians overlap their neighbours (the footprint rule of ``gaussians.
 sure they do, so that magnified views stay closed), and splatting the input's colours as they are
 blurs each image by that overlap: the input views came back like a Gaussian blur of sigma 0.9 px.
 With geometry and opacities fixed, an image's own layer (its Gaussians alone, as the layered
-blends draw it) is linear in the colours: ``C(p) = sum_i w_i(p) c_i`` with the front-to-back
-weights ``w_i``, and the layered blends show it un-premultiplied, ``C / alpha``, where it covers.
+blends draw it) is linear in the colours: ``C(p) = sum_i w_i(p) c_i`` with the weights ``w_i``
+of its front surface averaged (``render.composite``) and of what lies behind it composited, and the layered blends show it un-premultiplied, ``C / alpha``, where it covers.
 ``solve_pixel_colors`` finds colours for which that equals the input at every Gaussian's own
 pixel, by projected Richardson (Van Cittert) iterations ``c <- clip(c + I(p) - C(p) / alpha(p))``
 with the pairs (which Gaussians touch which pixel, in order) found once: the deconvolution of the
@@ -23,7 +23,7 @@ from torch import Tensor
 from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import own_view_covariance
 from drivingscene.geometry.camera import unproject
-from drivingscene.render.composite import composite, find_pairs_cpp, find_pairs_torch, pair_inputs
+from drivingscene.render.composite import SURFACE_TOLERANCE, composite, find_pairs_cpp, find_pairs_torch, pair_inputs
 from drivingscene.render.project import EPS2D
 from drivingscene.render.rasterize import DEFAULT_MAX_LAYERS, choose_backend
 from drivingscene.render.splats import Splats
@@ -99,9 +99,11 @@ def solve_pixel_colors(
     iterations: int = ITERATIONS,
     eps2d: float = EPS2D,
     backend: str = "auto",
+    surface_tolerance: float = SURFACE_TOLERANCE,
 ) -> Tensor:
     """Colours ``[I, H, W, 3]`` for which each image's own layer re-renders ``images`` (module
-    docstring); unchanged at pixels that make no Gaussian. No gradients."""
+    docstring); unchanged at pixels that make no Gaussian. ``surface_tolerance``: the own layer's
+    rule (the layered blends' `LayerBlend.surface_tolerance`). No gradients."""
     if images.shape != colors.shape or images.shape[:3] != depth.shape or images.shape[-1] != 3:
         raise InputError(
             f"solve_pixel_colors: colors and images must be [I, H, W, 3] matching depth {list(depth.shape)}, "
@@ -120,7 +122,8 @@ def solve_pixel_colors(
         black = torch.zeros(depth.shape[0], 3)
         for _ in range(iterations):
             rgb, _, alpha = composite(
-                pair_ids, inp.means2d, inp.conics, inp.opacities, splats.depths, solved, black, width, height, compiled
+                pair_ids, inp.means2d, inp.conics, inp.opacities, splats.depths, solved, black, width, height, compiled,
+                surface_tolerance,
             )
             rgb, alpha = rgb.reshape(-1, 3).index_select(0, pixel), alpha.reshape(-1).index_select(0, pixel)
             covered = (alpha >= MIN_COVERAGE)[:, None]

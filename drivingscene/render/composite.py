@@ -13,6 +13,14 @@ splats contribute per pixel. Pair finding applies these rules without grad and r
 ``[P, max_layers]``; ``composite`` recomputes alphas and weights with autograd over that buffer.
 The torch and C++ pair finders do the same float32 operations in the same order, so they return the
 same pairs.
+
+Surface averaging (``surface_tolerance`` tau > 0; the depth tolerance of EWA surface splatting,
+Zwicker et al. 2001, docs/magnification.md): the pixel's front group F, its first splat and the
+splats after it whose depth is within ``z_0 (1 + tau)``, is averaged instead of composited,
+``w_i = A alpha_i / sum_F alpha`` with ``A = 1 - prod_F (1 - alpha)``, and what lies behind it is
+composited as above under the transmittance ``1 - A``. Compositing one surface front to back lets
+the nearer of two neighbouring splats win between their centres, which a magnified view shows; the
+average interpolates them. Accumulated alpha is unchanged. tau = 0 is plain compositing.
 """
 
 from __future__ import annotations
@@ -23,12 +31,16 @@ import torch
 from torch import Tensor
 
 from drivingscene import kernels
+from drivingscene.errors import InputError
 from drivingscene.render.splats import Splats
 
 MAX_ALPHA = 0.99
 MIN_TRANSMITTANCE = 1e-4
 SIGMA_CUT = 4.5  # 3-sigma ellipse: 0.5 * 3**2
 MIN_WEIGHT_SUM = 1e-6  # below this accumulated alpha, expected depth is reported as 0
+# The layered blends' and the colour solve's surface tolerance (relative depth; docs/magnification.md):
+# an image's own layer is one surface, averaged within it. 0 would be plain compositing.
+SURFACE_TOLERANCE = 0.2
 _CHUNK = 1 << 22  # candidate (splat, pixel) pairs evaluated at once by the torch pair finder
 _PIXEL_CHUNK = 8192  # pixels composited at once (keeps [pixels, layers] temporaries near cache size)
 
@@ -206,8 +218,9 @@ def composite(
     width: int,
     height: int,
     compiled: bool = False,
+    surface_tolerance: float = 0.0,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Differentiable compositing over the pair buffer.
+    """Differentiable compositing over the pair buffer (``surface_tolerance``: module docstring).
 
     Returns colours ``[B, H, W, C]`` over the backgrounds, expected z-depth ``[B, H, W]`` (metres,
     ``sum w z / sum w``, 0 where ``sum w < 1e-6``) and accumulated alpha ``[B, H, W]`` (``sum w``).
@@ -220,7 +233,9 @@ def composite(
     if packed.shape[0] == 0:
         packed = packed.new_zeros(1, packed.shape[1])
     compiled = compiled and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (packed, backgrounds))
-    rgb, depth, alpha = _Composite.apply(packed, backgrounds, pair_ids, width, height, compiled)
+    if not surface_tolerance >= 0.0:
+        raise InputError(f"surface_tolerance must be >= 0 (a relative depth), found {surface_tolerance}")
+    rgb, depth, alpha = _Composite.apply(packed, backgrounds, pair_ids, width, height, compiled, float(surface_tolerance))
     return (
         rgb.reshape(num_cams, height, width, channels),
         depth.reshape(num_cams, height, width),
@@ -244,11 +259,11 @@ class _Composite(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int, compiled: bool):
+    def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int, compiled: bool, tolerance: float):
         forward = kernels.composite_forward if compiled else composite_torch
-        rgb, depth, weight_sum = forward(packed, backgrounds, pair_ids, width, height)
+        rgb, depth, weight_sum = forward(packed, backgrounds, pair_ids, width, height, tolerance)
         ctx.save_for_backward(packed, backgrounds, pair_ids, depth, weight_sum)
-        ctx.size, ctx.compiled = (width, height), compiled
+        ctx.size, ctx.compiled, ctx.tolerance = (width, height), compiled, tolerance
         return rgb, depth, weight_sum
 
     @staticmethod
@@ -256,13 +271,13 @@ class _Composite(torch.autograd.Function):
         backward = kernels.composite_backward if ctx.compiled else composite_backward_torch
         packed, backgrounds, pair_ids, depth, weight_sum = ctx.saved_tensors
         grad_packed, grad_bg = backward(
-            packed, backgrounds, pair_ids, *ctx.size, depth, weight_sum, grad_rgb, grad_depth, grad_alpha
+            packed, backgrounds, pair_ids, *ctx.size, depth, weight_sum, grad_rgb, grad_depth, grad_alpha, ctx.tolerance
         )
-        return grad_packed, grad_bg, None, None, None, None
+        return grad_packed, grad_bg, None, None, None, None, None
 
 
 def composite_torch(
-    packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int
+    packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int, tolerance: float = 0.0
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The torch compositing (`kernels.composite_forward`'s reference): colours ``[P, C]``, depth and
     accumulated alpha ``[P]``, over blocks of pixels so that the ``[pixels, layers]`` temporaries
@@ -273,12 +288,12 @@ def composite_torch(
     weight_sum = packed.new_empty(num_pixels)
     for start, ids in _pixel_chunks(pair_ids):
         g = _gather(packed, backgrounds, ids, start, width, height)
-        trans = torch.cumprod(1.0 - g.alpha, dim=1)  # [p, L] after each layer
-        weights = g.alpha * torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+        f = _front_group(g, ids, tolerance)
         end = start + len(ids)
-        ws = weights.sum(1)
+        ws = f.weights.sum(1)
         weight_sum[start:end] = ws
-        rgb[start:end] = torch.stack([(weights * c).sum(1) for c in g.colors], dim=-1) + trans[:, -1:] * g.bg
+        rgb[start:end] = torch.stack([(f.weights * c).sum(1) for c in g.colors], dim=-1) + f.trans_final[:, None] * g.bg
+        weights = f.weights
         has = ws >= MIN_WEIGHT_SUM
         depth[start:end] = torch.where(has, (weights * g.z).sum(1) / torch.where(has, ws, torch.ones_like(ws)), 0.0)
     return rgb, depth, weight_sum
@@ -295,6 +310,7 @@ def composite_backward_torch(
     grad_rgb: Tensor,
     grad_depth: Tensor,
     grad_alpha: Tensor,
+    tolerance: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """The torch backward (`kernels.composite_backward`'s reference): gradients of ``packed`` and
     ``backgrounds``, block by block as `composite_torch`."""
@@ -305,31 +321,72 @@ def composite_backward_torch(
     for start, ids in _pixel_chunks(pair_ids):
         end = start + len(ids)
         g = _gather(packed, backgrounds, ids, start, width, height)
-        trans = torch.cumprod(1.0 - g.alpha, dim=1)
-        trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
-        trans_final[start:end] = trans[:, -1]
-        grads = _chunk_grads(
-            g, trans_before, trans[:, -1], grad_rgb[start:end], grad_d[start:end], grad_alpha[start:end], depth[start:end]
-        )
+        f = _front_group(g, ids, tolerance)
+        trans_final[start:end] = f.trans_final
+        grads = _chunk_grads(g, f, grad_rgb[start:end], grad_d[start:end], grad_alpha[start:end], depth[start:end])
         grad_packed.index_add_(0, ids.clamp(min=0).reshape(-1), grads.flatten(0, 1))
     num_cams, channels = backgrounds.shape
     grad_bg = (grad_rgb * trans_final[:, None]).reshape(num_cams, -1, channels).sum(1)
     return grad_packed, grad_bg
 
 
-def _chunk_grads(
-    g, trans_before: Tensor, trans_final: Tensor, grad_rgb: Tensor, grad_d: Tensor, grad_alpha: Tensor, depth: Tensor
-) -> Tensor:
+@dataclass(frozen=True)
+class _Front:
+    """Per pixel block: the front group's mask ``[p, L]``, its transmittance ``P`` and alpha sum
+    ``[p]``, the weights ``[p, L]`` and the transmittance before each slot (1 in the group) and
+    after the last ``[p]``."""
+
+    mask: Tensor
+    trans: Tensor
+    alpha_sum: Tensor
+    weights: Tensor
+    trans_before: Tensor
+    trans_final: Tensor
+    single: Tensor  # [p] bool: the group is one splat (plain compositing, computed as such)
+
+
+def _front_group(g, ids: Tensor, tolerance: float) -> _Front:
+    """The front group of each pixel (module docstring) and the weights of every slot."""
+    valid = ids >= 0
+    first = valid & (valid.cumsum(1) == 1)  # the first listed splat (slots may be empty)
+    if tolerance > 0.0:
+        z_limit = torch.where(first, g.z, 0.0).sum(1, keepdim=True) * (1.0 + tolerance)
+        near = (valid & (g.z <= z_limit)) | ~valid  # empty slots do not close the group
+        mask = valid & (near.cumprod(1) > 0)
+    else:
+        mask = first
+    alpha_f = torch.where(mask, g.alpha, 0.0)
+    alpha_r = torch.where(mask, 0.0, g.alpha)
+    trans_f = torch.prod(1.0 - alpha_f, dim=1)  # [p]
+    sum_f = alpha_f.sum(1)
+    single = mask.sum(1) == 1
+    scale = torch.where(single, torch.ones_like(sum_f), (1.0 - trans_f) / torch.where(sum_f > 0, sum_f, torch.ones_like(sum_f)))
+    trans_r = torch.cumprod(1.0 - alpha_r, dim=1) * trans_f[:, None]  # [p, L] after each slot, behind the group
+    before_r = torch.cat([trans_f[:, None], trans_r[:, :-1]], dim=1)
+    trans_before = torch.where(mask, 1.0, before_r)
+    weights = torch.where(mask, alpha_f * scale[:, None], alpha_r * before_r)
+    return _Front(mask, trans_f, sum_f, weights, trans_before, trans_r[:, -1], single)
+
+
+def _chunk_grads(g, f: _Front, grad_rgb: Tensor, grad_d: Tensor, grad_alpha: Tensor, depth: Tensor) -> Tensor:
     """Gradients ``[p, L, 7 + C]`` w.r.t. the gathered splat rows of one pixel block (``grad_d = dL/dD / S``)."""
-    weights = g.alpha * trans_before  # [p, L]
+    weights = f.weights  # [p, L]
     # dL/dw_k: colour, expected depth (z_k - D) / S and alpha (sum of w) terms.
     v = grad_alpha[:, None] + grad_d[:, None] * (g.z - depth[:, None])
     for ch, c in enumerate(g.colors):
         v = v + grad_rgb[:, ch : ch + 1] * c
-    vw = v * weights
-    behind = torch.cumsum(vw.flip(1), dim=1).flip(1) - vw  # sum over j > k of v_j w_j
-    behind = behind + ((grad_rgb * g.bg).sum(-1) * trans_final)[:, None]
-    grad_alpha_k = v * trans_before - behind / (1.0 - g.alpha)
+    vw = torch.where(f.mask, 0.0, v * weights)  # behind the group
+    behind = torch.cumsum(vw.flip(1), dim=1).flip(1) - vw  # sum over j > k behind the group of v_j w_j
+    bg_term = (grad_rgb * g.bg).sum(-1) * f.trans_final
+    behind = behind + bg_term[:, None]
+    behind_group = vw.sum(1) + bg_term  # [p] B: everything behind the front group
+    plain = v * f.trans_before - behind / (1.0 - g.alpha)
+    safe_sum = torch.where(f.alpha_sum > 0, f.alpha_sum, torch.ones_like(f.alpha_sum))
+    mean_v = (torch.where(f.mask, v * g.alpha, 0.0).sum(1) / safe_sum)[:, None]
+    cover = (1.0 - f.trans) / safe_sum
+    averaged = cover[:, None] * (v - mean_v) + (mean_v * f.trans[:, None] - behind_group[:, None]) / (1.0 - g.alpha)
+    in_single = v - behind_group[:, None] / (1.0 - g.alpha)
+    grad_alpha_k = torch.where(f.mask, torch.where(f.single[:, None], in_single, averaged), plain)
     grad_raw = torch.where(g.passes, grad_alpha_k, 0.0)  # clamp at 0.99 and empty slots stop gradients
     grad_sigma = -grad_raw * g.raw
     grads = (

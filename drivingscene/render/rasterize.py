@@ -79,6 +79,7 @@ def rasterize(
     max_layers: int = DEFAULT_MAX_LAYERS,
     backend: str = "auto",
     views: Tensor | None = None,  # [N] int: the one camera of the batch each Gaussian is drawn into
+    surface_tolerance: float = 0.0,  # > 0: each pixel's front surface averaged (render.composite)
 ) -> RenderOutput:
     """Render RGB, expected depth and alpha of Gaussians into ``B`` cameras.
 
@@ -86,17 +87,21 @@ def rasterize(
     the most Gaussians composited per pixel (the front-most contributing ones). With SH colours the
     view direction is from each camera centre to the Gaussian. ``views`` draws each Gaussian into
     one camera of the batch only (its source image, say; -1: none), so that a batch of images each
-    of its own Gaussians is one call (not on the gsplat backend). Raises ``InputError`` on bad shapes.
+    of its own Gaussians is one call (not on the gsplat backend). ``surface_tolerance`` > 0 averages
+    the splats within that relative depth of each pixel's front-most one instead of compositing
+    them (`drivingscene.render.composite`; not on the gsplat backend). Raises ``InputError`` on bad shapes.
     """
     backgrounds = check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, sh_degree)
     if max_layers < 1:
         raise InputError(f"max_layers must be >= 1, found {max_layers}")
     chosen = choose_backend(backend, means)
+    if chosen == "gsplat" and backend == "auto" and (views is not None or surface_tolerance > 0):
+        chosen = "torch"  # what gsplat does not do
     if views is not None and tuple(views.shape) != (means.shape[0],):
         raise InputError(f"views: expected shape [{means.shape[0]}] (one camera per Gaussian), found {list(views.shape)}")
     if chosen == "gsplat":
-        if views is not None:
-            raise InputError("views: not supported by the gsplat backend; use backend 'torch' or 'cpp'")
+        if views is not None or surface_tolerance > 0:
+            raise InputError("views and surface_tolerance: not supported by the gsplat backend; use backend 'torch' or 'cpp'")
         from drivingscene.render.gsplat_backend import rasterize_gsplat
 
         return rasterize_gsplat(
@@ -117,7 +122,8 @@ def rasterize(
     else:
         pair_ids = find_pairs_torch(inp, width, height, max_layers)
     rgb, depth, alpha = composite(
-        pair_ids, s.means2d, s.conics, s.opacities, s.depths, s.colors, backgrounds, width, height, compiled=chosen == "cpp"
+        pair_ids, s.means2d, s.conics, s.opacities, s.depths, s.colors, backgrounds, width, height, compiled=chosen == "cpp",
+        surface_tolerance=surface_tolerance,
     )
     return RenderOutput(colors=rgb, depths=depth, alphas=alpha)
 

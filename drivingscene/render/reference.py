@@ -6,7 +6,10 @@ no culling boxes, no pair buffer, no layer cap) to test it. Same semantics as ``
 dropped; a Gaussian contributes to a pixel iff its squared Mahalanobis distance is ``<= 9`` and
 ``opacity * exp(-m²/2) >= 1/255``; alpha is clamped to 0.99; compositing is front to back by the
 centre's camera ``z``, and a contribution that would bring transmittance below 1e-4 is dropped and
-the pixel stops. Cost is ``O(B H W N)`` memory and time: small scenes only.
+the pixel stops. ``surface_tolerance`` > 0: each pixel's front group (its first contributing
+Gaussian and those right behind it within that relative depth) is averaged, weights
+``A alpha_i / sum alpha`` with ``A = 1 - prod (1 - alpha)`` over the group. Cost is ``O(B H W N)``
+memory and time: small scenes only.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ def rasterize_reference(
     near: float = 0.01,
     far: float = 1e10,
     eps2d: float = EPS2D,
+    surface_tolerance: float = 0.0,
 ) -> RenderOutput:
     """Float64 dense rendering with the semantics of ``rasterize`` and no ``max_layers`` cap."""
     backgrounds = check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, sh_degree)
@@ -45,7 +49,8 @@ def rasterize_reference(
     covars = rot @ torch.diag_embed(scales**2) @ rot.transpose(-1, -2)  # [N, 3, 3]
     outs = [
         _render_camera(
-            means, covars, opacities, colors, viewmats[b], Ks[b], backgrounds[b], width, height, sh_degree, near, far, eps2d
+            means, covars, opacities, colors, viewmats[b], Ks[b], backgrounds[b], width, height, sh_degree, near, far, eps2d,
+            surface_tolerance,
         )
         for b in range(viewmats.shape[0])
     ]
@@ -71,7 +76,7 @@ def _screen_gaussians(p, covars, viewmat, K, width, height, eps2d):
     return uv, cov2d
 
 
-def _render_camera(means, covars, opacities, colors, viewmat, K, background, width, height, sh_degree, near, far, eps2d):
+def _render_camera(means, covars, opacities, colors, viewmat, K, background, width, height, sh_degree, near, far, eps2d, tol):
     p = means @ viewmat[:3, :3].T + viewmat[:3, 3]  # [N, 3] camera frame
     keep = ((p[:, 2] >= near) & (p[:, 2] <= far)).nonzero().squeeze(1)
     order = keep[torch.sort(p[keep, 2], stable=True).indices]  # front to back, ties by index
@@ -90,16 +95,36 @@ def _render_camera(means, covars, opacities, colors, viewmat, K, background, wid
     rgb = means.new_zeros(len(pix), colors.shape[-1])
     depth_sum = means.new_zeros(len(pix))
     weight_sum = means.new_zeros(len(pix))
+    # the front group: open until a contributor lies beyond z_limit; its sums of alpha, alpha c, alpha z
+    started = torch.zeros_like(done)
+    in_front = torch.ones_like(done)
+    z_limit = means.new_zeros(len(pix))
+    f_trans, f_sum, f_z = means.new_ones(len(pix)), means.new_zeros(len(pix)), means.new_zeros(len(pix))
+    f_rgb = torch.zeros_like(rgb)
     for i, gi in enumerate(order.tolist()):
         a = torch.where(done, torch.zeros_like(alpha[:, i]), alpha[:, i])
         stop = (a > 0) & (trans * (1 - a) < 1e-4)
         done = done | stop
         a = torch.where(stop, torch.zeros_like(a), a)
-        w = a * trans
+        z = p[gi, 2]
+        first = (a > 0) & ~started
+        z_limit = torch.where(first, z * (1 + tol), z_limit)
+        started = started | first
+        front = (a > 0) & in_front & (first | ((z <= z_limit) if tol > 0 else torch.zeros_like(first)))
+        in_front = in_front & ~((a > 0) & ~front)
+        af = torch.where(front, a, torch.zeros_like(a))
+        f_trans, f_sum, f_z = f_trans * (1 - af), f_sum + af, f_z + af * z
+        f_rgb = f_rgb + af[:, None] * colors[gi]
+        w = torch.where(front, torch.zeros_like(a), a * trans)
         rgb = rgb + w[:, None] * colors[gi]
-        depth_sum = depth_sum + w * p[gi, 2]
+        depth_sum = depth_sum + w * z
         weight_sum = weight_sum + w
         trans = trans * (1 - a)
+    cover = 1 - f_trans
+    scale = torch.where(f_sum > 0, cover / torch.where(f_sum > 0, f_sum, torch.ones_like(f_sum)), torch.zeros_like(f_sum))
+    rgb = rgb + scale[:, None] * f_rgb
+    depth_sum = depth_sum + scale * f_z
+    weight_sum = weight_sum + cover
     rgb = rgb + trans[:, None] * background
     has = weight_sum >= 1e-6
     depth = torch.where(has, depth_sum / torch.where(has, weight_sum, torch.ones_like(weight_sum)), torch.zeros_like(depth_sum))

@@ -13,6 +13,7 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
 from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.geometry.se3 import invert_rigid
+from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.rasterize import RenderOutput, rasterize
 from drivingscene.render.sky import ray_directions, sky_colors
 
@@ -136,6 +137,7 @@ class LayerBlend:
     coverage_full: float = COVERAGE_FULL  # 1: a layer's alpha is its coverage (as before the rule)
     angle_scale: float = CAMERA_ANGLE_SCALE
     angle_scale_at_keyframe: float = CAMERA_ANGLE_SCALE_AT_KEYFRAME
+    surface_tolerance: float = SURFACE_TOLERANCE  # each layer's front surface averaged (render.composite); 0: composited
 
     def view_weight(self, cos, keyframe: int, t: float):
         """View weight of a layer of ``keyframe`` at normalised time ``t`` whose camera's optical
@@ -205,13 +207,15 @@ def _render_sets(
     if not sets:
         return render_gaussians(gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **kwargs)
     black = torch.zeros(3, device=world_to_cam.device)
+    rule = layer_blend or LayerBlend()
+    kwargs.setdefault("surface_tolerance", rule.surface_tolerance)
     layers = [
         render_gaussians(part, t, world_to_cam, intrinsics, height, width, background=black, **kwargs)
         for part in _layer_parts(gaussians, [mask for mask, _ in sets])
     ]
     weights = torch.stack([w for _, w in sets])
     background = background_colors(world_to_cam, intrinsics, height, width, sky_sh, background)
-    return _compose(layers, weights, background, (layer_blend or LayerBlend()).coverage_full)
+    return _compose(layers, weights, background, rule.coverage_full)
 
 
 def _layer_parts(gaussians: Gaussians, masks: list[Tensor]) -> list[Gaussians]:

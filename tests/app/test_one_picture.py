@@ -17,7 +17,7 @@ from drivingscene.gaussians.recon import save_reconstruction
 from drivingscene.geometry.camera import scale_intrinsics
 from drivingscene.methods.oracle import oracle_reconstruction
 from drivingscene.render.project import EPS2D, EPS2D_3DGS
-from drivingscene.render.scene import render_gaussians, source_axes
+from drivingscene.render.scene import LayerBlend, render_gaussians, source_axes
 from drivingscene.sources import open_source
 
 
@@ -38,12 +38,19 @@ def test_headless_rig_views_are_the_cpu_rasterizers(synth_pair_96, tmp_path, sca
     height, width = recon.image_size
     assert gl.shape == (height * scale, width * scale, 3)
     k = scale_intrinsics(torch.from_numpy(recon.intrinsics[1:2]).float(), scale, scale)
-    cpu = render_gaussians(
-        recon.visible(), t, recon.world_to_cam_at(t)[1:2].float(), k, height * scale, width * scale,
-        sky_sh=recon.sky_sh, blend="cameras", source_axes=source_axes(recon), max_layers=256,
-    ).colors[0].clamp(0, 1).numpy()  # fmt: skip
-    assert _psnr(gl, np.round(cpu * 255) / 255) >= 35.0
-    assert cpu.std() > 0.05
+
+    def cpu(rule: LayerBlend) -> np.ndarray:
+        return render_gaussians(
+            recon.visible(), t, recon.world_to_cam_at(t)[1:2].float(), k, height * scale, width * scale,
+            sky_sh=recon.sky_sh, blend="cameras", source_axes=source_axes(recon), max_layers=256, layer_blend=rule,
+        ).colors[0].clamp(0, 1).numpy()  # fmt: skip
+
+    same = cpu(LayerBlend())
+    assert _psnr(gl, np.round(same * 255) / 255) >= 40.0
+    assert same.std() > 0.05
+    # the rule is the one both draw with: each layer's surface averaged, not composited
+    composited = cpu(LayerBlend(surface_tolerance=0.0))
+    assert _psnr(gl, np.round(same * 255) / 255) > _psnr(gl, np.round(composited * 255) / 255) + 3.0
 
 
 def test_the_low_pass_follows_the_file(tmp_path, synth_pair_96):

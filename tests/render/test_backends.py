@@ -56,7 +56,8 @@ def _pair_buffer(num_pixels: int, layers: int, num_splats: int, seed: int) -> to
     return ids
 
 
-def test_compiled_compositing_equals_the_torch_path_forward_and_backward(cpp_op):
+@pytest.mark.parametrize("tolerance", [0.0, 0.3])
+def test_compiled_compositing_equals_the_torch_path_forward_and_backward(cpp_op, tolerance):
     from drivingscene.render.composite import _Composite
 
     width, height, cams, channels, splats = 13, 7, 3, 3, 60
@@ -72,12 +73,14 @@ def test_compiled_compositing_equals_the_torch_path_forward_and_backward(cpp_op)
     results = []
     for compiled in (True, False):
         leaves = packed.clone().requires_grad_(True), backgrounds.clone().requires_grad_(True)
-        rgb, depth, alpha = _Composite.apply(*leaves, ids, width, height, compiled)
+        rgb, depth, alpha = _Composite.apply(*leaves, ids, width, height, compiled, tolerance)
         assert (depth[(ids < 0).all(1)] == 0).all()
         (rgb.cos().sum() + (depth * torch.linspace(0, 1, len(depth))).sum() + alpha.square().sum()).backward()
         results.append((rgb, depth, alpha, leaves[0].grad, leaves[1].grad))
+    # the averaged group's backward cancels terms of similar size: rounding grows to ~1e-5
+    atol = 1e-6 if tolerance == 0 else 5e-5
     for name, a, b in zip(("rgb", "depth", "alpha", "grad packed", "grad backgrounds"), *results):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=atol, msg=name)
 
 
 def test_compiled_compositing_gives_the_same_gradients_on_any_number_of_threads(cpp_op):

@@ -26,14 +26,16 @@ def _render_with_grads(fn, scene, dtype, weights, **kw):
 
 @pytest.mark.parametrize("sh_degree", [None, 3])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_forward_and_gradients_match_reference(backend, sh_degree, seed):
+@pytest.mark.parametrize("tolerance", [0.0, 0.15])
+def test_forward_and_gradients_match_reference(backend, sh_degree, seed, tolerance):
     scene = random_scene(num=60, num_cams=2, seed=seed, sh_degree=sh_degree)
     assert 3 < max_contributors(scene) <= 32, "scene must be layered but within max_layers"
     g = torch.Generator().manual_seed(seed + 10)
     shape = (2, scene["height"], scene["width"])
     weights = (torch.randn(*shape, 3, generator=g), torch.randn(*shape, generator=g), torch.randn(*shape, generator=g))
-    ref, ref_grads = _render_with_grads(rasterize_reference, scene, torch.float64, weights)
-    out, grads = _render_with_grads(rasterize, scene, torch.float32, weights, backend=backend, max_layers=32)
+    kw = {"surface_tolerance": tolerance}
+    ref, ref_grads = _render_with_grads(rasterize_reference, scene, torch.float64, weights, **kw)
+    out, grads = _render_with_grads(rasterize, scene, torch.float32, weights, backend=backend, max_layers=32, **kw)
     assert (ref.alphas > 0.01).float().mean() > 0.5, "scene should cover the images"
     for name in ("colors", "depths", "alphas"):
         err = (getattr(out, name).double() - getattr(ref, name)).abs().max()
@@ -212,3 +214,32 @@ def test_invalid_inputs_raise_with_shapes():
         rasterize(**scene, backend="opengl")
     with pytest.raises(InputError, match="max_layers"):
         rasterize(**scene, max_layers=0)
+
+
+def test_surface_averaging_reweights_the_front_surface_only(backend):
+    """Two splats at nearly one depth over a far one: averaged, the near pair shows the mean of
+    its colours where plain compositing lets the nearer win; the far one and the accumulated alpha
+    are as before; tolerance 0 is plain compositing."""
+    means = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, 5.1], [0.0, 0.0, 9.0]])
+    scene = dict(
+        means=means,
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(3, 1),
+        scales=torch.full((3, 3), 0.05),
+        opacities=torch.tensor([0.6, 0.6, 0.9]),
+        colors=torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+        viewmats=torch.eye(4)[None],
+        Ks=torch.tensor([[[100.0, 0.0, 4.0], [0.0, 100.0, 4.0], [0.0, 0.0, 1.0]]]),
+        width=9,
+        height=9,
+    )
+    plain = rasterize(**scene, backend=backend)
+    averaged = rasterize(**scene, backend=backend, surface_tolerance=0.05)
+    torch.testing.assert_close(rasterize(**scene, backend=backend, surface_tolerance=0.0).colors, plain.colors, rtol=0, atol=0)
+    torch.testing.assert_close(averaged.alphas, plain.alphas)
+    front = 1 - (1 - 0.6) ** 2  # at the centre: both near splats at alpha 0.6
+    red, green, blue = averaged.colors[0, 4, 4].tolist()
+    assert red == pytest.approx(front / 2, abs=1e-5) and green == pytest.approx(front / 2, abs=1e-5)
+    assert blue == pytest.approx((1 - front) * 0.9, abs=1e-5)
+    assert plain.colors[0, 4, 4, 0] == pytest.approx(0.6, abs=1e-5)  # the nearer wins
+    with pytest.raises(InputError, match="surface_tolerance"):
+        rasterize(**scene, backend=backend, surface_tolerance=-0.1)
