@@ -26,6 +26,7 @@ from drivingscene_view.renderer import RenderOptions
 
 from drivingscene.data.atomic import atomic_write_text
 from drivingscene.errors import InputError
+from drivingscene.render.scene import LayerBlend
 
 WIDTH, HEIGHT = 1280, 720
 CEILING = (35e6, 45e6)  # fragments/s of splat rendering measured on these machines (shared/FACTS.md)
@@ -124,10 +125,9 @@ def measure_moving(viewport, doc, cams, ctx) -> dict:
     return {"frame": frame[warm], "sort": sort[warm], "upload": upload[warm], "steps": steps[warm]}
 
 
-def measure_rest(viewport, doc, cams, ctx) -> dict:
+def measure_rest(viewport, doc, cams, ctx, opts: RenderOptions = RenderOptions()) -> dict:
     from drivingscene_view.sorter import depth_order
 
-    opts = RenderOptions()
     out = {"draw": [], "sort": [], "upload": [], "fragments": []}
     for cam, t in cams:
         req = viewport._request(viewport.full, cam, t, opts)
@@ -186,6 +186,8 @@ def run_bench(args) -> int:
             "fill_rate": fill_rate(ctx),
             "moving": measure_moving(viewport, doc, _cameras(doc, args.frames), ctx),
             "rest": measure_rest(viewport, doc, _cameras(doc, 3), ctx),
+            # the same pictures with each layer composited in one pass, as before surface averaging
+            "rest_composited": measure_rest(viewport, doc, _cameras(doc, 3), ctx, RenderOptions(layer_blend=LayerBlend(surface_tolerance=0.0))),
             "baseline": measure_baseline(viewport, doc, _cameras(doc, 3), ctx),
             "lod_s": lod_s,
             "levels": [len(s.splats) for s in viewport.levels],
@@ -220,7 +222,7 @@ def _cpu() -> str:
 
 
 def report(r: dict) -> str:
-    mv, rest, base = r["moving"], r["rest"], r["baseline"]
+    mv, rest, base, flat = r["moving"], r["rest"], r["baseline"], r["rest_composited"]
     frags = statistics.median(rest["fragments"])
     floor = frags / r["fill_rate"]
     rest_draw = statistics.median(rest["draw"])
@@ -239,6 +241,9 @@ def report(r: dict) -> str:
         f"{frags / 1e6:.1f} M fragments: floor {1e3 * frags / CEILING[1]:.0f}-{1e3 * frags / CEILING[0]:.0f} ms at 35-45 M/s -> "
         f"{rest_total * CEILING[0] / frags:.2f}-{rest_total * CEILING[1] / frags:.2f}x; {1e3 * floor:.0f} ms at this run's "
         f"large-splat rate -> {rest_total / floor:.2f}x |",
+        f"| at rest, each layer composited (surface tolerance 0: one pass per layer) | {_ms(flat['draw'])} ms draw | – | – | – | "
+        f"{statistics.median(flat['fragments']) / 1e6:.1f} M fragments; the default's surface averaging (a front-depth pass, then "
+        f"the splats) draws in {rest_draw / statistics.median(flat['draw']):.2f}x this time |",
         f"| baseline: float argsort of all + full res every frame | {_ms(base['frame'])} ms | {_ms(base['sort'])} ms | "
         f"{_ms(base['upload'])} ms | {100 * statistics.median([s + u for s, u in zip(base['sort'], base['upload'])]) / statistics.median(base['frame']):.1f} % | "
         f"moving-frame speed-up {statistics.median(base['frame']) / statistics.median(mv['frame']):.1f}x |",
