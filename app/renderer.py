@@ -104,26 +104,38 @@ class Target:
         self.texture.release()
 
 
-class SurfaceLayer:
-    """A layer's targets for surface averaging: the front depth (R, float32), the front surface's
-    sum of alpha * rgb and its (sum alpha, sum -log(1 - alpha)) (RG, float32), and one framebuffer
-    over the layer's own target and those two (pass 2 of ``shaders/splat.glsl``)."""
+class SurfaceTargets:
+    """Surface averaging's scratch targets: the front depth (R, float32), the front surface's sum of
+    alpha * rgb (the layer's format) and its (sum alpha, sum -log(1 - alpha)) (RG, float32)."""
 
-    def __init__(self, ctx, layer: Target):
-        self.front = Target(ctx, layer.width, layer.height, "f4", components=1)
+    def __init__(self, ctx, width: int, height: int, dtype: str):
+        self.size = (width, height, dtype)
+        self.front = Target(ctx, width, height, "f4", components=1)
         self.front.texture.filter = (ctx.NEAREST, ctx.NEAREST)
-        self.sums = Target(ctx, layer.width, layer.height, layer.dtype)
-        self.stats = Target(ctx, layer.width, layer.height, "f4", components=2)
+        self.sums = Target(ctx, width, height, dtype)
+        self.stats = Target(ctx, width, height, "f4", components=2)
+
+    def release(self) -> None:
+        for t in (self.front, self.sums, self.stats):
+            t.release()
+
+
+class SurfaceLayer:
+    """A layer's framebuffer for pass 2 of ``shaders/splat.glsl``: the layer's own target and the
+    scratch targets' sums and stats (``SurfaceTargets``, shared by the layers of one picture when
+    each layer is one contiguous range of the order, so that one layer is finished before the next)."""
+
+    def __init__(self, ctx, layer: Target, targets: SurfaceTargets):
+        self.targets = targets
+        self.front, self.sums, self.stats = targets.front, targets.sums, targets.stats
         self.fbo = ctx.framebuffer(color_attachments=[layer.texture, self.sums.texture, self.stats.texture])
-        self.key = layer.texture.glo
+        self.key = (layer.texture.glo, self.sums.texture.glo)
 
     def release(self) -> None:
         ctx = self.fbo.ctx
         if ctx.fbo == self.fbo:
             (ctx.screen or ctx.detect_framebuffer(0)).use()
         self.fbo.release()
-        for t in (self.front, self.sums, self.stats):
-            t.release()
 
 
 class GpuSplats:
@@ -243,6 +255,7 @@ class SplatRenderer:
         self._targets: dict[str, Target] = {}
         self._acc: dict = {}  # the two-attachment framebuffer over the accumulation targets
         self._surfaces: dict[str, SurfaceLayer] = {}  # per layer target name (surface averaging)
+        self._surface_targets: dict[str, SurfaceTargets] = {}  # per picture target, or per layer
         self._quads = 0
         self._ibo = self._splat_vao = None
         self.sky = np.zeros((1, 3), np.float32)
@@ -336,14 +349,19 @@ class SplatRenderer:
         if start == 0:
             acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
         tolerance = opts.layer_blend.surface_tolerance
+        # in the order of their ranges: a layer's scratch targets are free again once it is added
+        layers = sorted(layers, key=lambda layer: min(a for a, _ in layer[2]))
+        contiguous = splats.segments is not None and all(len(ranges) == 1 for _, _, ranges, _ in layers)
         for name, weight, ranges, keyframe in layers:
             layer_name = f"layer-{name}@{target.texture.glo}"
             layer = self.target(target.width, target.height, target.dtype, name=layer_name)
-            surface = self._surface(layer_name, layer) if tolerance > 0 else None
+            scratch = f"surface@{target.texture.glo}" if contiguous else layer_name
+            surface = self._surface(layer_name, layer, scratch) if tolerance > 0 else None
             if start == 0:
-                (surface or layer).fbo.clear(0.0, 0.0, 0.0, 0.0)
+                layer.fbo.clear(0.0, 0.0, 0.0, 0.0)
             first = min(a for a, _ in ranges)
             if surface is not None and start <= first < end:  # the front depth of the whole layer, before any of it is drawn
+                surface.fbo.clear(0.0, 0.0, 0.0, 0.0)  # the layer (still empty) and its sums
                 surface.front.fbo.clear(3e38, 0.0, 0.0, 0.0)
                 for a, b in ranges:
                     self._draw(splats, camera, t, opts, surface.front, a, b - a, layer=keyframe, sky=False, surface_pass=1)
@@ -359,13 +377,20 @@ class SplatRenderer:
         self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
         self._resolve(acc, target)
 
-    def _surface(self, name: str, layer: Target) -> SurfaceLayer:
-        """The surface-averaging targets of the layer target ``name`` (made again when it was)."""
+    def _surface(self, name: str, layer: Target, scratch: str) -> SurfaceLayer:
+        """The surface-averaging framebuffer of the layer target ``name`` over the scratch targets
+        ``scratch`` (each made again when its target was)."""
+        t = self._surface_targets.get(scratch)
+        size = (layer.width, layer.height, layer.dtype)
+        if t is None or t.size != size:
+            if t is not None:
+                t.release()
+            t = self._surface_targets[scratch] = SurfaceTargets(self.ctx, *size)
         s = self._surfaces.get(name)
-        if s is None or s.key != layer.texture.glo:
+        if s is None or s.key != (layer.texture.glo, t.sums.texture.glo):
             if s is not None:
                 s.release()
-            s = self._surfaces[name] = SurfaceLayer(self.ctx, layer)
+            s = self._surfaces[name] = SurfaceLayer(self.ctx, layer, t)
         return s
 
     def _draw(
@@ -531,6 +556,9 @@ class SplatRenderer:
         for s in self._surfaces.values():
             s.release()
         self._surfaces.clear()
+        for t in self._surface_targets.values():
+            t.release()
+        self._surface_targets.clear()
         for t in self._targets.values():
             t.release()
         self._targets.clear()
