@@ -15,7 +15,10 @@ Semantics (every backend but gsplat, and the float64 reference ``rasterize_refer
 5. Order: per camera, by camera-space ``z`` of the centre (computed in float64), ties by index.
 6. Front-to-back compositing ``w_i = alpha_i Π_{j<i} (1 - alpha_j)``; a Gaussian that would bring the
    transmittance below 1e-4 is dropped and the pixel stops (as 3DGS); at most ``max_layers``
-   contributing Gaussians per pixel, the front-most ones (the reference has no cap).
+   contributing Gaussians per pixel, the front-most ones (the reference has no cap). With
+   ``surface_tolerance`` > 0 the pixel's front surface (its first Gaussian and those within that
+   relative depth behind it) is averaged instead, ``w_i = A alpha_i / sum alpha`` with
+   ``A = 1 - prod (1 - alpha)``, and the rest composited under it (``composite.py``).
 7. Outputs: ``colors = Σ w_i c_i + T·background``; ``depths = Σ w_i z_i / Σ w_i`` (camera z of the
    centres, metres), 0 where ``Σ w_i < 1e-6``; ``alphas = Σ w_i = 1 - T``.
 
