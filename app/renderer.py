@@ -126,7 +126,6 @@ class SurfaceLayer:
     each layer is one contiguous range of the order, so that one layer is finished before the next)."""
 
     def __init__(self, ctx, layer: Target, targets: SurfaceTargets):
-        self.targets = targets
         self.front, self.sums, self.stats = targets.front, targets.sums, targets.stats
         self.fbo = ctx.framebuffer(color_attachments=[layer.texture, self.sums.texture, self.stats.texture])
         self.key = (layer.texture.glo, self.sums.texture.glo)
@@ -422,7 +421,8 @@ class SplatRenderer:
                 self._draw_sky(cam)
         count = min(count, splats.count - start)
         if count > 0:
-            self._draw_splats(splats, cam, t, opts, start, count, layer, surface_pass, target)
+            front = target.front if surface_pass == 2 else None
+            self._draw_splats(splats, cam, t, opts, start, count, layer, surface_pass, front)
         return target
 
     def _accumulate(self, layer: Target, acc_fbo, weight: float, coverage_full: float, surface: SurfaceLayer | None = None) -> None:
@@ -486,7 +486,7 @@ class SplatRenderer:
         count: int,
         layer: int = -1,
         surface_pass: int = 0,
-        surface: SurfaceLayer | None = None,
+        front: Target | None = None,  # surface_pass 2: the layer's front depth
     ) -> None:
         prog = self.splat_prog
         units = ("pos", "motion", "cov_a", "cov_b", "sh", "flags", "order")
@@ -515,7 +515,7 @@ class SplatRenderer:
             self.ctx.blend_func = (self.ctx.ONE, self.ctx.ONE)
             self.ctx.blend_equation = self.ctx.MIN
         elif surface_pass == 2:  # premultiplied into the three targets (shaders/splat.glsl)
-            surface.front.texture.use(len(units) + 1)
+            front.texture.use(len(units) + 1)
             prog["u_front"].value = len(units) + 1
             prog["u_tolerance"].value = opts.layer_blend.surface_tolerance
             self.ctx.blend_func = (self.ctx.ONE, self.ctx.ONE_MINUS_SRC_ALPHA)

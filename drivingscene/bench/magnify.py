@@ -196,10 +196,7 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
                 _add(out, f"x{k}_gauss_vs_truth", _psnr(gauss, truths[v], mask))
             _add(out, f"x{k}_holes", float(((res.alphas[0] < 0.95) & solid).sum() / solid.sum().clamp(min=1)))
             own = g.index((g.keyframes == 0) & (g.cameras == v))
-            raw = render_gaussians(
-                own, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k, eps2d=variant.eps2d,
-                surface_tolerance=variant.blend.surface_tolerance,
-            ).alphas[0]  # fmt: skip
+            raw = render_gaussians(own, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k, eps2d=variant.eps2d).alphas[0]
             _add(out, f"x{k}_raw_holes", float(((raw < 0.95) & solid).sum() / solid.sum().clamp(min=1)))
     return {key: (float(np.mean(v)) if isinstance(v, list) else v) for key, v in out.items()}
 

@@ -43,6 +43,7 @@ from drivingscene.models.depth import DepthOutput
 from drivingscene.models.gaussian_head import PixelGaussians
 from drivingscene.models.matching import ViewGeometry, neighbour_views
 from drivingscene.models.model import DrivingSceneModel
+from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.sh import SH_C0
 
 EPIPOLAR_DEPTHS = ("triangulated", "unmatched", "keep")
@@ -688,14 +689,14 @@ def assemble(
     local_to_world: Tensor | None = None,  # [4, 4]: build them in the world frame directly
     fit_colors: int = 0,
     footprints: FootprintRule = FootprintRule(),
-    surface_tolerance: float | None = None,
+    surface_tolerance: float = SURFACE_TOLERANCE,
 ) -> Gaussians:
     """Gaussians of the requested keyframes in the local frame, or the world frame with
     ``local_to_world`` (one pass, not a second transform of every Gaussian); sky pixels excluded.
     ``fit_colors`` > 0: that many iterations of the colour solve (`render.color_solve`) that makes
     each input image's own Gaussians re-render it (inference; training leaves the colours to P).
     ``footprints``: the footprint rule applied to P's scales (`gaussians.assembly`);
-    ``surface_tolerance``: the own layer's rule the solve fits for (None: the layered blends' default)."""
+    ``surface_tolerance``: the own layer's rule the solve fits for (the layered blends')."""
     num_views = batch.num_views
     p = static.params
     cams = batch.cam_to_local
@@ -736,16 +737,15 @@ def assemble(
     )
 
 
-def _fitted_sh(depth, intrinsics, quats, log_scales, opacity_logits, sh, images, valid, iterations: int, tolerance=None) -> Tensor:
+def _fitted_sh(depth, intrinsics, quats, log_scales, opacity_logits, sh, images, valid, iterations: int, tolerance: float) -> Tensor:
     """``sh`` ``[I, H, W, K, 3]`` with the DC colour solved by `solve_pixel_colors` (images ``[I, 3, H, W]``)."""
     from drivingscene.render.color_solve import solve_pixel_colors
-    from drivingscene.render.composite import SURFACE_TOLERANCE
 
     start = SH_C0 * sh[..., 0, :].float() + 0.5  # the view-independent colour, unclamped
     solved = solve_pixel_colors(
         depth.detach().float(), intrinsics, quats.detach(), log_scales.detach(), torch.sigmoid(opacity_logits.detach().float()),
         start.detach().clamp(min=0.0), images.permute(0, 2, 3, 1).float(), valid, iterations,
-        surface_tolerance=SURFACE_TOLERANCE if tolerance is None else tolerance,
+        surface_tolerance=tolerance,
     )
     change = torch.where(solved > 0, solved - start, (-start).clamp(max=0.0))
     out = sh.clone()

@@ -293,9 +293,8 @@ def composite_torch(
         ws = f.weights.sum(1)
         weight_sum[start:end] = ws
         rgb[start:end] = torch.stack([(f.weights * c).sum(1) for c in g.colors], dim=-1) + f.trans_final[:, None] * g.bg
-        weights = f.weights
         has = ws >= MIN_WEIGHT_SUM
-        depth[start:end] = torch.where(has, (weights * g.z).sum(1) / torch.where(has, ws, torch.ones_like(ws)), 0.0)
+        depth[start:end] = torch.where(has, (f.weights * g.z).sum(1) / torch.where(has, ws, torch.ones_like(ws)), 0.0)
     return rgb, depth, weight_sum
 
 

@@ -62,6 +62,20 @@ Inputs check(const char* name, const at::Tensor& packed_in, const at::Tensor& ba
   return c;
 }
 
+// Whether a splat at depth z joins the front group holding `count` splats (its limit z_limit).
+inline bool joins_front(int64_t count, float tol, float z, float z_limit) { return count == 0 || (tol > 0.0f && z <= z_limit); }
+
+// The front group's coverage A = 1 - P and the factor A / S_F of its splats' alphas; one splat:
+// exactly plain compositing's w = alpha (no 1 - (1 - alpha) rounding); none: zero.
+struct FrontWeights {
+  float cover, scale;
+};
+inline FrontWeights front_weights(int64_t count, float alpha_sum, float trans) {
+  if (count == 1) return {alpha_sum, 1.0f};
+  const float cover = 1.0f - trans;
+  return {cover, alpha_sum > 0.0f ? cover / alpha_sum : 0.0f};
+}
+
 }  // namespace
 
 std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at::Tensor& backgrounds_in, const at::Tensor& pair_ids,
@@ -89,14 +103,12 @@ std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at:
       // the front group: alpha sum, transmittance through it, sum alpha z; open until a splat beyond it
       float f_sum = 0.0f, f_trans = 1.0f, f_z = 0.0f, z_limit = 0.0f;
       int64_t f_count = 0;
-      bool in_front = true, started = false;
+      bool in_front = true;
       auto close_front = [&]() {  // the group's average, weighted by its coverage A = 1 - P
-        // one splat: exactly plain compositing's w = alpha (no 1 - (1 - alpha) rounding)
-        const float cover = f_count == 1 ? f_sum : 1.0f - f_trans;
-        const float scale = f_count == 1 ? 1.0f : (f_sum > 0.0f ? cover / f_sum : 0.0f);
-        for (int64_t ch = 0; ch < channels; ++ch) acc[ch] = front[ch] * scale;
-        ws = cover;
-        wz = f_z * scale;
+        const FrontWeights fw = front_weights(f_count, f_sum, f_trans);
+        for (int64_t ch = 0; ch < channels; ++ch) acc[ch] = front[ch] * fw.scale;
+        ws = fw.cover;
+        wz = f_z * fw.scale;
         trans = f_trans;
         in_front = false;
       };
@@ -111,9 +123,8 @@ std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at:
         const float dx = u - r[0], dy = v - r[1];
         const float sigma = 0.5f * (r[2] * dx * dx + r[4] * dy * dy) + r[3] * dx * dy;
         const float alpha = std::min(r[5] * std::exp(-sigma), kMaxAlpha);
-        if (in_front && (!started || (tol > 0.0f && r[6] <= z_limit))) {
-          if (!started) z_limit = r[6] * (1.0f + tol);
-          started = true;
+        if (in_front && joins_front(f_count, tol, r[6], z_limit)) {
+          if (f_count == 0) z_limit = r[6] * (1.0f + tol);
           ++f_count;
           f_sum += alpha;
           f_trans *= 1.0f - alpha;
@@ -130,7 +141,7 @@ std::vector<at::Tensor> composite_forward(const at::Tensor& packed_in, const at:
         wz += w * r[6];
         for (int64_t ch = 0; ch < channels; ++ch) acc[ch] += w * r[kFixed + ch];
       }
-      if (in_front && started) close_front();
+      if (in_front && f_count > 0) close_front();
       const float* bg = bgs + (p / image) * channels;
       for (int64_t ch = 0; ch < channels; ++ch) o_rgb[p * channels + ch] = acc[ch] + trans * bg[ch];
       o_ws[p] = ws;
@@ -205,7 +216,7 @@ std::vector<at::Tensor> composite_backward(const at::Tensor& packed_in, const at
         float vv = g_alpha[p] + grad_d * (r[6] - dep[p]);
         for (int64_t ch = 0; ch < channels; ++ch) vv = vv + gr[ch] * r[kFixed + ch];
         vk[k] = vv;
-        if (in_front && (f_count == 0 || (tol > 0.0f && r[6] <= z_limit))) {
+        if (in_front && joins_front(f_count, tol, r[6], z_limit)) {
           if (f_count == 0) z_limit = r[6] * (1.0f + tol);
           ++f_count;
           f_sum += alpha[k];
@@ -222,8 +233,7 @@ std::vector<at::Tensor> composite_backward(const at::Tensor& packed_in, const at
         trans = trans * (1.0f - alpha[k]);
       }
       if (in_front) trans = f_trans;
-      const float cover = f_count == 1 ? f_sum : 1.0f - f_trans;
-      const float scale = f_count == 1 ? 1.0f : (f_sum > 0.0f ? cover / f_sum : 0.0f);
+      const float scale = front_weights(f_count, f_sum, f_trans).scale;
       float mean_v = 0.0f;  // M = sum_F v alpha / S_F
       for (int64_t k = 0; k < f_end; ++k) {
         weight[k] = alpha[k] * scale;
