@@ -135,7 +135,9 @@ def test_the_fallback_matches_again_where_d_has_the_wrong_shape(synth_pair, monk
     assert fallback[1][:, 4].sum() > depth_only[1][:, 4].sum()  # more of camera 4 triangulated
     assert _abs_rel(fallback[0], gt, cam4) < 0.8 * _abs_rel(depth_only[0], gt, cam4)
     others = [0, 1, 2, 3, 5]
-    assert torch.equal(fallback[0][:, others], depth_only[0][:, others])
+    # the same values, not the same bits: a batch of one camera and one of six take different kernel
+    # paths on some CPUs (Sapphire Rapids), so the last digit may differ
+    torch.testing.assert_close(fallback[0][:, others], depth_only[0][:, others], rtol=1e-5, atol=1e-5)
 
 
 def test_matching_at_half_size_corrects_too(synth_pair):
