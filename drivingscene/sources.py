@@ -65,7 +65,7 @@ def _kind_of_arrays(arrays: dict) -> str:
 
 
 def source_kind(path: str | Path) -> str:
-    """"scene", "recon" or "ply" by the rule of `open_source` (the suffix, then the .npz's
+    """ "scene", "recon" or "ply" by the rule of `open_source` (the suffix, then the .npz's
     ``format``), without building what it holds; "scene" where the file cannot be read as one of
     them, so that the scene reader says what is wrong."""
     path = Path(path)

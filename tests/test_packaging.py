@@ -39,7 +39,11 @@ def test_package_list_names_every_folder():
     listed = set(config["packages"])
     data_packages = {"drivingscene.shaders", "drivingscene.assets"}
     assert listed - data_packages == source_packages()
-    assert config["package-dir"] == {"drivingscene_view": "app", "drivingscene.shaders": "shaders", "drivingscene.assets": "assets"}
+    assert config["package-dir"] == {
+        "drivingscene_view": "app",
+        "drivingscene.shaders": "shaders",
+        "drivingscene.assets": "assets",
+    }
 
 
 def ignored_by_git(path: Path) -> bool:
@@ -99,29 +103,52 @@ def test_installed_wheel_runs_from_another_folder(wheel, tmp_path):
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
     bin_dir = venv / "bin"
     site = Path(
-        subprocess.check_output([bin_dir / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], text=True).strip()
+        subprocess.check_output(
+            [bin_dir / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], text=True
+        ).strip()
     )
     (site / "deps.pth").write_text(sysconfig.get_path("purelib") + "\n")
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DRIVINGSCENE_HOME")}
     subprocess.run(
         [bin_dir / "python", "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)],
-        check=True, env=env, capture_output=True, text=True, timeout=300,
+        check=True,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     work = tmp_path / "elsewhere"
     work.mkdir()
     where = subprocess.run(
-        [bin_dir / "python", "-c", "import drivingscene, drivingscene_view; print(drivingscene.__file__, drivingscene_view.__file__)"],
-        cwd=work, env=env, check=True, capture_output=True, text=True,
+        [
+            bin_dir / "python",
+            "-c",
+            "import drivingscene, drivingscene_view; print(drivingscene.__file__, drivingscene_view.__file__)",
+        ],
+        cwd=work,
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
     ).stdout
     assert str(ROOT) not in where and str(site) in where
     synth = subprocess.run(
-        [bin_dir / "drivingscene", "synth", "--seed", "1", "--res", "48x88", "--out", "pair.npz"], cwd=work, env=env, capture_output=True, text=True, timeout=300
+        [bin_dir / "drivingscene", "synth", "--seed", "1", "--res", "48x88", "--out", "pair.npz"],
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert synth.returncode == 0, synth.stderr
     assert (work / "pair.npz").is_file()
     view = subprocess.run(
         [bin_dir / "drivingscene-view", "--headless", "--out", "view", "--time", "0.5", "--camera", "CAM_FRONT", "--no-ply"],
-        cwd=work, env=env | {"PYOPENGL_PLATFORM": "egl"}, capture_output=True, text=True, timeout=600,
+        cwd=work,
+        env=env | {"PYOPENGL_PLATFORM": "egl"},
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert view.returncode == 0, view.stderr
     assert sorted(p.name for p in (work / "view").glob("*.png")) == ["CAM_FRONT_t0.500.png", "overview_t0.500.png"]

@@ -21,9 +21,7 @@ for name in {VIEWER_ONLY!r}:
 
 
 def run_blocked(code: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-c", BLOCKED + code], cwd=ROOT, capture_output=True, text=True, timeout=300
-    )
+    return subprocess.run([sys.executable, "-c", BLOCKED + code], cwd=ROOT, capture_output=True, text=True, timeout=300)
 
 
 def test_dependencies_leave_the_window_stack_to_the_viewer_extra():

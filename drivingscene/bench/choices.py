@@ -192,7 +192,9 @@ def parse_variant(text: str) -> Variant:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, nargs="+", required=True, help="validation pair folders or single scene files (each reported apart)")
+    p.add_argument(
+        "--data", type=Path, nargs="+", required=True, help="validation pair folders or single scene files (each reported apart)"
+    )
     p.add_argument("--count", type=int, default=6, help="pairs per folder (default 6)")
     p.add_argument("--weights", type=Path, default=None, help="model (default: the shipped weights)")
     p.add_argument(

@@ -224,7 +224,17 @@ def run(args: argparse.Namespace) -> int:
     without = ("search",) if args.no_search else ()
     with Progress("drivingscene bench inference") as progress:  # on stderr once it takes more than a second
         rows = measure(
-            model, args.sizes, args.runs, amp, args.threads, without, args.weights, args.device, args.scenes, args.match, progress,
+            model,
+            args.sizes,
+            args.runs,
+            amp,
+            args.threads,
+            without,
+            args.weights,
+            args.device,
+            args.scenes,
+            args.match,
+            progress,
             args.profile,
         )
     from drivingscene.kernels import load_extension

@@ -27,7 +27,9 @@ DEFAULT_TONES = ("gamma=0.6", "gamma=1", "gamma=1.6", "gain=0.6", "gain=1.6")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, nargs="+", required=True, help="folders of pairs and/or pair files with ground-truth depth")
+    p.add_argument(
+        "--data", type=Path, nargs="+", required=True, help="folders of pairs and/or pair files with ground-truth depth"
+    )
     p.add_argument("--count", type=positive_int, default=10, help="pairs per folder (default 10)")
     p.add_argument(
         "--weights", type=Path, nargs="+", default=None, help="model weights to compare (default: the shipped weights)"

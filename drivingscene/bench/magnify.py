@@ -63,7 +63,11 @@ VARIANTS = (
     Variant("+ coverage rule (0.7)", FootprintRule(), 2, EPS2D, replace(COMPOSITED, angle_scale_at_keyframe=0.5)),
     Variant("+ own camera at its keyframe", blend=COMPOSITED),
     Variant(f"+ surface averaging, tolerance {SURFACE_TOLERANCE:g} (default)", note="default"),
-    *(Variant(f"tolerance {tol:g} instead", blend=LayerBlend(surface_tolerance=tol)) for tol in (0.05, 0.1, 0.3) if tol != SURFACE_TOLERANCE),
+    *(
+        Variant(f"tolerance {tol:g} instead", blend=LayerBlend(surface_tolerance=tol))
+        for tol in (0.05, 0.1, 0.3)
+        if tol != SURFACE_TOLERANCE
+    ),
     Variant("cap at 0.5 px instead of 1", FootprintRule(0.5)),
     Variant("floor 0.15 px² instead of 0.2", FootprintRule(1.0, 0.15)),
     Variant("floor 0.3 px² instead of 0.2", FootprintRule(1.0, 0.3)),
@@ -113,7 +117,9 @@ def _magnified(intrinsics: np.ndarray, k: int) -> torch.Tensor:
     return scale_intrinsics(torch.from_numpy(intrinsics).float(), k, k)
 
 
-def gaussian_interpolation(image: torch.Tensor, k: int, floor: float = FootprintRule().floor, eps2d: float = EPS2D, iterations: int = 2) -> torch.Tensor:
+def gaussian_interpolation(
+    image: torch.Tensor, k: int, floor: float = FootprintRule().floor, eps2d: float = EPS2D, iterations: int = 2
+) -> torch.Tensor:
     """``image`` ``[H, W, C]`` resampled at ``k`` times its size by normalised Gaussians centred on its
     pixels (variance ``floor`` source px² plus the screen low-pass ``eps2d`` output px², the
     smallest splats the footprint rule allows), after ``iterations`` Richardson steps that make the
@@ -150,7 +156,9 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
     from drivingscene.render.scene import render_eval_frames, render_gaussians, render_input_views, source_axes
 
-    opts = InferenceOptions(fit_colors=variant.fit_colors, footprints=variant.footprints, surface_tolerance=variant.blend.surface_tolerance)
+    opts = InferenceOptions(
+        fit_colors=variant.fit_colors, footprints=variant.footprints, surface_tolerance=variant.blend.surface_tolerance
+    )
     times = []
     for _ in range(2):  # the second run is timed warm (kernels built, caches filled)
         start = time.perf_counter()
@@ -159,13 +167,19 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
     out = {"seconds": times[-1]}
     raster = {"eps2d": variant.eps2d, "layer_blend": variant.blend}
     height, width = pair.image_size
-    world = torch.from_numpy(pair.valid_mask) if pair.valid_mask is not None else torch.ones(pair.num_views, height, width, dtype=torch.bool)
+    world = (
+        torch.from_numpy(pair.valid_mask)
+        if pair.valid_mask is not None
+        else torch.ones(pair.num_views, height, width, dtype=torch.bool)
+    )
     inputs = torch.from_numpy(pair.images).float() / 255
     views = render_input_views(recon, pair, **raster)
     out["input_views"] = _psnr(views, inputs, world[None].expand(2, -1, -1, -1))
     if pair.num_eval:
         frames = render_eval_frames(recon, pair, **raster)
-        out["in_between"] = _psnr(frames, torch.from_numpy(pair.eval_images).float() / 255, world[None].expand(pair.num_eval, -1, -1, -1))
+        out["in_between"] = _psnr(
+            frames, torch.from_numpy(pair.eval_images).float() / 255, world[None].expand(pair.num_eval, -1, -1, -1)
+        )
     g, axes = recon.visible(), source_axes(recon)
     w2c = recon.world_to_cam_at(0.0).float()
     surface = torch.from_numpy(recon.depth[0] > 0) & world  # pixels that see a surface (not sky)
@@ -173,11 +187,17 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
         kk = _magnified(recon.intrinsics, k)
         if truth is not None and ("truth", k) not in references:  # the rig's poses: the same for every variant
             cams = np.linalg.inv(w2c.double().numpy())
-            references["truth", k] = torch.from_numpy(truth.render(cams, kk.double().numpy(), (height * k, width * k), 0.0).images)
+            references["truth", k] = torch.from_numpy(
+                truth.render(cams, kk.double().numpy(), (height * k, width * k), 0.0).images
+            )
         truths = references.get(("truth", k))
         for v in range(pair.num_views):
-            mask = torch.from_numpy(cv2.resize(world[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0)
-            solid = torch.from_numpy(cv2.resize(surface[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0)
+            mask = torch.from_numpy(
+                cv2.resize(world[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0
+            )
+            solid = torch.from_numpy(
+                cv2.resize(surface[v].numpy().astype(np.uint8), (width * k, height * k), interpolation=cv2.INTER_NEAREST) > 0
+            )
             res = render_gaussians(
                 g, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k,
                 sky_sh=recon.sky_sh, blend="cameras", source_axes=axes, **raster,
@@ -185,7 +205,9 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
             image = res.colors[0].clamp(0, 1)
             if ("bicubic", k, v) not in references:
                 source = pair.images[0, v].astype(np.float32) / 255
-                references["bicubic", k, v] = torch.from_numpy(np.clip(cv2.resize(source, (width * k, height * k), interpolation=cv2.INTER_CUBIC), 0, 1))
+                references["bicubic", k, v] = torch.from_numpy(
+                    np.clip(cv2.resize(source, (width * k, height * k), interpolation=cv2.INTER_CUBIC), 0, 1)
+                )
                 references["gauss", k, v] = gaussian_interpolation(torch.from_numpy(source), k).clamp(0, 1)
             up, gauss = references["bicubic", k, v], references["gauss", k, v]
             _add(out, f"x{k}_vs_bicubic", _psnr(image, up, mask))
@@ -270,9 +292,11 @@ def _markdown(args, sets, variants, seeds, config, machine, minutes) -> str:
     for name, rows in sets.items():
         truth = name == "procedural"
         lines += [f"### {'Procedural test pairs' if truth else name}", ""]
-        head = "| variant | s/pair | input views | in-between | " + " | ".join(
-            f"{k}x vs {'truth' if truth else 'bicubic'}" for k in MAGNIFICATIONS
-        ) + " | 4x holes | 4x raw holes |"
+        head = (
+            "| variant | s/pair | input views | in-between | "
+            + " | ".join(f"{k}x vs {'truth' if truth else 'bicubic'}" for k in MAGNIFICATIONS)
+            + " | 4x holes | 4x raw holes |"
+        )
         lines += [head, "|" + "---|" * (head.count("|") - 1)]
         for v in variants:
             sc = rows[v.name]

@@ -40,7 +40,12 @@ NEAREST = "nearest kept LiDAR return (held-out half)"
 # noise-free) scores this instead of +inf, so that means over cameras stay finite: about the PSNR of
 # 8-bit rounding alone (58.9 dB), rounded up.
 PSNR_CEILING = 60.0
-DEPTH_COLS = (("abs_rel", "AbsRel", "{:.3f}"), ("sq_rel", "SqRel", "{:.3f}"), ("rmse", "RMSE (m)", "{:.2f}"), ("a1", "δ<1.25", "{:.3f}"))
+DEPTH_COLS = (
+    ("abs_rel", "AbsRel", "{:.3f}"),
+    ("sq_rel", "SqRel", "{:.3f}"),
+    ("rmse", "RMSE (m)", "{:.2f}"),
+    ("a1", "δ<1.25", "{:.3f}"),
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,11 +56,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     amp.add_argument("--amp", dest="amp", action="store_true", default=None, help="force bf16 autocast")
     amp.add_argument("--no-amp", dest="amp", action="store_false", help="force float32")
     p.add_argument("--repeats", type=int, default=3, help="timed reconstructions per scene after a warm-up (default 3)")
-    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
+    p.add_argument(
+        "--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)"
+    )
     p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (e.g. docs/real-data.md)")
     p.add_argument("--json", type=Path, default=None, help="also write every score as JSON")
-    p.add_argument("--title", default="DrivingScene on real frames", help="the report's heading (e.g. for procedural pairs scored the same way)")
-    p.add_argument("--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/real-data-notes.md)")
+    p.add_argument(
+        "--title",
+        default="DrivingScene on real frames",
+        help="the report's heading (e.g. for procedural pairs scored the same way)",
+    )
+    p.add_argument(
+        "--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/real-data-notes.md)"
+    )
     p.add_argument("--images", type=Path, default=None, help="folder for the side-by-side figures (e.g. docs/images/real)")
     from drivingscene.bench.real_refine import add_arguments as add_refine_arguments
 
@@ -145,7 +158,10 @@ def _methods(args):
     static = replace(base, use_residual=False)
     from drivingscene.bench.real_refine import refine_methods
 
-    methods = [(FULL, lambda pair: reconstruct(model, pair, base), {}), (STATIC, lambda pair: reconstruct(model, pair, static), {})]
+    methods = [
+        (FULL, lambda pair: reconstruct(model, pair, base), {}),
+        (STATIC, lambda pair: reconstruct(model, pair, static), {}),
+    ]
     return methods + refine_methods(args, model, base)
 
 
@@ -330,7 +346,11 @@ def _novel_rows(novel: dict, lpips_name: str, per_camera: list[str] | None = Non
     header = ["method", "PSNR", "SSIM", lpips_name]
     rows = []
     for method, scores in novel.items():
-        cells = [_fmt(_mean(scores["psnr"]), "{:.2f}"), _fmt(_mean(scores["ssim"]), "{:.3f}"), _fmt(_mean(scores.get("lpips", [math.nan])), "{:.3f}")]
+        cells = [
+            _fmt(_mean(scores["psnr"]), "{:.2f}"),
+            _fmt(_mean(scores["ssim"]), "{:.3f}"),
+            _fmt(_mean(scores.get("lpips", [math.nan])), "{:.3f}"),
+        ]
         label = method + (" — loses to a trivial baseline" if method in lose else "")
         if method in lose:
             label, cells = f"**{label}**", [f"**{c}**" for c in cells]
@@ -359,13 +379,22 @@ def _scene_section(s: SceneScores, lpips_name: str, figure: str | None) -> str:
                 vals = s.depth[kind][key]
                 rows.append([f"{name} ({label})", *[_fmt(v, fmt) for v in vals], _fmt(_mean(vals), fmt)])
         for base, scores in s.depth_baselines.items():
-            rows.append([f"AbsRel, {base}", *[_fmt(v, "{:.3f}") for v in scores["metric"]["abs_rel"]], _fmt(_mean(scores["metric"]["abs_rel"]), "{:.3f}")])
+            rows.append(
+                [
+                    f"AbsRel, {base}",
+                    *[_fmt(v, "{:.3f}") for v in scores["metric"]["abs_rel"]],
+                    _fmt(_mean(scores["metric"]["abs_rel"]), "{:.3f}"),
+                ]
+            )
         med = s.depth["medians"]
         rows.append(["median depth, model (m)", *[_fmt(v, "{:.1f}") for v in med["pred"]], ""])
         rows.append(["median depth, LiDAR (m)", *[_fmt(v, "{:.1f}") for v in med["lidar"]], ""])
         out.append(_table(header, rows))
     out.append("Input views re-rendered at the keyframes (PSNR against the inputs), per camera:\n")
-    rows = [[m, *[_fmt(v, "{:.2f}") for v in sc["psnr"]], _fmt(_mean(sc["psnr"]), "{:.2f}"), _fmt(_mean(sc["ssim"]), "{:.3f}")] for m, sc in s.keyframes.items()]
+    rows = [
+        [m, *[_fmt(v, "{:.2f}") for v in sc["psnr"]], _fmt(_mean(sc["psnr"]), "{:.2f}"), _fmt(_mean(sc["ssim"]), "{:.3f}")]
+        for m, sc in s.keyframes.items()
+    ]
     out.append(_table(["method", *cams, "mean PSNR", "mean SSIM"], rows))
     if s.novel:
         out.append("The real in-between frame, rendered at its capture poses and times:\n")
@@ -376,7 +405,14 @@ def _scene_section(s: SceneScores, lpips_name: str, figure: str | None) -> str:
     return "\n".join(out)
 
 
-def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: str, precision: str, title: str = "DrivingScene on real frames") -> str:
+def report(
+    scenes: list[SceneScores],
+    lpips_name: str,
+    command: str,
+    machine: str,
+    precision: str,
+    title: str = "DrivingScene on real frames",
+) -> str:
     head = [
         f"# {title}\n",
         f"Regenerated by `{command}` on {machine}; networks in {precision}. Scenes come from "
@@ -407,7 +443,16 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
                 f"{statistics.median(s.seconds[FULL]):.2f} ({min(s.seconds[FULL]):.2f}-{max(s.seconds[FULL]):.2f})",
             ]
         )
-    header = ["scene", "depth AbsRel", "AbsRel (median-scaled)", "keyframe re-render PSNR", "in-between PSNR", "best baseline PSNR", "dynamic Gaussians", "s / pair, median (range)"]
+    header = [
+        "scene",
+        "depth AbsRel",
+        "AbsRel (median-scaled)",
+        "keyframe re-render PSNR",
+        "in-between PSNR",
+        "best baseline PSNR",
+        "dynamic Gaussians",
+        "s / pair, median (range)",
+    ]
     refined = ""
     if any(s.depth_baselines for s in scenes):
         refined += "\n" + depth_baseline_table(scenes)
@@ -417,8 +462,12 @@ def report(scenes: list[SceneScores], lpips_name: str, command: str, machine: st
         from drivingscene.bench.real_refine import refine_table
 
         refined += "\n" + refine_table(scenes, lpips_name)
-    return "\n".join(head) + _table(header, rows) + refined + "\n## Per scene and camera\n\n" + "\n".join(
-        _scene_section(s, lpips_name, s.figure) for s in scenes
+    return (
+        "\n".join(head)
+        + _table(header, rows)
+        + refined
+        + "\n## Per scene and camera\n\n"
+        + "\n".join(_scene_section(s, lpips_name, s.figure) for s in scenes)
     )
 
 
@@ -436,7 +485,9 @@ def depth_baseline_table(scenes: list[SceneScores]) -> str:
             (NEAREST, s.depth_baselines[NEAREST], "held-out half"),
         ):
             if scores:
-                rows.append([s.name, method, returns, *[_fmt(_mean(scores[k]["abs_rel"]), "{:.3f}") for k in ("metric", "median")]])
+                rows.append(
+                    [s.name, method, returns, *[_fmt(_mean(scores[k]["abs_rel"]), "{:.3f}") for k in ("metric", "median")]]
+                )
     return (
         "## Depth next to trivial baselines\n\n"
         "Two references that look at no image: the road plane (each ray meets the ego frame's z = 0 plane, else 80 m) "
@@ -546,4 +597,8 @@ def _precision(args) -> str:
         from drivingscene.precision import describe_precision  # the per-machine choice (issue: any CPU)
     except ImportError:
         return "bf16 autocast" if args.amp is not False else "float32"
-    return describe_precision(torch.device("cpu")) if args.amp is None else ("bf16 autocast (forced)" if args.amp else "float32 (forced)")
+    return (
+        describe_precision(torch.device("cpu"))
+        if args.amp is None
+        else ("bf16 autocast (forced)" if args.amp else "float32 (forced)")
+    )

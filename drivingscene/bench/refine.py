@@ -56,7 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--lpips-weight", type=float, default=None, metavar="W", help="the steps' perceptual loss weight (default: refinement's)"
     )
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
-    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
+    p.add_argument(
+        "--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)"
+    )
     p.add_argument("--choices", action="store_true", help="compare the settings' variants at --steps steps instead")
     p.add_argument("--steps", type=int, default=12, help="with --choices: gradient steps per variant (default 12)")
     p.add_argument("--speed", action="store_true", help="seconds per step by views, image scale and threads instead")

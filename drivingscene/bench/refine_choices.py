@@ -85,9 +85,7 @@ def choices_report(scores: dict, lpips_name: str) -> str:
     return "\n".join(lines) + "\n\nIn-between PSNR per pair:\n\n" + "\n".join(per) + "\n"
 
 
-def speed_rows(
-    model, pair, steps: int = 4, threads_list=(1, 2), views_list=(1, 3, 6), scale_list=(1.0, 0.5)
-) -> list[dict]:
+def speed_rows(model, pair, steps: int = 4, threads_list=(1, 2), views_list=(1, 3, 6), scale_list=(1.0, 0.5)) -> list[dict]:
     """Seconds per step for views per step x image scale x threads on one pair."""
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import refine

@@ -81,16 +81,27 @@ class Profile:
 
 
 PROFILES = {
-    "full": Profile(8, (176, 320), (1.0, 0.5), (5.0, 15.0), (15.0,), ("fast", "medium"), (0.5, 0.25), (96, 176), 2, False, True, 3.0),
+    "full": Profile(
+        8, (176, 320), (1.0, 0.5), (5.0, 15.0), (15.0,), ("fast", "medium"), (0.5, 0.25), (96, 176), 2, False, True, 3.0
+    ),
     "quick": Profile(1, (48, 88), (1.0,), (1.0,), (1.0,), ("fast",), (0.5,), (48, 88), 1, True, False, 0.5),
 }
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="tiny split, few settings: a smoke test (about 2 minutes)")
-    p.add_argument("--data", type=Path, default=None, help="read the procedural pairs from this folder instead of generating the test split")
+    p.add_argument(
+        "--data", type=Path, default=None, help="read the procedural pairs from this folder instead of generating the test split"
+    )
     p.add_argument("--count", type=int, default=None, help="procedural pairs (default: 8, quick: 1)")
-    p.add_argument("--scenes", type=Path, nargs="*", default=[], metavar="SCENE", help="real scenes (from `drivingscene import`) with eval frames")
+    p.add_argument(
+        "--scenes",
+        type=Path,
+        nargs="*",
+        default=[],
+        metavar="SCENE",
+        help="real scenes (from `drivingscene import`) with eval frames",
+    )
     p.add_argument("--names", nargs="*", default=None, metavar="NAME", help="a label per real scene")
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
     p.add_argument("--joint-weights", type=Path, default=None, help="a single-stage (joint) model for the ablation")
@@ -182,7 +193,9 @@ def refined_method(model, seconds: float) -> Method:
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import RefineConfig, refine
 
-    return Method(REFINED, f"{seconds:g} s", REFINED, lambda p: refine(model, p, reconstruct(model, p), RefineConfig(seconds=seconds)))
+    return Method(
+        REFINED, f"{seconds:g} s", REFINED, lambda p: refine(model, p, reconstruct(model, p), RefineConfig(seconds=seconds))
+    )
 
 
 def scratch_method(seconds: float) -> Method:
@@ -205,7 +218,11 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
         if scale == 1.0:
             out.append(Method(FULL, "native", FULL, lambda p: reconstruct(model, p)))
         else:
-            out.append(Method(FULL, f"input x{scale:g}", FULL, lambda p, s=scale: at_full_size(reconstruct(model, resized_pair(p, s)), p)))
+            out.append(
+                Method(
+                    FULL, f"input x{scale:g}", FULL, lambda p, s=scale: at_full_size(reconstruct(model, resized_pair(p, s)), p)
+                )
+            )
     # D's depth as it is (no classical matching at inference), and matching guided by D alone (no
     # road-plane fallback): the same model, faster
     out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
@@ -240,7 +257,9 @@ def _methods(model, args, profile: Profile, real: bool) -> list[Method]:
             def held_out(p):
                 return replace(p, gt_depth=lidar_halves(p.gt_depth)[1])
 
-            out.append(Method(SCRATCH, f"LiDAR start (half), {seconds:g} s", SCRATCH + " + LiDAR", lidar_run, score_pair=held_out))
+            out.append(
+                Method(SCRATCH, f"LiDAR start (half), {seconds:g} s", SCRATCH + " + LiDAR", lidar_run, score_pair=held_out)
+            )
     for preset in profile.classical:
         config = ClassicalConfig(preset=preset)
         out.append(Method(CLASSICAL, f"DIS {preset}", CLASSICAL, lambda p, c=config: classical_reconstruction(p, c)))
@@ -357,7 +376,9 @@ def procedural_pairs(args, profile: Profile) -> tuple[list, str]:
     config = resolve_config("default", height=height, width=width)
     renderer = SynthRenderer()
     seeds = list(split_seeds("test", count))
-    return [generate_pair(config, s, renderer) for s in seeds], f"test split seeds {seeds[0]}-{seeds[-1]}, default preset, generated"
+    return [
+        generate_pair(config, s, renderer) for s in seeds
+    ], f"test split seeds {seeds[0]}-{seeds[-1]}, default preset, generated"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -442,7 +463,9 @@ def ablations(points: list[dict]) -> list[dict]:
             f"{two['method']} {two['psnr']:.2f} dB against single-stage {single['psnr']:.2f} dB; depth AbsRel "
             f"{two['abs_rel']:.3f} against {single['abs_rel']:.3f}; moving pixels {two['psnr_dyn']:.2f} against {single['psnr_dyn']:.2f} dB"
         )
-        out.append({"name": "two-stage − single-stage", "paper_db": 28.76 - 13.69, "ours_db": diff, "reproduces": diff > 0, "note": note})
+        out.append(
+            {"name": "two-stage − single-stage", "paper_db": 28.76 - 13.69, "ours_db": diff, "reproduces": diff > 0, "note": note}
+        )
     else:
         out.append(
             {
@@ -486,7 +509,9 @@ def _real_pairs(args) -> list[tuple[str, object]]:
     pairs = [load_frame_pair(p) for p in args.scenes]
     for path, pair in zip(args.scenes, pairs):
         if pair.num_eval == 0:
-            raise InputError(f"{path}: eval_images: expected a scene with in-between frames (drivingscene import ... --eval), found none")
+            raise InputError(
+                f"{path}: eval_images: expected a scene with in-between frames (drivingscene import ... --eval), found none"
+            )
     return list(zip(args.names or [p.stem for p in args.scenes], pairs))
 
 
@@ -518,9 +543,15 @@ def build_report(args) -> dict:
     mark_fronts(points)
     axes = []
     if not args.no_stability:
-        axes = stability(stability_methods(model, methods, profile), profile.stability_size, profile.stability_seeds, profile.ends_only)
+        axes = stability(
+            stability_methods(model, methods, profile), profile.stability_size, profile.stability_seeds, profile.ends_only
+        )
     command = "drivingscene bench report" + (" --quick" if args.quick else "")
-    flags = (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights), ("--no-warp-weights", args.no_warp_weights))
+    flags = (
+        ("--joint-weights", args.joint_weights),
+        ("--two-stage-weights", args.two_stage_weights),
+        ("--no-warp-weights", args.no_warp_weights),
+    )
     for flag, value in flags:
         command += f" {flag} {value}" if value is not None else ""
     command += _width_flag(args.width_weights) if args.width_weights else ""
@@ -536,7 +567,12 @@ def build_report(args) -> dict:
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "quick": bool(args.quick),
         "sets": sets,
-        "stability": {"axes": axes, "break_db": BREAK_DB, "size": "x".join(map(str, profile.stability_size[::-1])), "seeds": profile.stability_seeds},
+        "stability": {
+            "axes": axes,
+            "break_db": BREAK_DB,
+            "size": "x".join(map(str, profile.stability_size[::-1])),
+            "seeds": profile.stability_seeds,
+        },
         "parsimony": par,
         "ablations": ablations(points),
     }
@@ -573,7 +609,13 @@ def carry_ablations(report: dict, path: Path) -> None:
     widths = [] if report["parsimony"].get("widths") else old.get("parsimony", {}).get("widths", [])
     if not kept and not widths:
         return
-    report["carried"] = {"from": str(path), "created": old.get("created"), "command": old.get("command"), "points": kept, "widths": widths}
+    report["carried"] = {
+        "from": str(path),
+        "created": old.get("created"),
+        "command": old.get("command"),
+        "points": kept,
+        "widths": widths,
+    }
     if widths:
         report["parsimony"]["widths"] = widths
     report["ablations"] = report_ablations(report)
@@ -604,8 +646,15 @@ def add_ablation_models(report: dict, args) -> None:
     kept = [p for p in saved["points"] if p["method"] not in {m.name for m in methods}]
     saved["points"] = finite_or_none(kept + points)
     mark_fronts(saved["points"])
-    flags = " ".join(f"{f} {v}" for f, v in (("--joint-weights", args.joint_weights), ("--two-stage-weights", args.two_stage_weights),
-                                               ("--no-warp-weights", args.no_warp_weights)) if v is not None)
+    flags = " ".join(
+        f"{f} {v}"
+        for f, v in (
+            ("--joint-weights", args.joint_weights),
+            ("--two-stage-weights", args.two_stage_weights),
+            ("--no-warp-weights", args.no_warp_weights),
+        )
+        if v is not None
+    )
     report["command"] += f" && drivingscene bench report --from-json {args.from_json} {flags}"
     report["machine"] += f" (the second command, which added {', '.join(m.name for m in methods)}: {machine_description()})"
 
@@ -650,7 +699,9 @@ def load_report(path: Path) -> dict:
     try:
         report = json.loads(path.read_text())
     except (OSError, ValueError) as e:
-        raise InputError(f"{path}: --from-json: expected a JSON report of `drivingscene bench report --json`, could not read it: {e}") from None
+        raise InputError(
+            f"{path}: --from-json: expected a JSON report of `drivingscene bench report --json`, could not read it: {e}"
+        ) from None
     if not isinstance(report, dict) or report.get("format") != FORMAT or report.get("version") != VERSION:
         found = report.get("format") if isinstance(report, dict) else type(report).__name__
         raise InputError(f"{path}: format: expected {FORMAT!r} version {VERSION}, found {found!r}")
@@ -688,7 +739,9 @@ def run(args: argparse.Namespace) -> int:
             carry_ablations(report, args.carry_from)
             report["command"] += f" --carry-from {args.carry_from}"
         outputs = (("--notes", args.notes), ("--out", args.out), ("--json", args.json), ("--charts", args.charts))
-        report["command"] += "".join(f" {flag} {value}" for flag, value in outputs if value is not None)  # what to copy to redo it
+        report["command"] += "".join(
+            f" {flag} {value}" for flag, value in outputs if value is not None
+        )  # what to copy to redo it
         report = finite_or_none(report)
     charts: dict[str, Path] = {}
     if args.charts is not None:

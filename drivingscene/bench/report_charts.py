@@ -558,7 +558,14 @@ def ablation_chart(report: dict, path: str | os.PathLike) -> Path:
                     ax.annotate(f"{value:+.2f}", (value, y + offset), textcoords="offset points", xytext=(4 if value >= 0 else -4, -3),
                                 ha="left" if value >= 0 else "right", fontsize=8)  # fmt: skip
                 else:
-                    ax.annotate(f"{label}: {missing}", (0, y + offset), textcoords="offset points", xytext=(4, -3), fontsize=8, color="0.4")
+                    ax.annotate(
+                        f"{label}: {missing}",
+                        (0, y + offset),
+                        textcoords="offset points",
+                        xytext=(4, -3),
+                        fontsize=8,
+                        color="0.4",
+                    )
         ax.axvline(0, color="0.3", linewidth=0.8)
         ax.set_yticks(ys, [row["name"] for row in rows])
         ax.set_ylim(-0.6, len(rows) - 0.4)

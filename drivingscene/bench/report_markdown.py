@@ -34,7 +34,19 @@ def _points_table(points: list[dict]) -> str:
                 ", ".join(front) or "",
             ]
         )
-    header = ["method", "setting", "s / pair", "PSNR", "PSNR moving", "SSIM", "LPIPS", "AbsRel", "flow error moving (px)", "Gaussians", "Pareto front"]
+    header = [
+        "method",
+        "setting",
+        "s / pair",
+        "PSNR",
+        "PSNR moving",
+        "SSIM",
+        "LPIPS",
+        "AbsRel",
+        "flow error moving (px)",
+        "Gaussians",
+        "Pareto front",
+    ]
     return _table(header, rows)
 
 
@@ -99,7 +111,13 @@ def markdown(report: dict, charts: dict[str, Path], out: Path | None) -> str:
         lines.append("## Parsimony: no more Gaussians than a scene needs\n")
         lines.append(link("parsimony", "Gaussians against PSNR"))
         rows = [
-            [b["level"], _f(b["gaussians"] / 1000, "{:.0f}k"), _f(b["psnr"], "{:.2f}"), _f(b.get("budget_s"), "{:.2f}"), _f(b["seconds"], "{:.2f}")]
+            [
+                b["level"],
+                _f(b["gaussians"] / 1000, "{:.0f}k"),
+                _f(b["psnr"], "{:.2f}"),
+                _f(b.get("budget_s"), "{:.2f}"),
+                _f(b["seconds"], "{:.2f}"),
+            ]
             for b in par["budgets"]
         ]
         lines.append(_table(["budget", "Gaussians", "in-between PSNR", "s to apply the budget", "s to render and score"], rows))
@@ -112,15 +130,36 @@ def markdown(report: dict, charts: dict[str, Path], out: Path | None) -> str:
         lines.append(
             "The same networks at each width, trained with one schedule (so that only the width differs; "
             "not the shipped model's), scored on the procedural pairs above"
-            + (f" by the earlier run of {carried['created']} (`{carried['from']}`: their weights are not in the repository)" if carried and carried["widths"] else "")
+            + (
+                f" by the earlier run of {carried['created']} (`{carried['from']}`: their weights are not in the repository)"
+                if carried and carried["widths"]
+                else ""
+            )
             + ".\n"
         )
         rows = [
-            [str(w["width"]), _f(None if w.get("parameters") is None else w["parameters"] / 1e6, "{:.2f}M"), _f(w["seconds"], "{:.3g}"), _f(w["psnr"], "{:.2f}"),
-             _f(w.get("psnr_dyn"), "{:.2f}"), _f(w["abs_rel"], "{:.3f}"), _f(w.get("epe_dyn"), "{:.2f}"), f"`{w['weights']}`"]
+            [
+                str(w["width"]),
+                _f(None if w.get("parameters") is None else w["parameters"] / 1e6, "{:.2f}M"),
+                _f(w["seconds"], "{:.3g}"),
+                _f(w["psnr"], "{:.2f}"),
+                _f(w.get("psnr_dyn"), "{:.2f}"),
+                _f(w["abs_rel"], "{:.3f}"),
+                _f(w.get("epe_dyn"), "{:.2f}"),
+                f"`{w['weights']}`",
+            ]
             for w in par["widths"]
         ]
-        header = ["D encoder width", "parameters", "s / pair", "PSNR", "PSNR moving", "AbsRel", "flow error moving (px)", "weights"]
+        header = [
+            "D encoder width",
+            "parameters",
+            "s / pair",
+            "PSNR",
+            "PSNR moving",
+            "AbsRel",
+            "flow error moving (px)",
+            "weights",
+        ]
         lines.append(_table(header, rows))
     lines.append("## The paper's ablations\n")
     lines.append(link("ablations", "the paper's ablations: ours against the paper's, in dB"))
@@ -133,7 +172,13 @@ def markdown(report: dict, charts: dict[str, Path], out: Path | None) -> str:
             "the residual-flow row is this run's.\n"
         )
     rows = [
-        [a["name"], _f(a["paper_db"], "{:+.2f}"), _f(a["ours_db"], "{:+.2f}"), {True: "yes", False: "**no**", None: "–"}[a["reproduces"]], a["note"]]
+        [
+            a["name"],
+            _f(a["paper_db"], "{:+.2f}"),
+            _f(a["ours_db"], "{:+.2f}"),
+            {True: "yes", False: "**no**", None: "–"}[a["reproduces"]],
+            a["note"],
+        ]
         for a in report["ablations"]
     ]
     lines.append(_table(["ablation", "paper (dB)", "ours (dB, all pixels)", "direction reproduces", "note"], rows))

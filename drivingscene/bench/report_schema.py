@@ -93,7 +93,12 @@ def breaks_at(values: list[float | None], errors: list[str | None], easiest: int
     for i, (v, e) in enumerate(zip(values, errors)):
         if i == easiest:
             continue
-        if e is not None or v is None or not math.isfinite(v) or (base is not None and math.isfinite(base) and v < base - drop_db):
+        if (
+            e is not None
+            or v is None
+            or not math.isfinite(v)
+            or (base is not None and math.isfinite(base) and v < base - drop_db)
+        ):
             return i
     return None
 
@@ -101,28 +106,84 @@ def breaks_at(values: list[float | None], errors: list[str | None], easiest: int
 def example_report() -> dict:
     """A small report with every part filled, for tests of the readers (charts, viewer panel)."""
     points = [
-        {"method": "DrivingScene", "setting": "176x320", "family": "DrivingScene", "seconds": 0.5, "psnr": 20.5,
-         "psnr_dyn": 17.0, "ssim": 0.7, "lpips": 0.2, "abs_rel": 0.17, "epe_dyn": 3.0, "gaussians": 6.7e5},
-        {"method": "DrivingScene + refine", "setting": "10 s", "family": "DrivingScene + refine", "seconds": 10.5,
-         "psnr": 21.5, "psnr_dyn": 17.5, "ssim": 0.72, "lpips": 0.18, "abs_rel": 0.15, "epe_dyn": 3.0, "gaussians": 6.7e5},
-        {"method": "static-only", "setting": "176x320", "family": "static-only", "seconds": 0.4, "psnr": 20.4,
-         "psnr_dyn": 16.3, "ssim": 0.7, "lpips": 0.21, "abs_rel": 0.17, "epe_dyn": 6.0, "gaussians": 6.7e5},
-        {"method": "blend the two keyframes", "setting": "-", "family": "baselines", "seconds": 0.001, "psnr": 16.5,
-         "psnr_dyn": 15.0, "ssim": 0.5, "lpips": 0.3, "abs_rel": None, "epe_dyn": None, "gaussians": None},
+        {
+            "method": "DrivingScene",
+            "setting": "176x320",
+            "family": "DrivingScene",
+            "seconds": 0.5,
+            "psnr": 20.5,
+            "psnr_dyn": 17.0,
+            "ssim": 0.7,
+            "lpips": 0.2,
+            "abs_rel": 0.17,
+            "epe_dyn": 3.0,
+            "gaussians": 6.7e5,
+        },
+        {
+            "method": "DrivingScene + refine",
+            "setting": "10 s",
+            "family": "DrivingScene + refine",
+            "seconds": 10.5,
+            "psnr": 21.5,
+            "psnr_dyn": 17.5,
+            "ssim": 0.72,
+            "lpips": 0.18,
+            "abs_rel": 0.15,
+            "epe_dyn": 3.0,
+            "gaussians": 6.7e5,
+        },
+        {
+            "method": "static-only",
+            "setting": "176x320",
+            "family": "static-only",
+            "seconds": 0.4,
+            "psnr": 20.4,
+            "psnr_dyn": 16.3,
+            "ssim": 0.7,
+            "lpips": 0.21,
+            "abs_rel": 0.17,
+            "epe_dyn": 6.0,
+            "gaussians": 6.7e5,
+        },
+        {
+            "method": "blend the two keyframes",
+            "setting": "-",
+            "family": "baselines",
+            "seconds": 0.001,
+            "psnr": 16.5,
+            "psnr_dyn": 15.0,
+            "ssim": 0.5,
+            "lpips": 0.3,
+            "abs_rel": None,
+            "epe_dyn": None,
+            "gaussians": None,
+        },
     ]
     mark_pareto(points)
     values = [0.0, 1.0, 2.0, 4.0]
-    curves = {"DrivingScene": {"psnr": [21.0, 20.5, 19.0, 17.5], "error": [None] * 4},
-              "blend the two keyframes": {"psnr": [17.0, 16.5, 16.0, None], "error": [None, None, None, "ValueError: x"]}}
+    curves = {
+        "DrivingScene": {"psnr": [21.0, 20.5, 19.0, 17.5], "error": [None] * 4},
+        "blend the two keyframes": {"psnr": [17.0, 16.5, 16.0, None], "error": [None, None, None, "ValueError: x"]},
+    }
     axis = {"name": "object speed", "knob": "object_speed_scale", "unit": "x", "values": values, "easiest": 0, "curves": curves}
     axis["breaks"] = {m: breaks_at(c["psnr"], c["error"], 0) for m, c in curves.items()}
     return {
-        "format": FORMAT, "version": VERSION, "command": "drivingscene bench report --quick", "machine": "test machine",
-        "precision": "float32", "created": "2026-11-25T00:00:00+00:00", "quick": True,
+        "format": FORMAT,
+        "version": VERSION,
+        "command": "drivingscene bench report --quick",
+        "machine": "test machine",
+        "precision": "float32",
+        "created": "2026-11-25T00:00:00+00:00",
+        "quick": True,
         "sets": {"procedural": {"description": "test split", "pairs": 2, "size": "320x176", "points": points}},
         "stability": {"axes": [axis], "break_db": BREAK_DB, "size": "176x96", "seeds": 2},
-        "parsimony": {"budgets": [{"level": "per-pixel", "gaussians": 6.7e5, "psnr": 20.5, "seconds": 0.5},
-                                  {"level": "50 %", "gaussians": 3.3e5, "psnr": 20.45, "seconds": 0.45}],
-                      "chosen": "50 %", "widths": []},
+        "parsimony": {
+            "budgets": [
+                {"level": "per-pixel", "gaussians": 6.7e5, "psnr": 20.5, "seconds": 0.5},
+                {"level": "50 %", "gaussians": 3.3e5, "psnr": 20.45, "seconds": 0.45},
+            ],
+            "chosen": "50 %",
+            "widths": [],
+        },
         "ablations": [{"name": "residual flow", "paper_db": 2.4, "ours_db": 0.1, "reproduces": True, "note": ""}],
     }

@@ -79,14 +79,18 @@ def stability(methods: list, size: tuple[int, int], seeds: int, ends_only: bool 
                     target = _live_cameras(pair, axis, value)
                     try:
                         result = m.run(pair)
-                        psnr = (score_frames(result, target, None) if m.frames else score_novel_views(result, target, None))["psnr"]
+                        psnr = (score_frames(result, target, None) if m.frames else score_novel_views(result, target, None))[
+                            "psnr"
+                        ]
                         scores.append(psnr)
                         if not m.frames and result.depth is not None and pair.gt_depth is not None:
                             depths.append(score_depth(result, pair)["depth_abs_rel"])
                     except Exception as e:  # a method that raises breaks here: recorded, not fatal
                         error = f"{type(e).__name__}: {e}"[:200]
                         break
-                value_psnr = None if error or not scores or not all(math.isfinite(s) for s in scores) else sum(scores) / len(scores)
+                value_psnr = (
+                    None if error or not scores or not all(math.isfinite(s) for s in scores) else sum(scores) / len(scores)
+                )
                 curves[m.name]["psnr"].append(value_psnr)
                 # depth AbsRel at the keyframes (ego speed 0: no parallax over time, issue 45)
                 finite = [d for d in depths if math.isfinite(d)]
@@ -94,6 +98,16 @@ def stability(methods: list, size: tuple[int, int], seeds: int, ends_only: bool 
                 curves[m.name]["error"].append(error)
         easiest = 0
         breaks = {name: breaks_at(c["psnr"], c["error"], easiest) for name, c in curves.items()}
-        out.append({"name": axis.name, "knob": axis.knob, "unit": axis.unit, "values": list(values), "easiest": easiest, "curves": curves, "breaks": breaks})
+        out.append(
+            {
+                "name": axis.name,
+                "knob": axis.knob,
+                "unit": axis.unit,
+                "values": list(values),
+                "easiest": easiest,
+                "curves": curves,
+                "breaks": breaks,
+            }
+        )
         print(f"stability: {axis.name} done", file=sys.stderr)
     return out

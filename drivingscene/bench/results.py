@@ -68,7 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(what better flow, and what better depth, would be worth)",
     )
     p.add_argument("--no-oracle", action="store_true", help="skip the ground-truth oracle rows")
-    p.add_argument("--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)")
+    p.add_argument(
+        "--lpips", choices=("auto", "lpips", "stlpips"), default="auto", help="perceptual metric (auto: the one installed)"
+    )
     p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (e.g. docs/results.md)")
     p.add_argument(
         "--notes", type=Path, default=None, help="markdown to include verbatim after the tables (e.g. docs/results-notes.md)"

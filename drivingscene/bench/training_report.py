@@ -89,7 +89,15 @@ def plot_curves(runs: list[tuple[str, dict, list[dict]]], path: Path) -> None:
                 ax.plot(steps, _smooth(values), label=name, linewidth=1.2, color=color, linestyle=style)
         for key, ax in val_axes.items():
             val = [(r["step"], r["val"][key]) for r in recs if key in r.get("val", {})]
-            ax.plot(*(zip(*val) if val else ([], [])), marker="o", markersize=3, label=name, linewidth=1.2, color=color, linestyle=style)
+            ax.plot(
+                *(zip(*val) if val else ([], [])),
+                marker="o",
+                markersize=3,
+                label=name,
+                linewidth=1.2,
+                color=color,
+                linestyle=style,
+            )
     for ax, title in zip(axes, panels):
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("step")

@@ -55,7 +55,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     d = isub.add_parser("ddad", help="two samples of a DDAD scene in the DGP layout (scene_*.json, calibration/, rgb/)")
     d.add_argument("scene_dir", type=Path, metavar="SCENE_DIR", help="a DDAD scene folder (DGP layout: scene_*.json, rgb/, ...)")
-    d.add_argument("--samples", type=int, nargs=2, default=(0, 1), metavar=("I", "J"), help="the two keyframes (default 0 1); the same sample twice: a still pair, 0.1 s apart")
+    d.add_argument(
+        "--samples",
+        type=int,
+        nargs=2,
+        default=(0, 1),
+        metavar=("I", "J"),
+        help="the two keyframes (default 0 1); the same sample twice: a still pair, 0.1 s apart",
+    )
     d.add_argument("--eval", type=int, nargs="*", default=(), metavar="K", help="samples between I and J kept as eval frames")
     d.add_argument("--no-mask", action="store_true", help="no ego-body valid_mask (default: the DDAD rig's documented polygons)")
     _common(d)
@@ -63,7 +70,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     r = isub.add_parser("rig", help="your own rig: a folder of images plus rig.json (docs/importing.md)")
     r.add_argument("folder", type=Path, metavar="FOLDER", help="images plus rig.json (docs/importing.md)")
-    r.add_argument("--frames", type=int, nargs=2, default=(0, 1), metavar=("I", "J"), help="the two keyframes (default 0 1); the same sample twice: a still pair, 0.1 s apart")
+    r.add_argument(
+        "--frames",
+        type=int,
+        nargs=2,
+        default=(0, 1),
+        metavar=("I", "J"),
+        help="the two keyframes (default 0 1); the same sample twice: a still pair, 0.1 s apart",
+    )
     r.add_argument("--eval", type=int, nargs="*", default=(), metavar="K", help="frames between I and J kept as eval frames")
     _common(r, default_res=None)
     r.set_defaults(func=run_rig)

@@ -39,9 +39,7 @@ def add_refine_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="with --refine: first adapt D to the pair for K steps (default 15, none with --lidar; 0: not at all)",
     )
-    p.add_argument(
-        "--refine-steps", type=positive_int, default=None, metavar="N", help="with --refine: at most N gradient steps"
-    )
+    p.add_argument("--refine-steps", type=positive_int, default=None, metavar="N", help="with --refine: at most N gradient steps")
     add_adaptation_arguments(p, prefix="with --refine: ")
 
 
@@ -277,7 +275,9 @@ def run_refinement(model, pair, recon, config):
 
     from drivingscene.methods.refine import describe, refine
 
-    with tqdm(total=round(config.seconds, 1), unit="s", desc="refine", bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s {postfix}") as bar:
+    with tqdm(
+        total=round(config.seconds, 1), unit="s", desc="refine", bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s {postfix}"
+    ) as bar:
 
         def progress(fraction, message):
             if fraction is not None:

@@ -19,12 +19,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--stage", choices=STAGES, required=True, help="which networks train (docs/training.md)")
     p.add_argument(
-        "--data", type=Path, required=True, nargs="+", metavar="DIR", help="training pairs (drivingscene synth --split train); several folders: a mix"
+        "--data",
+        type=Path,
+        required=True,
+        nargs="+",
+        metavar="DIR",
+        help="training pairs (drivingscene synth --split train); several folders: a mix",
     )
     p.add_argument(
-        "--val-data", type=Path, default=None, nargs="+", metavar="DIR", help="validation pairs (drivingscene synth --split val); several: interleaved"
+        "--val-data",
+        type=Path,
+        default=None,
+        nargs="+",
+        metavar="DIR",
+        help="validation pairs (drivingscene synth --split val); several: interleaved",
     )
-    p.add_argument("-o", "--out", type=Path, required=True, metavar="DIR", help="run folder: checkpoints, log.jsonl, model.safetensors")
+    p.add_argument(
+        "-o", "--out", type=Path, required=True, metavar="DIR", help="run folder: checkpoints, log.jsonl, model.safetensors"
+    )
     p.add_argument("--init", type=Path, default=None, metavar="WEIGHTS", help="start from these weights (stage 2: stage 1's)")
     p.add_argument("--steps", type=positive_int, default=None, help="gradient steps of the stage (default: the stage's)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-4, the paper's)")
@@ -64,7 +76,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the input views from both (default: all three)",
     )
     p.add_argument(
-        "--render-blend", choices=("layers", "all"), default=None, help="how L_render combines both keyframes' Gaussians (default: layers, as inference)"
+        "--render-blend",
+        choices=("layers", "all"),
+        default=None,
+        help="how L_render combines both keyframes' Gaussians (default: layers, as inference)",
     )
     p.add_argument(
         "--input-jitter",

@@ -108,6 +108,5 @@ def _check_member(path: Path, zf: zipfile.ZipFile, key: str) -> None:
         declared = declared_nbytes(shape, dtype)
         if declared > size - f.tell():
             raise InputError(
-                f"{path}: {key}: expected {declared} bytes of data for shape {list(shape)} {dtype}, "
-                f"found {size - f.tell()} bytes"
+                f"{path}: {key}: expected {declared} bytes of data for shape {list(shape)} {dtype}, found {size - f.tell()} bytes"
             )

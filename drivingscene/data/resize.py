@@ -22,6 +22,18 @@ def resized_pair(pair, scale: float):
     mask = None
     if pair.valid_mask is not None:
         mask = np.stack([cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0 for m in pair.valid_mask])
-    empty = dict.fromkeys(("gt_depth", "gt_flow", "gt_scene_flow", "gt_dynamic", "eval_images", "eval_timestamps",
-                           "eval_ego_to_world", "eval_dynamic", "eval_camera_ego_to_world", "eval_camera_timestamps"))
+    empty = dict.fromkeys(
+        (
+            "gt_depth",
+            "gt_flow",
+            "gt_scene_flow",
+            "gt_dynamic",
+            "eval_images",
+            "eval_timestamps",
+            "eval_ego_to_world",
+            "eval_dynamic",
+            "eval_camera_ego_to_world",
+            "eval_camera_timestamps",
+        )
+    )
     return replace(pair, images=images, intrinsics=k, valid_mask=mask, **empty)

@@ -73,7 +73,9 @@ def nearest_return_depth(kept: np.ndarray) -> np.ndarray:
         if not has.any():
             continue
         # labels of the nearest zero pixel of the input: the returns are its zeros
-        _, labels = cv2.distanceTransformWithLabels((~has).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE, labelType=cv2.DIST_LABEL_PIXEL)
+        _, labels = cv2.distanceTransformWithLabels(
+            (~has).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE, labelType=cv2.DIST_LABEL_PIXEL
+        )
         values = np.zeros(labels.max() + 1, np.float32)
         values[labels[has]] = image[has]
         out[i] = values[labels]

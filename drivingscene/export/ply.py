@@ -202,7 +202,9 @@ def _check_header(path: Path) -> None:
                 binary = words[1].startswith("binary")
             elif words[:1] == ["element"] and len(words) == 3:
                 if not re.fullmatch(r"\d+", words[2]):
-                    raise InputError(f"{path}: element {words[1]}: expected a row count >= 0 (header line {number}), found {words[2][:20]!r}")
+                    raise InputError(
+                        f"{path}: element {words[1]}: expected a row count >= 0 (header line {number}), found {words[2][:20]!r}"
+                    )
                 elements.append([words[1], int(words[2]), 0, 0])
             elif words[:1] == ["property"] and elements:
                 element = elements[-1]
@@ -218,7 +220,9 @@ def _check_header(path: Path) -> None:
             raise InputError(f"{path}: element {name}: expected at least one property for {count} rows, found none")
         needed += count * row
         if needed > remaining:
-            raise InputError(f"{path}: element {name}: expected at least {needed} bytes of rows, found {remaining} after the header")
+            raise InputError(
+                f"{path}: element {name}: expected at least {needed} bytes of rows, found {remaining} after the header"
+            )
 
 
 def _vertex_element(path: Path):

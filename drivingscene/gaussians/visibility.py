@@ -76,8 +76,17 @@ def see_through_votes(
     g = gaussians
     if kernels.available(kernels.see_through_votes, backend, g.means, depths, world_to_cam):
         return kernels.see_through_votes(
-            g.means, g.flows, g.keyframes, image_ids, world_to_cam, intrinsics, depths, times.float(),
-            config.margin, config.voters == "same_time", NO_DEPTH,
+            g.means,
+            g.flows,
+            g.keyframes,
+            image_ids,
+            world_to_cam,
+            intrinsics,
+            depths,
+            times.float(),
+            config.margin,
+            config.voters == "same_time",
+            NO_DEPTH,
         )
     return _votes_torch(g, image_ids, world_to_cam, intrinsics, depths, times, config)
 

@@ -42,7 +42,8 @@ from drivingscene.kernels.matching import (
     plane_sweep_volume,
     see_through_votes,
 )
-from drivingscene.kernels.pairs import find_pairs
+from drivingscene.kernels.pairs import find_pairs, splat_boxes
+from drivingscene.kernels.solve import own_layer_solve
 from drivingscene.kernels.surfels import activate_surfels, surfel_frames
 
 __all__ = [
@@ -62,6 +63,7 @@ __all__ = [
     "lift_dense",
     "load_extension",
     "local_cost_volume",
+    "own_layer_solve",
     "plane_sweep_correlate",
     "plane_sweep_correlate_backward",
     "plane_sweep_volume",
@@ -69,5 +71,6 @@ __all__ = [
     "rigid_flow_dense",
     "search_along_rigid",
     "see_through_votes",
+    "splat_boxes",
     "surfel_frames",
 ]

@@ -1,8 +1,10 @@
 """Build and load the optional compiled CPU kernels (``csrc/*.cpp``), and choose between them and
 the torch paths.
 
-The five sources register their ops in one torch library, ``torch.ops.drivingscene_render``:
-the rasterizer's pair finding (``csrc/find_pairs.cpp``) and compositing (``csrc/composite.cpp``), the per-pixel surfel frames of the
+The six sources register their ops in one torch library, ``torch.ops.drivingscene_render``:
+the rasterizer's pair finding (``csrc/find_pairs.cpp``) and compositing (``csrc/composite.cpp``),
+the colour solve over the images' own layers (``csrc/color_solve.cpp``, sharing the pair finder's
+scatter, ``pairs.h``, and the front group, ``front_group.h``), the per-pixel surfel frames of the
 Gaussian assembly (``csrc/surfels.cpp``), the inference-time search along the rigid flow,
 residual-flow cost volume, dense lift and the checks of the stereo across the rig
 (``csrc/flow.cpp``), and the plane-sweep correlation of
@@ -33,7 +35,10 @@ from torch import Tensor
 log = logging.getLogger(__name__)
 
 EXTENSION_NAME = "drivingscene_render"
-SOURCES = tuple(Path(__file__).parent / "csrc" / name for name in ("find_pairs.cpp", "composite.cpp", "surfels.cpp", "flow.cpp", "matching.cpp"))
+SOURCES = tuple(
+    Path(__file__).parent / "csrc" / name
+    for name in ("find_pairs.cpp", "composite.cpp", "color_solve.cpp", "surfels.cpp", "flow.cpp", "matching.cpp")
+)
 # -ffp-contract=off: no fused multiply-adds, so the kernels round like the torch paths. No errno
 # from sqrt and no trapping floating-point exceptions (neither changes a result) let the compiler
 # vectorise branch-free per-pixel loops (the surfel frames: ~2x).
@@ -185,7 +190,9 @@ def available(op: Callable, backend: str, *tensors: Tensor) -> bool:
         return False
     if not load_extension():
         if backend == "cpp":
-            raise RuntimeError(f"{name}: the compiled kernel is unavailable (CUDA tensors or no C++ build; see the logged warning)")
+            raise RuntimeError(
+                f"{name}: the compiled kernel is unavailable (CUDA tensors or no C++ build; see the logged warning)"
+            )
         return False
     return True
 

@@ -49,6 +49,16 @@ def composite_backward(
     CPU tensors (computed in float32). Reference path:
     ``drivingscene.render.composite.composite_backward_torch`` (equal up to float rounding)."""
     return call(
-        "composite_backward", packed, backgrounds, pair_ids, width, height, depth, weight_sum, grad_rgb, grad_depth, grad_alpha,
+        "composite_backward",
+        packed,
+        backgrounds,
+        pair_ids,
+        width,
+        height,
+        depth,
+        weight_sum,
+        grad_rgb,
+        grad_depth,
+        grad_alpha,
         float(tolerance),
     )

@@ -132,6 +132,20 @@ def rig_stereo(
     Reference path: ``drivingscene.methods.cross_camera._stereo_numpy`` (the same float32
     arithmetic in another order)."""
     return call(
-        "rig_stereo", end, back, world_a, world_b, geometry, x0, y0, back_x0, back_y0,
-        consistency_px, epipolar_px, min_parallax, z_near, z_far, near_z,
+        "rig_stereo",
+        end,
+        back,
+        world_a,
+        world_b,
+        geometry,
+        x0,
+        y0,
+        back_x0,
+        back_y0,
+        consistency_px,
+        epipolar_px,
+        min_parallax,
+        z_near,
+        z_far,
+        near_z,
     )

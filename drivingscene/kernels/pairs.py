@@ -28,3 +28,19 @@ def find_pairs(
     CPU tensor of the dtype above. Reference path: ``drivingscene.render.composite.find_pairs_torch``
     (the same float32 operations in the same order: identical ids)."""
     return call("find_pairs", means2d, conics, opacities, sigma_max, boxes, camera_offsets, width, height, max_layers)
+
+
+@compiled
+def splat_boxes(
+    means2d: Tensor,  # [M, 2] float32
+    conics: Tensor,  # [M, 3] float32
+    sigma_max: Tensor,  # [M] float32 the cut
+    radii: Tensor,  # [M] float32 (0: not drawn)
+    width: int,
+    height: int,
+) -> Tensor:
+    """Each splat's pixel box ``[M, 4]`` int32 x0, x1, y0, y1 (inclusive, clipped; empty where
+    x0 > x1): the ellipse ``sigma <= sigma_max`` with a small margin. Reference path:
+    ``drivingscene.render.composite.splat_boxes_torch`` (the same float64 operations: the same
+    boxes)."""
+    return call("splat_boxes", means2d, conics, sigma_max, radii, width, height)

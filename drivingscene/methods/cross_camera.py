@@ -167,7 +167,9 @@ def _guide(
     return _project(rays * depth[..., None], k_b, a_to_b)
 
 
-def _jobs(depth: np.ndarray, world: np.ndarray, intrinsics: np.ndarray, cam_to_local: np.ndarray, config: CrossCameraConfig) -> list[_Job]:
+def _jobs(
+    depth: np.ndarray, world: np.ndarray, intrinsics: np.ndarray, cam_to_local: np.ndarray, config: CrossCameraConfig
+) -> list[_Job]:
     """The camera pairs to match: those whose overlap under the guide depth reaches
     ``min_overlap`` (tested on every ``OVERLAP_STEP``-th pixel, all pairs at once), with where
     the guide takes the pixels of the bounding box of the overlap."""
@@ -234,7 +236,13 @@ def _geometry(job: _Job, intrinsics: np.ndarray) -> np.ndarray:
 
 
 def _stereo_numpy(
-    job: _Job, back: _Job, world_a: np.ndarray, world_b: np.ndarray, intrinsics: np.ndarray, lift: LiftConfig, config: CrossCameraConfig
+    job: _Job,
+    back: _Job,
+    world_a: np.ndarray,
+    world_b: np.ndarray,
+    intrinsics: np.ndarray,
+    lift: LiftConfig,
+    config: CrossCameraConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The reference path of `kernels.rig_stereo`: z-depth and parallax ``[h, w]`` of the job's
     box, 0 where not determined."""
@@ -263,16 +271,33 @@ def _stereo_numpy(
 
 
 def _stereo(
-    job: _Job, back: _Job, world_a: np.ndarray, world_b: np.ndarray, intrinsics: np.ndarray, lift: LiftConfig,
-    config: CrossCameraConfig, backend: str,
+    job: _Job,
+    back: _Job,
+    world_a: np.ndarray,
+    world_b: np.ndarray,
+    intrinsics: np.ndarray,
+    lift: LiftConfig,
+    config: CrossCameraConfig,
+    backend: str,
 ) -> tuple[np.ndarray, np.ndarray]:
     """`kernels.rig_stereo` where it is available, else `_stereo_numpy`."""
     tensors = (torch.from_numpy(job.end), torch.from_numpy(back.end))
     if kernels.available(kernels.rig_stereo, backend, *tensors):
         z, parallax = kernels.rig_stereo(
-            *tensors, torch.from_numpy(world_a), torch.from_numpy(world_b), torch.from_numpy(_geometry(job, intrinsics)),
-            job.box[2], job.box[0], back.box[2], back.box[0], config.consistency_px, lift.epipolar_px,
-            lift.epipolar_min_parallax, lift.epipolar_near, lift.epipolar_far, NEAR_Z,
+            *tensors,
+            torch.from_numpy(world_a),
+            torch.from_numpy(world_b),
+            torch.from_numpy(_geometry(job, intrinsics)),
+            job.box[2],
+            job.box[0],
+            back.box[2],
+            back.box[0],
+            config.consistency_px,
+            lift.epipolar_px,
+            lift.epipolar_min_parallax,
+            lift.epipolar_near,
+            lift.epipolar_far,
+            NEAR_Z,
         )
         return z.numpy(), parallax.numpy()
     return _stereo_numpy(job, back, world_a, world_b, intrinsics, lift, config)
@@ -304,7 +329,9 @@ def cross_camera_depth(
         if back is None:  # b's overlap with a fell short of min_overlap: no way back to check
             continue
         y0, y1, x0, x1 = job.box
-        z, parallax = _stereo(job, back, world[job.key, job.a, y0:y1, x0:x1], world[job.key, job.b], intrinsics, lift, config, backend)
+        z, parallax = _stereo(
+            job, back, world[job.key, job.a, y0:y1, x0:x1], world[job.key, job.b], intrinsics, lift, config, backend
+        )
         # of several partners, the one with the most parallax
         better = parallax > best[job.key, job.a, y0:y1, x0:x1]
         out[job.key, job.a, y0:y1, x0:x1][better] = z[better]

@@ -142,7 +142,9 @@ def read_safetensors_header(path: Path) -> dict:
         with open(path, "rb") as f:
             prefix = f.read(8)
             if len(prefix) < 8:
-                raise InputError(f"{path}: header: expected a safetensors file (an 8-byte header length first), found {size} bytes")
+                raise InputError(
+                    f"{path}: header: expected a safetensors file (an 8-byte header length first), found {size} bytes"
+                )
             length = int.from_bytes(prefix, "little")
             if length > min(size - 8, SAFETENSORS_MAX_HEADER):
                 raise InputError(f"{path}: header: expected a header length of at most {size - 8} bytes, found {length}")

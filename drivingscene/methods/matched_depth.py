@@ -135,7 +135,9 @@ class MatchedDepthConfig:
 
     def __post_init__(self):
         if self.prior_preset is not None and self.prior_preset not in DIS_PRESETS:
-            raise ValueError(f"MatchedDepthConfig.prior_preset: expected one of {sorted(DIS_PRESETS)}, found {self.prior_preset!r}")
+            raise ValueError(
+                f"MatchedDepthConfig.prior_preset: expected one of {sorted(DIS_PRESETS)}, found {self.prior_preset!r}"
+            )
         if self.preset not in DIS_PRESETS:
             raise ValueError(f"MatchedDepthConfig.preset: expected one of {sorted(DIS_PRESETS)}, found {self.preset!r}")
         if self.guide not in GUIDES:
@@ -328,7 +330,9 @@ def match_depth(
     device, dtype = depth.device, depth.dtype
     d = depth.detach().float().cpu()
     keep = (~excluded).cpu()
-    timings = dict.fromkeys(("match_flow_s", "match_triangulate_s", "match_correct_s", "match_cross_s", "match_fallback_views"), 0.0)
+    timings = dict.fromkeys(
+        ("match_flow_s", "match_triangulate_s", "match_correct_s", "match_cross_s", "match_fallback_views"), 0.0
+    )
     if config.scale == 1.0:
         cpu = batch.to("cpu") if device.type != "cpu" else batch
         out, determined = _match(d, keep, pair, cpu, config, timings)
@@ -450,7 +454,9 @@ def _match(
     return out, determined
 
 
-def _corrected(d: Tensor, keep: Tensor, triangulated: Tensor, determined: Tensor, config: MatchedDepthConfig, scale: float) -> Tensor:
+def _corrected(
+    d: Tensor, keep: Tensor, triangulated: Tensor, determined: Tensor, config: MatchedDepthConfig, scale: float
+) -> Tensor:
     """D's depth ``d`` times the smooth correction field that the triangulated depth of the
     determined pixels gives (see `MatchedDepthConfig`), and the triangulated depth itself where
     determined (``replace``)."""

@@ -71,8 +71,16 @@ def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refin
         colors = refine_colors(depth[k], batch.intrinsics, images, ~sky[k], refine, (quats, log_scales))
         parts.append(
             gaussians_from_pixels(
-                depth[k], batch.intrinsics, c2w[k].float(), colors, keyframe=k, flows=flows, valid=~sky[k],
-                quats=quats, log_scales=log_scales, footprints=None,
+                depth[k],
+                batch.intrinsics,
+                c2w[k].float(),
+                colors,
+                keyframe=k,
+                flows=flows,
+                valid=~sky[k],
+                quats=quats,
+                log_scales=log_scales,
+                footprints=None,
             )
         )
     gaussians = Gaussians.cat(parts)

@@ -122,7 +122,9 @@ def adapt_model(model, inputs: RefineInputs, config, clock, report, reserve_s: f
             depth = predict_depth(adapted, batch).float()  # D alone: the losses do not reach P
         d = depth
         if small is not inputs:
-            d = F.interpolate(depth.flatten(0, 1)[:, None], size=small.image_size, mode="area")[:, 0].view(2, -1, *small.image_size)
+            d = F.interpolate(depth.flatten(0, 1)[:, None], size=small.image_size, mode="area")[:, 0].view(
+                2, -1, *small.image_size
+            )
         loss = location_loss(d, small) + SMOOTH_WEIGHT * smoothness_loss(1.0 / d.flatten(0, 1)[:, None], targets, world)
         if config.lidar and inputs.lidar is not None:
             loss = loss + _lidar_term(depth, inputs)

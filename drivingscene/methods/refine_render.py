@@ -84,8 +84,15 @@ def render_views(gaussians: Gaussians, views: ViewSet, index: list[int], max_lay
         group = [i for i, ti in enumerate(times.tolist()) if ti == t]
         idx = [index[i] for i in group]
         out = render_gaussians(
-            gaussians, t, views.world_to_cam[idx], views.intrinsics[idx], height, width,
-            blend=views.blend, source_axes=views.axes, max_layers=max_layers,
+            gaussians,
+            t,
+            views.world_to_cam[idx],
+            views.intrinsics[idx],
+            height,
+            width,
+            blend=views.blend,
+            source_axes=views.axes,
+            max_layers=max_layers,
         )
         rgb = out.colors.permute(0, 3, 1, 2) + (1 - out.alphas[:, None]) * views.sky[idx]
         for j, i in enumerate(group):

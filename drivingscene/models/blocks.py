@@ -64,7 +64,9 @@ def replicate_pad1(x: Tensor) -> Tensor:
     input (30 ms for a 12 x 32 x 96 x 176 map), and concatenating edges copies the map twice."""
     channels_last = x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
     memory_format = torch.channels_last if channels_last else torch.contiguous_format
-    out = torch.empty((*x.shape[:-2], x.shape[-2] + 2, x.shape[-1] + 2), dtype=x.dtype, device=x.device, memory_format=memory_format)
+    out = torch.empty(
+        (*x.shape[:-2], x.shape[-2] + 2, x.shape[-1] + 2), dtype=x.dtype, device=x.device, memory_format=memory_format
+    )
     out[..., 1:-1, 1:-1] = x
     out[..., 0, 1:-1] = x[..., 0, :]
     out[..., -1, 1:-1] = x[..., -1, :]

@@ -104,9 +104,7 @@ class DepthDecoder(nn.Module):
             skip = enc_channels[i - 1] if i > 0 else 0
             self.up1.append(ConvELU(dec_channels[i] + skip, dec_channels[i]))
             in_ch = dec_channels[i]
-        self.heads = nn.ModuleList(
-            ReplicateConv3x3(dec_channels[s], 1) for s in range(num_scales)
-        )
+        self.heads = nn.ModuleList(ReplicateConv3x3(dec_channels[s], 1) for s in range(num_scales))
         for head in self.heads:  # start near 10 m (sigmoid(-3) ~ 0.047), a street's typical depth
             nn.init.constant_(head.bias, INITIAL_DISPARITY_LOGIT)
 
@@ -165,7 +163,9 @@ class DepthNet(nn.Module):
         ego_rays = torch.einsum("bij,bhwj->bhwi", cam_to_ego[:, :3, :3].float(), rays)
         mount = cam_to_ego[:, 2, 3].float()  # camera height above the ego frame's z = 0
         focal = intrinsics[:, 0, 0].float() / width / self.config.ref_focal
-        scale = torch.where(mount > ROAD_MIN_HEIGHT, ROAD_UNIT * focal / mount.clamp(min=ROAD_MIN_HEIGHT), torch.zeros_like(mount))
+        scale = torch.where(
+            mount > ROAD_MIN_HEIGHT, ROAD_UNIT * focal / mount.clamp(min=ROAD_MIN_HEIGHT), torch.zeros_like(mount)
+        )
         road = (-ego_rays[..., 2]).clamp(min=0) * scale.view(-1, 1, 1)
         elevation = ego_rays[..., 2] * torch.rsqrt(ego_rays.square().sum(-1))
         return torch.stack([road, elevation], dim=1)
@@ -195,7 +195,9 @@ class DepthNet(nn.Module):
         matching = self.matching(feats, images, intrinsics, geometry)
         half = matching.inverse_depth.shape[-2:]
         mono_half = self.disparity_to_depth(
-            nn.functional.interpolate(disps[1].float(), size=half, mode="bilinear", align_corners=False), intrinsics.float(), width
+            nn.functional.interpolate(disps[1].float(), size=half, mode="bilinear", align_corners=False),
+            intrinsics.float(),
+            width,
         )
         log_match = -torch.log(matching.inverse_depth.clamp(min=1e-4))
         correction = matching.gate * (log_match - torch.log(mono_half))  # [B, 1, h, w]

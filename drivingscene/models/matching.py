@@ -283,9 +283,7 @@ class MatchingHead(nn.Module):
         # sharpness of the softmax over the planes, per cost volume: (learnt, patch)
         self.sharpness = nn.Parameter(torch.tensor([0.0, 10.0]))
 
-    def forward(
-        self, enc_features: list[Tensor], images: Tensor, intrinsics: Tensor, geometry: ViewGeometry
-    ) -> MatchingOutput:
+    def forward(self, enc_features: list[Tensor], images: Tensor, intrinsics: Tensor, geometry: ViewGeometry) -> MatchingOutput:
         """``enc_features``: D's encoder features of ``images`` ``[B, 3, H, W]`` (in [0, 1]);
         ``intrinsics`` ``[B, 3, 3]`` at the images' size."""
         half = enc_features[0]

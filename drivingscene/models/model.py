@@ -68,9 +68,7 @@ class DrivingSceneModel(nn.Module):
         params = self.gaussian_head(images, depth.depth, intrinsics, depth.features, depth.decoder_features)
         return depth, params
 
-    def static_raw(
-        self, images: Tensor, intrinsics: Tensor, geometry: ViewGeometry | None = None
-    ) -> tuple[DepthOutput, Tensor]:
+    def static_raw(self, images: Tensor, intrinsics: Tensor, geometry: ViewGeometry | None = None) -> tuple[DepthOutput, Tensor]:
         """D and P's raw outputs ``[B, H, W, C]`` (to be resized, then ``gaussian_head.activate``)."""
         depth = self.depth_net(images, intrinsics, geometry)
         raw = self.gaussian_head.predict_raw(images, depth.depth, depth.features, depth.decoder_features)

@@ -737,14 +737,23 @@ def assemble(
     )
 
 
-def _fitted_sh(depth, intrinsics, quats, log_scales, opacity_logits, sh, images, valid, iterations: int, tolerance: float) -> Tensor:
+def _fitted_sh(
+    depth, intrinsics, quats, log_scales, opacity_logits, sh, images, valid, iterations: int, tolerance: float
+) -> Tensor:
     """``sh`` ``[I, H, W, K, 3]`` with the DC colour solved by `solve_pixel_colors` (images ``[I, 3, H, W]``)."""
     from drivingscene.render.color_solve import solve_pixel_colors
 
     start = SH_C0 * sh[..., 0, :].float() + 0.5  # the view-independent colour, unclamped
     solved = solve_pixel_colors(
-        depth.detach().float(), intrinsics, quats.detach(), log_scales.detach(), torch.sigmoid(opacity_logits.detach().float()),
-        start.detach().clamp(min=0.0), images.permute(0, 2, 3, 1).float(), valid, iterations,
+        depth.detach().float(),
+        intrinsics,
+        quats.detach(),
+        log_scales.detach(),
+        torch.sigmoid(opacity_logits.detach().float()),
+        start.detach().clamp(min=0.0),
+        images.permute(0, 2, 3, 1).float(),
+        valid,
+        iterations,
         surface_tolerance=tolerance,
     )
     change = torch.where(solved > 0, solved - start, (-start).clamp(max=0.0))

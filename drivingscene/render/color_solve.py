@@ -23,7 +23,8 @@ from torch import Tensor
 from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import own_view_covariance
 from drivingscene.geometry.camera import unproject
-from drivingscene.render.composite import SURFACE_TOLERANCE, composite, find_pairs_cpp, find_pairs_torch, pair_inputs
+from drivingscene import kernels
+from drivingscene.render.composite import SURFACE_TOLERANCE, composite, find_pairs_torch, pair_inputs
 from drivingscene.render.project import EPS2D
 from drivingscene.render.rasterize import DEFAULT_MAX_LAYERS, choose_backend
 from drivingscene.render.splats import Splats
@@ -51,34 +52,34 @@ def own_view_splats(
     projecting: it lands on the pixel centre), in compositing order (image, then depth); and the
     flat pixel index ``[M]`` of each splat. Colours are left empty."""
     num, height, width = depth.shape
+    z_map = depth.float().clamp(min=0.0)
     idx = valid.flatten().nonzero().squeeze(1)
-    z = depth.flatten().index_select(0, idx).float().clamp(min=0.0)
+    z = z_map.flatten().index_select(0, idx)
     image = idx // (height * width)
     # One sort by (image, depth, pixel): a non-negative float's bits order like the float.
     order = torch.sort((image << 32) | z.view(torch.int32).long(), stable=True).indices
     # index_select: a plain gather, several times faster than advanced indexing on CPU
     idx, z, image = idx.index_select(0, order), z.index_select(0, order), image.index_select(0, order)
-    u = (idx % width).float()
-    v = ((idx // width) % height).float()
-    k = intrinsics.float()[:, :2, :].flatten(1).index_select(0, image)  # [M, 6]: fx, skew, cx, 0, fy, cy
-    points = unproject(depth.float().clamp(min=1e-3), intrinsics.float()).reshape(-1, 3).index_select(0, idx)
+    # The footprints on the whole maps (contiguous, focal lengths broadcast), then one gather.
+    k = intrinsics.float()
+    points = unproject(depth.float().clamp(min=1e-3), k)
     a, b, c = own_view_covariance(
-        points,
-        quats.reshape(-1, 4).index_select(0, idx).float(),
-        log_scales.reshape(-1, 3).index_select(0, idx).float(),
-        k[:, [0, 4]],
-        k[:, 1],
+        points, quats.float(), log_scales.float(), k[:, None, None, [0, 1], [0, 1]], k[:, 0, 1, None, None]
     )
     a, c = a + eps2d, c + eps2d
     det = (a * c - b * b).clamp(min=1e-12)
     largest = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
+    fields = torch.stack([c / det, -b / det, a / det, 3.0 * torch.sqrt(largest), opacities.float()], -1)
+    fields = fields.reshape(-1, 5).index_select(0, idx)
+    u = (idx % width).float()
+    v = ((idx // width) % height).float()
     counts = torch.bincount(image, minlength=num)
     splats = Splats(
         means2d=torch.stack([u, v], -1),
-        conics=torch.stack([c / det, -b / det, a / det], -1),
+        conics=fields[:, :3],
         depths=z,
-        radii=3.0 * torch.sqrt(largest),
-        opacities=opacities.reshape(-1).index_select(0, idx).float(),
+        radii=fields[:, 3],
+        opacities=fields[:, 4],
         colors=torch.zeros(len(idx), 3),
         camera_ids=image,
         gaussian_ids=idx,
@@ -115,14 +116,44 @@ def solve_pixel_colors(
     with torch.no_grad():
         splats, pixel = own_view_splats(depth, intrinsics, quats, log_scales, opacities, valid, eps2d)
         inp = pair_inputs(splats, width, height)
-        compiled = choose_backend(backend, depth) == "cpp"
-        pair_ids = (find_pairs_cpp if compiled else find_pairs_torch)(inp, width, height, DEFAULT_MAX_LAYERS)
+        if choose_backend(backend, depth) == "cpp":  # pairs and weights once, then sparse products
+            out = kernels.own_layer_solve(
+                inp.means2d.float().contiguous(),
+                inp.conics.float().contiguous(),
+                inp.opacities.float().contiguous(),
+                inp.sigma_max.float().contiguous(),
+                inp.boxes,
+                inp.camera_offsets,
+                width,
+                height,
+                DEFAULT_MAX_LAYERS,
+                splats.depths.contiguous(),
+                pixel,
+                images.reshape(-1, 3).float(),
+                colors.reshape(-1, 3).float(),
+                iterations,
+                surface_tolerance,
+                MAX_COLOR,
+                MIN_COVERAGE,
+            )
+            return out.to(colors.dtype).reshape(colors.shape)
+        # the reference: a compositing pass per step
+        pair_ids = find_pairs_torch(inp, width, height, DEFAULT_MAX_LAYERS)
         target = images.reshape(-1, 3).float().index_select(0, pixel)
         solved = colors.reshape(-1, 3).float().index_select(0, pixel).clamp(0.0, MAX_COLOR)
         black = torch.zeros(depth.shape[0], 3)
         for _ in range(iterations):
             rgb, _, alpha = composite(
-                pair_ids, inp.means2d, inp.conics, inp.opacities, splats.depths, solved, black, width, height, compiled,
+                pair_ids,
+                inp.means2d,
+                inp.conics,
+                inp.opacities,
+                splats.depths,
+                solved,
+                black,
+                width,
+                height,
+                False,
                 surface_tolerance,
             )
             rgb, alpha = rgb.reshape(-1, 3).index_select(0, pixel), alpha.reshape(-1).index_select(0, pixel)

@@ -61,31 +61,47 @@ def pair_inputs(splats: Splats, width: int, height: int) -> PairInputs:
     """Cut thresholds and pixel boxes of the ellipses ``sigma <= sigma_max`` (with a small margin)."""
     with torch.no_grad():
         means2d, conics, opacities = splats.means2d.detach(), splats.conics.detach(), splats.opacities.detach()
-        radii, camera_offsets = splats.radii, splats.camera_offsets
         sigma_max = torch.clamp(torch.log(255.0 * opacities), max=SIGMA_CUT)
-        q = conics.double()
-        det = q[:, 0] * q[:, 2] - q[:, 1] * q[:, 1]
-        ok = (det > 0) & (sigma_max > 0) & (radii > 0)
-        det = torch.where(ok, det, torch.ones_like(det))
-        two_s = 2.0 * sigma_max.double().clamp(min=0.0)
-        # Extent of {dᵀ Q d <= 2 sigma_max} along x is sqrt(2 sigma_max (Q⁻¹)_xx) = sqrt(2 sigma_max c / det).
-        half = torch.stack([torch.sqrt(two_s * q[:, 2] / det), torch.sqrt(two_s * q[:, 0] / det)], dim=-1)
-        half = half * (1 + 1e-3) + 1e-3
-        centre = means2d.double()
-        ok &= torch.isfinite(centre).all(-1) & torch.isfinite(half).all(-1)  # never cast NaN/inf to int
-        size = torch.tensor([width - 1, height - 1], dtype=torch.float64, device=centre.device)
-        lo = torch.where(ok[:, None], torch.ceil(centre - half), 0.0).clamp(min=0.0)
-        hi = torch.where(ok[:, None], torch.floor(centre + half), -1.0)
-        hi = torch.minimum(hi, size)
-        boxes = torch.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], dim=-1).to(torch.int32)
+        if kernels.available(kernels.splat_boxes, "auto", means2d, conics, sigma_max, splats.radii):
+            boxes = kernels.splat_boxes(
+                means2d.contiguous(),
+                conics.contiguous(),
+                sigma_max.contiguous(),
+                splats.radii.detach().contiguous(),
+                width,
+                height,
+            )
+        else:
+            boxes = splat_boxes_torch(means2d, conics, sigma_max, splats.radii, width, height)
         return PairInputs(
             means2d=means2d.contiguous(),
             conics=conics.contiguous(),
             opacities=opacities.contiguous(),
             sigma_max=sigma_max.contiguous(),
-            boxes=boxes.contiguous(),
-            camera_offsets=camera_offsets.to(torch.int64).contiguous(),
+            boxes=boxes,
+            camera_offsets=splats.camera_offsets.to(torch.int64).contiguous(),
         )
+
+
+def splat_boxes_torch(means2d: Tensor, conics: Tensor, sigma_max: Tensor, radii: Tensor, width: int, height: int) -> Tensor:
+    """Pixel boxes ``[M, 4]`` int32 x0, x1, y0, y1 (inclusive, clipped; empty if x0 > x1) of the
+    ellipses ``sigma <= sigma_max``, in float64 (the reference of `kernels.splat_boxes`)."""
+    q = conics.double()
+    det = q[:, 0] * q[:, 2] - q[:, 1] * q[:, 1]
+    ok = (det > 0) & (sigma_max > 0) & (radii > 0)
+    det = torch.where(ok, det, torch.ones_like(det))
+    two_s = 2.0 * sigma_max.double().clamp(min=0.0)
+    # Extent of {dᵀ Q d <= 2 sigma_max} along x is sqrt(2 sigma_max (Q⁻¹)_xx) = sqrt(2 sigma_max c / det).
+    half = torch.stack([torch.sqrt(two_s * q[:, 2] / det), torch.sqrt(two_s * q[:, 0] / det)], dim=-1)
+    half = half * (1 + 1e-3) + 1e-3
+    centre = means2d.double()
+    ok &= torch.isfinite(centre).all(-1) & torch.isfinite(half).all(-1)  # never cast NaN/inf to int
+    size = torch.tensor([width - 1, height - 1], dtype=torch.float64, device=centre.device)
+    lo = torch.where(ok[:, None], torch.ceil(centre - half), 0.0).clamp(min=0.0)
+    hi = torch.where(ok[:, None], torch.floor(centre + half), -1.0)
+    hi = torch.minimum(hi, size)
+    lo, hi = torch.minimum(lo, size + 1.0), hi.clamp(min=-1.0)  # far off the image: empty, within int32
+    return torch.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], dim=-1).to(torch.int32).contiguous()
 
 
 def _half_sq_mahalanobis(dx: Tensor, dy: Tensor, conics: Tensor) -> Tensor:
@@ -259,7 +275,9 @@ class _Composite(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int, compiled: bool, tolerance: float):
+    def forward(
+        ctx, packed: Tensor, backgrounds: Tensor, pair_ids: Tensor, width: int, height: int, compiled: bool, tolerance: float
+    ):
         forward = kernels.composite_forward if compiled else composite_torch
         rgb, depth, weight_sum = forward(packed, backgrounds, pair_ids, width, height, tolerance)
         ctx.save_for_backward(packed, backgrounds, pair_ids, depth, weight_sum)

@@ -116,7 +116,19 @@ def rasterize(
     dtype = means.dtype
     viewmats, Ks, backgrounds = viewmats.to(dtype), Ks.to(dtype), backgrounds.to(dtype)
     s = make_splats(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=sh_degree, near=near, far=far, eps2d=eps2d,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        sh_degree=sh_degree,
+        near=near,
+        far=far,
+        eps2d=eps2d,
         views=views,
     )
     inp = pair_inputs(s, width, height)
@@ -125,7 +137,16 @@ def rasterize(
     else:
         pair_ids = find_pairs_torch(inp, width, height, max_layers)
     rgb, depth, alpha = composite(
-        pair_ids, s.means2d, s.conics, s.opacities, s.depths, s.colors, backgrounds, width, height, compiled=chosen == "cpp",
+        pair_ids,
+        s.means2d,
+        s.conics,
+        s.opacities,
+        s.depths,
+        s.colors,
+        backgrounds,
+        width,
+        height,
+        compiled=chosen == "cpp",
         surface_tolerance=surface_tolerance,
     )
     return RenderOutput(colors=rgb, depths=depth, alphas=alpha)

@@ -49,7 +49,19 @@ def rasterize_reference(
     covars = rot @ torch.diag_embed(scales**2) @ rot.transpose(-1, -2)  # [N, 3, 3]
     outs = [
         _render_camera(
-            means, covars, opacities, colors, viewmats[b], Ks[b], backgrounds[b], width, height, sh_degree, near, far, eps2d,
+            means,
+            covars,
+            opacities,
+            colors,
+            viewmats[b],
+            Ks[b],
+            backgrounds[b],
+            width,
+            height,
+            sh_degree,
+            near,
+            far,
+            eps2d,
             surface_tolerance,
         )
         for b in range(viewmats.shape[0])

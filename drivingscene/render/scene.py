@@ -38,13 +38,30 @@ def render_gaussians(
         if source_axes is None:
             raise InputError("blend 'cameras': needs source_axes, the input cameras' world optical axes [2, V, 3]")
         return render_camera_layers(
-            gaussians, t, world_to_cam, intrinsics, height, width, source_axes,
-            sky_sh=sky_sh, background=background, layer_blend=layer_blend, **raster_kwargs,
+            gaussians,
+            t,
+            world_to_cam,
+            intrinsics,
+            height,
+            width,
+            source_axes,
+            sky_sh=sky_sh,
+            background=background,
+            layer_blend=layer_blend,
+            **raster_kwargs,
         )
     if blend == "layers":
         return render_layers(
-            gaussians, t, world_to_cam, intrinsics, height, width,
-            sky_sh=sky_sh, background=background, layer_blend=layer_blend, **raster_kwargs,
+            gaussians,
+            t,
+            world_to_cam,
+            intrinsics,
+            height,
+            width,
+            sky_sh=sky_sh,
+            background=background,
+            layer_blend=layer_blend,
+            **raster_kwargs,
         )
     g = gaussians
     opacities = g.opacities * g.time_weights(t, blend)
@@ -128,8 +145,6 @@ CAMERA_ANGLE_SCALE_AT_KEYFRAME = 0.1
 COVERAGE_FULL = 0.7
 
 
-
-
 @dataclass(frozen=True)
 class LayerBlend:
     """How the layered blends combine their layers (the constants above; docs/magnification.md)."""
@@ -205,7 +220,9 @@ def _render_sets(
     """Each set of Gaussians rendered alone over black and the layers composed (`_compose`) over the
     background; no sets: the background alone."""
     if not sets:
-        return render_gaussians(gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **kwargs)
+        return render_gaussians(
+            gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **kwargs
+        )
     black = torch.zeros(3, device=world_to_cam.device)
     rule = layer_blend or LayerBlend()
     kwargs.setdefault("surface_tolerance", rule.surface_tolerance)
@@ -304,7 +321,11 @@ def render_input_views(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
     height, width = pair.image_size
     cams = torch.from_numpy(np.array(pair.camera_ego_poses())) @ torch.from_numpy(pair.cam_to_ego).double()
     k = torch.from_numpy(pair.intrinsics).float()
-    times = np.repeat([[0.0], [1.0]], pair.num_views, 1) if pair.camera_timestamps is None else pair.normalised_time(pair.camera_timestamps)
+    times = (
+        np.repeat([[0.0], [1.0]], pair.num_views, 1)
+        if pair.camera_timestamps is None
+        else pair.normalised_time(pair.camera_timestamps)
+    )
     g = recon.visible()
     frames = torch.empty(2, pair.num_views, height, width, 3)
     for key in (0, 1):
@@ -312,9 +333,16 @@ def render_input_views(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
         groups = [list(range(pair.num_views))] if np.ptp(times[key]) == 0 else [[v] for v in range(pair.num_views)]
         for views in groups:
             out = render_gaussians(
-                g, float(times[key][views[0]]), invert_rigid(cams[key][views]), k[views], height, width,
-                sky_sh=recon.sky_sh, blend=blend, source_axes=source_axes(recon), **raster_kwargs,
+                g,
+                float(times[key][views[0]]),
+                invert_rigid(cams[key][views]),
+                k[views],
+                height,
+                width,
+                sky_sh=recon.sky_sh,
+                blend=blend,
+                source_axes=source_axes(recon),
+                **raster_kwargs,
             )
             frames[key, views] = out.colors.clamp(0, 1)
     return frames
-

@@ -65,7 +65,9 @@ def make_splats(
     with torch.no_grad():
         # Conservative cull without covariances; the exact rule (radii > 0) is applied after projection.
         if views is None:
-            maybe = cull_bound(means.detach(), scales.detach().amax(-1), viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d)
+            maybe = cull_bound(
+                means.detach(), scales.detach().amax(-1), viewmats, Ks, width, height, near=near, far=far, eps2d=eps2d
+            )
             maybe &= (opacities.detach() >= MIN_ALPHA)[None]  # [B, N]
             cam_ids, gs_ids = maybe.nonzero(as_tuple=True)
         else:  # one camera per Gaussian: only those pairs (listed camera by camera, Gaussians ascending)
@@ -74,8 +76,15 @@ def make_splats(
             gs_ids = gs_ids[torch.sort(views[gs_ids], stable=True).indices]
             cam_ids = views[gs_ids]
             keep = cull_bound_pairs(
-                means.detach()[gs_ids], scales.detach()[gs_ids].amax(-1), viewmats[cam_ids], Ks[cam_ids], width, height,
-                near=near, far=far, eps2d=eps2d,
+                means.detach()[gs_ids],
+                scales.detach()[gs_ids].amax(-1),
+                viewmats[cam_ids],
+                Ks[cam_ids],
+                width,
+                height,
+                near=near,
+                far=far,
+                eps2d=eps2d,
             )
             cam_ids, gs_ids = cam_ids[keep], gs_ids[keep]
         # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a

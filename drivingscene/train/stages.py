@@ -205,7 +205,9 @@ class TrainStep(nn.Module):
         dyn = torch.zeros_like(gt, dtype=torch.bool) if dyn is None else dyn
 
         def sup(depths: list[Tensor], truth: Tensor = gt) -> Tensor:
-            return sum(supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), truth, dyn) for d in depths) / len(depths)
+            return sum(supervised_depth_loss(d.float().unflatten(0, (2, batch.num_views)), truth, dyn) for d in depths) / len(
+                depths
+            )
 
         out = static.depth_output
         terms = {"depth_sup": sup(out.depths)}

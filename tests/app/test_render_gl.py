@@ -156,7 +156,9 @@ def test_layered_blends_sort_each_layer_front_to_back():
     gpu_segments = GpuSplats.__new__(GpuSplats)
     gpu_segments.layer_ids = layer_ids(splats.keyframes, splats.cameras)
     segments = gpu_segments._segments(order)
-    assert [(k, c) for k, c, _, _ in segments] == sorted({(int(k), int(c)) for k, c in zip(splats.keyframes[order], splats.cameras[order])})
+    assert [(k, c) for k, c, _, _ in segments] == sorted(
+        {(int(k), int(c)) for k, c in zip(splats.keyframes[order], splats.cameras[order])}
+    )
     assert segments[0][2] == 0 and segments[-1][3] == len(order)
     assert gpu_segments._segments(plain) is None  # a plain depth order is not grouped
 

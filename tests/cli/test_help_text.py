@@ -54,7 +54,9 @@ def test_one_output_option_everywhere():
     assert str(args.out) == "a.ply"
 
 
-@pytest.mark.parametrize("spaced, comma", [(["8x12", "16x24"], ["8x12,16x24"]), (["8x12", "16x24", "32x48"], ["8x12,16x24", "32x48"])])
+@pytest.mark.parametrize(
+    "spaced, comma", [(["8x12", "16x24"], ["8x12,16x24"]), (["8x12", "16x24", "32x48"], ["8x12,16x24", "32x48"])]
+)
 def test_list_options_are_space_separated_and_accept_commas(spaced, comma):
     parser = build_parser()
     for bench in ("raster", "inference", "synth"):

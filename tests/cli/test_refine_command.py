@@ -68,6 +68,24 @@ def test_refined_reconstruction_is_written(scenes, tmp_path, capsys, tiny_weight
     assert meta["steps"] == 1 and meta["step_s"] > 0 and meta["budget_s"] == 60
     assert recon.meta["method"] == "drivingscene+refine"
     # adapting D in all of the budget with full-size losses, then one gradient step
-    assert main([*args, "--refine", "60", "--refine-steps", "1", "--adapt", "1", "--adapt-share", "1", "--adapt-scale", "1", "--force"]) == 0
+    assert (
+        main(
+            [
+                *args,
+                "--refine",
+                "60",
+                "--refine-steps",
+                "1",
+                "--adapt",
+                "1",
+                "--adapt-share",
+                "1",
+                "--adapt-scale",
+                "1",
+                "--force",
+            ]
+        )
+        == 0
+    )
     meta = load_reconstruction(out).meta["refinement"]
     assert meta["adapt"]["steps"] == 1 and meta["steps"] == 1

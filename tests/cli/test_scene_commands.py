@@ -114,7 +114,13 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
 
     scene = save_frame_pair(synth_pair, tmp_path / "scene.npz")
     recons = {}
-    runs = (("full", ["--no-parallax"]), ("r_alone", ["--no-search", "--no-parallax"]), ("static", ["--static-only"]), ("default", []), ("no_match", ["--no-match"]))
+    runs = (
+        ("full", ["--no-parallax"]),
+        ("r_alone", ["--no-search", "--no-parallax"]),
+        ("static", ["--static-only"]),
+        ("default", []),
+        ("no_match", ["--no-match"]),
+    )
     for name, extra in runs:
         assert main(["reconstruct", str(scene), "-o", str(tmp_path / f"{name}.npz"), *extra]) == 0
         recons[name] = load_reconstruction(tmp_path / f"{name}.npz")
@@ -156,7 +162,10 @@ def test_info_and_validate_say_what_a_recon_is(tmp_path, capsys):
     assert main(["info", str(recon)]) == 0
     out = capsys.readouterr().out.strip()
     dynamic = int(g.dynamic.sum())
-    assert out == f"{recon}: a DrivingScene reconstruction (30 Gaussians ({dynamic} dynamic), SH degree 1; 3 cameras (CAM_0, CAM_1, CAM_2) at 8x6)"
+    assert (
+        out
+        == f"{recon}: a DrivingScene reconstruction (30 Gaussians ({dynamic} dynamic), SH degree 1; 3 cameras (CAM_0, CAM_1, CAM_2) at 8x6)"
+    )
     assert main(["validate", str(recon)]) == 0
     captured = capsys.readouterr()
     assert captured.out.startswith(f"{recon}: a DrivingScene reconstruction") and captured.out.strip().endswith(": valid")
@@ -166,7 +175,9 @@ def test_info_and_validate_say_what_a_recon_is(tmp_path, capsys):
 def test_info_and_validate_say_what_a_ply_is(tmp_path, capsys):
     _, ply, _ = _recon_and_ply(tmp_path)
     assert main(["info", str(ply)]) == 0
-    expected = "30 Gaussians (0 dynamic), SH degree 1 (stored as degree 3, the higher bands all zero), frame z-up (DrivingScene's world)"
+    expected = (
+        "30 Gaussians (0 dynamic), SH degree 1 (stored as degree 3, the higher bands all zero), frame z-up (DrivingScene's world)"
+    )
     assert capsys.readouterr().out.strip() == f"{ply}: a 3DGS PLY, {expected}"  # written padded, graphdeco's layout
     assert main(["validate", str(ply)]) == 0
     assert "a 3DGS PLY" in capsys.readouterr().out

@@ -64,18 +64,61 @@ def test_bench_choices_report(synth_pair, synth_pair_folder, tiny_weights, tmp_p
     assert "| blend=all |" in text and "| blend=layers,carve=all,parallax=on |" in text and "input views PSNR" in text
     assert main(["bench", "choices", "--data", str(data), "--variant", "blend=nope"]) == 2
     # a first pair without intermediate frames (real keyframe pairs) does not hide the others' scores
-    save_frame_pair(replace(synth_pair, eval_images=None, eval_timestamps=None, eval_ego_to_world=None, eval_dynamic=None,
-                            eval_camera_ego_to_world=None, eval_camera_timestamps=None),
-                    data / "pair_000000.npz")
+    save_frame_pair(
+        replace(
+            synth_pair,
+            eval_images=None,
+            eval_timestamps=None,
+            eval_ego_to_world=None,
+            eval_dynamic=None,
+            eval_camera_ego_to_world=None,
+            eval_camera_timestamps=None,
+        ),
+        data / "pair_000000.npz",
+    )
     assert main([*args[:5], "2", *args[6:], "--variant", "blend=layers", "--force"]) == 0
     row = next(line for line in out.read_text().splitlines() if line.startswith("| blend=layers |"))
     assert "nan" not in row.split("|")[3]
     one = data / "pair_100000.npz"  # a scene file instead of a folder
-    assert main(["bench", "choices", "--data", str(one), "--weights", str(tiny_weights), "--out", str(out), "--variant", "blend=layers", "--force"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "choices",
+                "--data",
+                str(one),
+                "--weights",
+                str(tiny_weights),
+                "--out",
+                str(out),
+                "--variant",
+                "blend=layers",
+                "--force",
+            ]
+        )
+        == 0
+    )
     assert f"### {one} (1 pair; moving pixels in the ground truth:" in out.read_text()
     real = data / "real.npz"  # a real pair: no ground-truth motion, so no moving-pixel score
     save_frame_pair(replace(synth_pair, gt_dynamic=None, eval_dynamic=None), real)
-    assert main(["bench", "choices", "--data", str(real), "--weights", str(tiny_weights), "--out", str(out), "--variant", "blend=layers", "--force"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "choices",
+                "--data",
+                str(real),
+                "--weights",
+                str(tiny_weights),
+                "--out",
+                str(out),
+                "--variant",
+                "blend=layers",
+                "--force",
+            ]
+        )
+        == 0
+    )
     text = out.read_text()
     assert f"### {real} (1 pair; no ground-truth motion)" in text
     row = next(line for line in text.splitlines() if line.startswith("| blend=layers |"))

@@ -31,7 +31,19 @@ def test_bench_real_report(synth_pair, tiny_weights, tmp_path):  # noqa: F811
     args = ["bench", "real", str(scene), "--names", "tiny", "--weights", str(tiny_weights), "--repeats", "1"]
     assert main([*args, "--lpips", "stlpips", "--out", str(md), "--json", str(js), "--images", str(figs)]) == 0
     text = md.read_text()
-    for needle in ("## Summary", "### tiny", COPY, BLEND, "median-scaled", "re-rendered", "](figs/tiny.png)", "not committed", ROAD, NEAREST, "## Depth next to trivial baselines"):
+    for needle in (
+        "## Summary",
+        "### tiny",
+        COPY,
+        BLEND,
+        "median-scaled",
+        "re-rendered",
+        "](figs/tiny.png)",
+        "not committed",
+        ROAD,
+        NEAREST,
+        "## Depth next to trivial baselines",
+    ):
         assert needle in text
     scores = json.loads(js.read_text())["tiny"]
     assert set(scores["novel"]) == {FULL, "DrivingScene, static-only (no residual flow)", COPY, BLEND}
@@ -74,7 +86,19 @@ def test_bench_real_scores_refined_reconstructions(synth_pair, tiny_weights, tmp
     scene = tmp_path / "scene.npz"
     save_frame_pair(_real_like(synth_pair), scene)
     md, js = tmp_path / "real.md", tmp_path / "real.json"
-    args = ["bench", "real", str(scene), "--names", "tiny", "--weights", str(tiny_weights), "--repeats", "1", "--lpips", "stlpips"]
+    args = [
+        "bench",
+        "real",
+        str(scene),
+        "--names",
+        "tiny",
+        "--weights",
+        str(tiny_weights),
+        "--repeats",
+        "1",
+        "--lpips",
+        "stlpips",
+    ]
     assert main([*args, "--refine", "2", "--lidar", "--out", str(md), "--json", str(js)]) == 0
     text = md.read_text()
     assert "## Test-time refinement" in text and "--refine 2 --lidar" in text and "## Depth next to trivial baselines" in text

@@ -78,7 +78,13 @@ def test_bench_report_quick(synth_pair, tmp_path):
     assert 0 < report["run_seconds"] < 3600
     page = md.read_text()
     assert "Depth AbsRel at the keyframes" in page
-    for needle in ("## Speed against accuracy: procedural", "## Speed against accuracy: real", "## Stability", "## Parsimony", "## The paper's ablations"):
+    for needle in (
+        "## Speed against accuracy: procedural",
+        "## Speed against accuracy: real",
+        "## Stability",
+        "## Parsimony",
+        "## The paper's ablations",
+    ):
         assert needle in page
     pngs = sorted(charts.glob("*.png"))
     assert len(pngs) >= 3 and all(f"images/{p.name}" in page for p in pngs)
@@ -103,7 +109,11 @@ def test_resized_pair_and_back(synth_pair):
 
 
 def test_finite_or_none():
-    assert finite_or_none({"a": [1.0, float("nan")], "b": (float("inf"), "x"), "c": 3}) == {"a": [1.0, None], "b": [None, "x"], "c": 3}
+    assert finite_or_none({"a": [1.0, float("nan")], "b": (float("inf"), "x"), "c": 3}) == {
+        "a": [1.0, None],
+        "b": [None, "x"],
+        "c": 3,
+    }
 
 
 def test_bench_report_refuses_bad_arguments(tmp_path, capsys):
@@ -121,7 +131,23 @@ def test_bench_report_from_json(tmp_path, capsys):
     saved.write_text(json.dumps(example_report()))
     md, notes = tmp_path / "b.md", tmp_path / "notes.md"
     notes.write_text("## Notes\nhand-written\n")
-    assert main(["bench", "report", "--from-json", str(saved), "--notes", str(notes), "--out", str(md), "--charts", str(tmp_path / "img")]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "report",
+                "--from-json",
+                str(saved),
+                "--notes",
+                str(notes),
+                "--out",
+                str(md),
+                "--charts",
+                str(tmp_path / "img"),
+            ]
+        )
+        == 0
+    )
     page = md.read_text()
     assert "## Speed against accuracy: procedural" in page and page.endswith("hand-written\n")
     assert (tmp_path / "img" / "benchmark_speed_procedural.png").exists()
@@ -138,9 +164,20 @@ def test_bench_report_adds_ablation_models_to_a_saved_report(tiny_weights, tmp_p
     args = ["bench", "report", "--quick", "--no-stability", "--json", str(js), "--out", str(tmp_path / "a.md")]
     assert main(args) == 0
     before = json.loads(js.read_text())
-    add = ["bench", "report", "--from-json", str(js), "--joint-weights", str(tiny_weights), "--no-warp-weights", str(tiny_weights)]
+    add = [
+        "bench",
+        "report",
+        "--from-json",
+        str(js),
+        "--joint-weights",
+        str(tiny_weights),
+        "--no-warp-weights",
+        str(tiny_weights),
+    ]
     add += ["--width-weights", str(tiny_weights)]
-    assert main([*add, "--two-stage-weights", str(tiny_weights), "--json", str(js), "--out", str(tmp_path / "b.md"), "--force"]) == 0
+    assert (
+        main([*add, "--two-stage-weights", str(tiny_weights), "--json", str(js), "--out", str(tmp_path / "b.md"), "--force"]) == 0
+    )
     after = json.loads(js.read_text())
     methods = {p["method"] for p in after["sets"]["procedural"]["points"]}
     assert {SINGLE, NO_WARP, TWO_STAGE} <= methods

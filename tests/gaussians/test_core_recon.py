@@ -179,7 +179,11 @@ def test_default_surfels_lie_in_the_surface_and_project_to_round_pixel_splats():
     points = unproject(depth, k[None])
     torch.testing.assert_close(surface_normals(points)[0], normal.expand(32, 48, 3), atol=1e-6, rtol=0)
     g = gaussians_from_pixels(
-        depth, k[None], torch.eye(4, dtype=torch.float64)[None], torch.rand(1, 32, 48, 3, dtype=torch.float64), keyframe=0,
+        depth,
+        k[None],
+        torch.eye(4, dtype=torch.float64)[None],
+        torch.rand(1, 32, 48, 3, dtype=torch.float64),
+        keyframe=0,
         footprints=None,
     )
     torch.testing.assert_close((q2m(g.quats)[:, :, 2] @ normal).abs(), torch.ones(len(g), dtype=torch.float64), atol=1e-6, rtol=0)
@@ -200,7 +204,9 @@ def _own_view_cov(g, k):
     """``[N, 2, 2]`` 2D covariances (px^2, no low-pass) of Gaussians seen by a camera at the origin."""
     from drivingscene.render.project import covariances_3d, project_covariances
 
-    proj = project_covariances(g.means, covariances_3d(g.quats, g.scales), torch.eye(4, dtype=torch.float64), k, 48, 32, eps2d=0.0)
+    proj = project_covariances(
+        g.means, covariances_3d(g.quats, g.scales), torch.eye(4, dtype=torch.float64), k, 48, 32, eps2d=0.0
+    )
     a, b, c = proj.conics.unbind(-1)
     return torch.stack([c, -b, -b, a], -1).view(-1, 2, 2) / (a * c - b * b)[:, None, None]
 
@@ -228,7 +234,9 @@ def test_the_footprint_rule_widens_every_splat_by_the_floor_and_caps_wide_ones()
     largest = torch.linalg.eigvalsh(_own_view_cov(replace(capped, log_scales=0.5 * torch.log(unfloored)), k))[:, -1]
     torch.testing.assert_close(largest.sqrt(), torch.full_like(largest, MAX_FOOTPRINT), rtol=1e-6, atol=0)
     ratios = unfloored / unfloored[:, :1]
-    torch.testing.assert_close(ratios, torch.tensor([1.0, 0.25, (0.1 / 6.0) ** 2], dtype=torch.float64).expand_as(ratios), rtol=1e-6, atol=0)
+    torch.testing.assert_close(
+        ratios, torch.tensor([1.0, 0.25, (0.1 / 6.0) ** 2], dtype=torch.float64).expand_as(ratios), rtol=1e-6, atol=0
+    )
 
 
 def test_transform_moves_means_flows_and_rotations_consistently():

@@ -40,8 +40,13 @@ def test_a_floater_in_front_of_another_cameras_surface_is_dropped(synth_pair):
     ray = torch.tensor([(w // 2 - k[0, 0, 2]) / k[0, 0, 0], (h // 2 - k[0, 1, 2]) / k[0, 1, 1], 1.0], dtype=torch.float64)
     point = (cam[:3, :3] @ (ray * d) + cam[:3, 3]).float()
     floater = Gaussians.create(
-        means=point[None], quats=torch.tensor([[1.0, 0, 0, 0]]), scales=torch.full((1, 3), 0.1),
-        opacities=torch.tensor([0.9]), sh=torch.ones(1, 3), keyframes=0, cameras=1,
+        means=point[None],
+        quats=torch.tensor([[1.0, 0, 0, 0]]),
+        scales=torch.full((1, 3), 0.1),
+        opacities=torch.tensor([0.9]),
+        sh=torch.ones(1, 3),
+        keyframes=0,
+        cameras=1,
     )
     both = Gaussians.cat([g, floater])
     keep = carve(both, torch.cat([ids, torch.tensor([1])]), w2c, k, depth, sky, None, CarveConfig())

@@ -48,7 +48,9 @@ def test_the_proposal_wins_where_only_it_explains_the_images_and_on_ties(kernel_
     # without it the first hypothesis keeps it.
     flat = torch.full((1, 1, 16, 16), 0.5)
     rigid = torch.ones(1, 16, 16, 2)
-    assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, proposal_bonus=1e-3, backend=kernel_backend) == len(SCALES)).all()
+    assert (
+        search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, proposal_bonus=1e-3, backend=kernel_backend) == len(SCALES)
+    ).all()
     assert (search_along_rigid(flat, flat, rigid, SCALES, 3, rigid * 0.3, backend=kernel_backend) == 0).all()
 
 

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import time
+
+import tomllib
 
 from drivingscene.kernels import build
 from drivingscene.kernels.build import clear_stale_lock
@@ -45,8 +48,14 @@ def test_the_build_directory_follows_the_environment(tmp_path, monkeypatch):
 
 
 def test_the_sources_are_the_packaged_csrc_files():
-    assert [s.name for s in build.SOURCES] == ["find_pairs.cpp", "composite.cpp", "surfels.cpp", "flow.cpp", "matching.cpp"]
+    csrc = build.SOURCES[0].parent
+    assert sorted(s.name for s in build.SOURCES) == sorted(p.name for p in csrc.glob("*.cpp"))
     assert all(s.is_file() and s.parent.name == "csrc" and s.parent.parent.name == "kernels" for s in build.SOURCES)
+    # the headers they include are installed with them
+    package_data = tomllib.loads((csrc.parents[2] / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    included = {h for s in build.SOURCES for h in re.findall(r'#include "([^"]+)"', s.read_text())}
+    assert included == {"pairs.h", "front_group.h"} and all((csrc / h).is_file() for h in included)
+    assert {"csrc/*.cpp", "csrc/*.h"} <= set(package_data["drivingscene.kernels"])
 
 
 def test_a_lock_left_by_a_killed_build_is_removed_and_a_live_one_kept(tmp_path, caplog):

@@ -31,7 +31,13 @@ def registered_schemas() -> dict[str, list[tuple[str, str]]]:
 
 def test_the_sources_register_the_ops_we_know():
     schemas = registered_schemas()
-    assert len(schemas) == 16 and "composite_backward" in schemas and "find_pairs" in schemas and "plane_sweep_correlate_backward" in schemas
+    assert (
+        len(schemas) == 18
+        and "composite_backward" in schemas
+        and "own_layer_solve" in schemas
+        and "find_pairs" in schemas
+        and "plane_sweep_correlate_backward" in schemas
+    )
 
 
 @pytest.mark.parametrize("name", sorted(registered_schemas()))

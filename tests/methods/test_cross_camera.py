@@ -72,7 +72,9 @@ def test_overlapping_cameras_triangulate_near_the_ground_truth(synth_pair):
 def test_a_camera_alone_or_images_that_do_not_match_determine_nothing(synth_pair):
     guide, world, batch = _inputs(synth_pair)
     one = replace(synth_pair, images=synth_pair.images[:, :1], intrinsics=synth_pair.intrinsics[:1])
-    one_batch = pair_to_tensors(replace(one, cam_to_ego=synth_pair.cam_to_ego[:1], gt_depth=None, valid_mask=None), with_gt=False, with_eval=False)
+    one_batch = pair_to_tensors(
+        replace(one, cam_to_ego=synth_pair.cam_to_ego[:1], gt_depth=None, valid_mask=None), with_gt=False, with_eval=False
+    )
     z, _, pairs = cross_camera_depth(guide[:, :1], world[:, :1], one.images, one_batch, LiftConfig())
     assert pairs == 0 and not z.any()
     # noise instead of images: the matches neither agree both ways nor lie on the epipolar lines

@@ -80,7 +80,15 @@ def test_eval_frames_render_each_camera_at_its_own_time(synth_pair):
     k = torch.from_numpy(recon.intrinsics).float()
     h, w = synth_pair.image_size
     single = render_gaussians(
-        recon.visible(), 0.2, invert_rigid(c2w[1:2]), k[1:2], h, w, sky_sh=recon.sky_sh, blend=DEFAULT_BLEND, source_axes=source_axes(recon)
+        recon.visible(),
+        0.2,
+        invert_rigid(c2w[1:2]),
+        k[1:2],
+        h,
+        w,
+        sky_sh=recon.sky_sh,
+        blend=DEFAULT_BLEND,
+        source_axes=source_axes(recon),
     )
     assert torch.allclose(frames[0, 1], single.colors[0].clamp(0, 1), atol=1e-6)
     same = render_eval_frames(recon, synth_pair)

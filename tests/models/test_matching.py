@@ -215,7 +215,9 @@ def test_intrinsics_scaling_is_applied_before_the_sweep():
     k = torch.tensor([[[40.0, 0, 23.5], [0, 40.0, 15.5], [0, 0, 1]]])
     half = scale_intrinsics(k, 0.5, 0.5)
     rays = target_rays(half, 16, 24)
-    torch.testing.assert_close(rays[0, 0, 0], torch.tensor([(0 - half[0, 0, 2]) / half[0, 0, 0], (0 - half[0, 1, 2]) / half[0, 1, 1], 1.0]))
+    torch.testing.assert_close(
+        rays[0, 0, 0], torch.tensor([(0 - half[0, 0, 2]) / half[0, 0, 0], (0 - half[0, 1, 2]) / half[0, 1, 1], 1.0])
+    )
 
 
 def test_compiled_sweep_equals_the_torch_steps(compiled_kernels):

@@ -654,7 +654,10 @@ def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
     from drivingscene.models.pipeline import StaticPrediction
 
     params = PixelGaussians(
-        log_scales=torch.zeros(6, 24, 32, 3), quats=torch.zeros(6, 24, 32, 4), opacity_logits=torch.zeros(6, 24, 32), sh=torch.zeros(6, 24, 32, 1, 3)
+        log_scales=torch.zeros(6, 24, 32, 3),
+        quats=torch.zeros(6, 24, 32, 4),
+        opacity_logits=torch.zeros(6, 24, 32),
+        sh=torch.zeros(6, 24, 32, 1, 3),
     )
     static = with_depth(StaticPrediction(depth=wrong, depth_output=None, params=params), depth)
     torch.testing.assert_close(static.params.log_scales[..., 0], (depth / wrong).log().flatten(0, 1))

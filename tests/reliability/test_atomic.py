@@ -57,7 +57,7 @@ def test_every_write_goes_through_the_atomic_helpers():
 
 
 def test_the_scan_finds_a_plain_write():
-    assert WRITE_CALLS.search('out.write_text(report)') and WRITE_CALLS.search('with open(p, "w") as f:')
+    assert WRITE_CALLS.search("out.write_text(report)") and WRITE_CALLS.search('with open(p, "w") as f:')
     assert not TO_TEMPORARY.search("cv2.imwrite(str(path), pixels)") and TO_TEMPORARY.search("cv2.imwrite(str(tmp), x)")
 
 

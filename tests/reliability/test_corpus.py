@@ -78,8 +78,6 @@ def test_bad_input_in_a_real_process(case_id, tmp_path):
     case = build(case_id, tmp_path)
     module = "drivingscene" if case.program == "drivingscene" else "drivingscene_view"
     assert importlib.util.find_spec(module) is not None
-    run = subprocess.run(
-        [sys.executable, "-m", module, *case.argv], capture_output=True, text=True, timeout=120, cwd=ROOT
-    )
+    run = subprocess.run([sys.executable, "-m", module, *case.argv], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert_one_line(case, run.returncode, run.stderr)
     assert_nothing_written(case)

@@ -31,9 +31,7 @@ def work():
 def mutations(data: bytes):
     """Bit flips, byte overwrites, truncation and insertions of ``data``."""
     n = len(data)
-    flips = st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, 7)), min_size=1, max_size=8).map(
-        lambda fs: _flip(data, fs)
-    )
+    flips = st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, 7)), min_size=1, max_size=8).map(lambda fs: _flip(data, fs))
     overwrite = st.tuples(st.integers(0, n - 1), st.binary(min_size=1, max_size=16)).map(
         lambda t: data[: t[0]] + t[1] + data[t[0] + len(t[1]) :]
     )
@@ -140,11 +138,29 @@ def test_ply_mutated(work, data):
 
 
 @FUZZ
-@given(lines=st.lists(st.sampled_from([
-    "element vertex 2", "element vertex -1", "element vertex 99999999999", "element face 1",
-    "property float x", "property uchar red", "property list uchar int vertex_indices", "property float128 x",
-    "property double opacity", "format ascii 1.0", "format binary_big_endian 1.0", "comment x", "obj_info y",
-]), max_size=8), body=st.binary(max_size=64))
+@given(
+    lines=st.lists(
+        st.sampled_from(
+            [
+                "element vertex 2",
+                "element vertex -1",
+                "element vertex 99999999999",
+                "element face 1",
+                "property float x",
+                "property uchar red",
+                "property list uchar int vertex_indices",
+                "property float128 x",
+                "property double opacity",
+                "format ascii 1.0",
+                "format binary_big_endian 1.0",
+                "comment x",
+                "obj_info y",
+            ]
+        ),
+        max_size=8,
+    ),
+    body=st.binary(max_size=64),
+)
 def test_ply_random_headers(work, lines, body):
     from drivingscene.export.ply import read_ply
 
@@ -180,11 +196,13 @@ def test_safetensors_header(work, weights, data):
         mutated = good[:8] + data.draw(mutations(header)) + body
         mutated = struct.pack("<Q", len(mutated) - 8 - len(body)) + mutated[8:]
     else:  # a JSON header of other tensors: names, dtypes, shapes, offsets
-        entry = st.fixed_dictionaries({
-            "dtype": st.sampled_from(["F32", "F16", "I64", "BOOL", "XX"]),
-            "shape": st.lists(st.integers(0, 2**40), max_size=3),
-            "data_offsets": st.lists(st.integers(0, 2**40), min_size=2, max_size=2),
-        })
+        entry = st.fixed_dictionaries(
+            {
+                "dtype": st.sampled_from(["F32", "F16", "I64", "BOOL", "XX"]),
+                "shape": st.lists(st.integers(0, 2**40), max_size=3),
+                "data_offsets": st.lists(st.integers(0, 2**40), min_size=2, max_size=2),
+            }
+        )
         text = json.dumps(data.draw(st.dictionaries(st.text(max_size=8), entry, max_size=3))).encode()
         mutated = struct.pack("<Q", len(text)) + text + body[:64]
     path = good_path.with_name("mutated.safetensors")

@@ -156,7 +156,9 @@ def same_output(data: bytes, ref: bytes, out: str) -> bool:
     metas = [json.loads(str(d.pop("meta"))) for d in (arrays, expected)]
     for meta in metas:
         meta.pop("timings", None)
-    return metas[0] == metas[1] and arrays.keys() == expected.keys() and all(np.array_equal(arrays[k], expected[k]) for k in arrays)
+    return (
+        metas[0] == metas[1] and arrays.keys() == expected.keys() and all(np.array_equal(arrays[k], expected[k]) for k in arrays)
+    )
 
 
 def prepare(folder: Path, out: str, had_old: bool) -> None:

@@ -88,7 +88,9 @@ def test_refine_refuses_before_allocating(monkeypatch):
 
     pair = make_pair(6, 16, 24)
     recon = oracle_reconstruction(pair)
-    monkeypatch.setenv(MEMORY_LIMIT_ENV, "272000000")  # bytes: enough to reconstruct 6 x 16x24 (~257 MiB), not to refine (~263 MiB)
+    monkeypatch.setenv(
+        MEMORY_LIMIT_ENV, "272000000"
+    )  # bytes: enough to reconstruct 6 x 16x24 (~257 MiB), not to refine (~263 MiB)
     check_reconstruct_memory(6, 16, 24, "pair")
     with pytest.raises(InputError, match=r"^refine: images: 6 cameras at 16x24 need about .* to reconstruct and refine"):
         refine(None, pair, recon)

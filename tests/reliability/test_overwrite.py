@@ -90,7 +90,12 @@ def test_viewer_headless_force_replaces_files_without_deleting_them_first(scene,
         "sys.exit(main(sys.argv[1:]))\n"
     )
     argv = [str(scene), "--method", "oracle", "--headless", "--out", str(out), "--time", "0", "--force"]
-    run = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=300,
-                         env={**__import__("os").environ, "PYOPENGL_PLATFORM": "egl"})
+    run = subprocess.run(
+        [sys.executable, "-c", code, *argv],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**__import__("os").environ, "PYOPENGL_PLATFORM": "egl"},
+    )
     assert run.returncode == -9, run.stderr  # killed at the first rename
     assert all(p.read_bytes() == OLD for p in planned)

@@ -32,9 +32,7 @@ def _moved(pair: FramePair, metres: float) -> FramePair:
 
 
 CASES = {
-    "identical_keyframes": lambda p: replace(
-        _moved(p, 0.0), images=np.repeat(p.images[:1], 2, 0), camera_timestamps=None
-    ),
+    "identical_keyframes": lambda p: replace(_moved(p, 0.0), images=np.repeat(p.images[:1], 2, 0), camera_timestamps=None),
     "black": lambda p: replace(p, images=np.zeros_like(p.images)),
     "saturated": lambda p: replace(p, images=np.full_like(p.images, 255)),
     "zero_ego_motion": lambda p: _moved(p, 0.0),

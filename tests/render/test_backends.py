@@ -11,7 +11,7 @@ from drivingscene import kernels
 from drivingscene.bench.raster_speed import surround_scene
 from drivingscene.errors import InputError
 from drivingscene.render import rasterize
-from drivingscene.render.composite import find_pairs_cpp, find_pairs_torch, pair_inputs
+from drivingscene.render.composite import find_pairs_cpp, find_pairs_torch, pair_inputs, splat_boxes_torch
 from drivingscene.render.rasterize import choose_backend
 from drivingscene.render.splats import make_splats
 
@@ -25,6 +25,27 @@ def test_torch_and_cpp_choose_identical_pairs_at_full_size(cpp_op):
     assert ids_cpp.shape == ids_torch.shape == (6 * 96 * 176, 32)
     assert (ids_cpp >= 0).sum() > 6 * 96 * 176 * 16  # dense: most pixels fill most layers
     assert torch.equal(ids_cpp, ids_torch)
+
+
+def test_compiled_boxes_equal_the_torch_path_bit_for_bit_and_stay_empty_far_off(compiled_kernels):
+    gen = torch.Generator().manual_seed(3)
+    num = 50_000
+    means = torch.rand(num, 2, generator=gen) * torch.tensor([400.0, 250.0]) - 40.0
+    root = torch.randn(num, 2, 2, generator=gen) * 2.0
+    inverse = torch.linalg.inv(root @ root.transpose(1, 2) + 0.01 * torch.eye(2))
+    conics = torch.stack([inverse[:, 0, 0], inverse[:, 0, 1], inverse[:, 1, 1]], -1).float()
+    sigma_max = torch.clamp(torch.log(255.0 * torch.rand(num, generator=gen)), max=4.5)  # some below 0: cut away
+    radii = torch.rand(num, generator=gen) + 0.1
+    nan, inf = float("nan"), float("inf")
+    means[:4] = torch.tensor([[nan, 1.0], [1e12, 5.0], [-1e12, 3.0], [5.0, inf]])
+    conics[4] = torch.tensor([1.0, 2.0, 1.0])  # not positive definite
+    radii[5] = 0.0
+    boxes = compiled_kernels.splat_boxes(means, conics.contiguous(), sigma_max, radii, 320, 176)
+    assert torch.equal(boxes, splat_boxes_torch(means, conics, sigma_max, radii, 320, 176))
+    empty = (boxes[:, 0] > boxes[:, 1]) | (boxes[:, 2] > boxes[:, 3])
+    assert empty[:6].all() and 0.3 < float(empty.float().mean()) < 0.9
+    inside = ~empty
+    assert (boxes[inside, 0] >= 0).all() and (boxes[inside, 1] <= 319).all() and (boxes[inside, 3] <= 175).all()
 
 
 def test_torch_and_cpp_render_the_same_images_and_gradients(cpp_op):
@@ -63,10 +84,21 @@ def test_compiled_compositing_equals_the_torch_path_forward_and_backward(cpp_op,
     width, height, cams, channels, splats = 13, 7, 3, 3, 60
     g = torch.Generator().manual_seed(3)
     means2d = torch.rand(splats, 2, generator=g) * torch.tensor([width - 1.0, height - 1.0])
-    conics = torch.stack([0.2 + torch.rand(splats, generator=g), 0.1 * torch.randn(splats, generator=g), 0.2 + torch.rand(splats, generator=g)], 1)
+    conics = torch.stack(
+        [0.2 + torch.rand(splats, generator=g), 0.1 * torch.randn(splats, generator=g), 0.2 + torch.rand(splats, generator=g)], 1
+    )
     opacities = torch.rand(splats, generator=g)
     opacities[:10] = 1.0  # raw > 0.99 near the centre: alpha clamped, no gradient through it
-    packed = torch.cat([means2d, conics, opacities[:, None], 1 + 10 * torch.rand(splats, 1, generator=g), torch.rand(splats, channels, generator=g)], 1)
+    packed = torch.cat(
+        [
+            means2d,
+            conics,
+            opacities[:, None],
+            1 + 10 * torch.rand(splats, 1, generator=g),
+            torch.rand(splats, channels, generator=g),
+        ],
+        1,
+    )
     backgrounds = torch.rand(cams, channels, generator=g)
     ids = _pair_buffer(cams * width * height, 6, splats, seed=4)
     assert (ids < 0).all(1).any() and ((ids[:, :-1] < 0) & (ids[:, 1:] >= 0)).any()  # empty pixels, holes
@@ -88,7 +120,10 @@ def test_compiled_compositing_gives_the_same_gradients_on_any_number_of_threads(
     g = torch.Generator().manual_seed(5)
     conics = torch.stack([0.05 + 0.1 * torch.rand(splats, generator=g), 0.02 * torch.randn(splats, generator=g).clamp(-2, 2),
                           0.05 + 0.1 * torch.rand(splats, generator=g)], 1)  # fmt: skip
-    packed = torch.cat([torch.rand(splats, 2, generator=g) * 48, conics, torch.rand(splats, 2, generator=g), torch.rand(splats, 3, generator=g)], 1)
+    packed = torch.cat(
+        [torch.rand(splats, 2, generator=g) * 48, conics, torch.rand(splats, 2, generator=g), torch.rand(splats, 3, generator=g)],
+        1,
+    )
     ids = _pair_buffer(2 * width * height, 8, splats, seed=6)
     backgrounds = torch.rand(2, 3, generator=g)
     rgb, depth, alpha = kernels.composite_forward(packed, backgrounds, ids, width, height)
@@ -123,7 +158,6 @@ def test_gsplat_is_never_chosen_or_imported_on_cpu():
     rasterize(means, torch.tensor([[1.0, 0, 0, 0]]), torch.ones(1, 3), torch.ones(1) * 0.5, torch.ones(1, 3),
               torch.eye(4)[None], torch.eye(3)[None], 4, 4)  # fmt: skip
     assert imported_before or "gsplat" not in sys.modules
-
 
 
 def test_compiled_compositing_refuses_splat_ids_beyond_its_rows(cpp_op):

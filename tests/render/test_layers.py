@@ -94,7 +94,9 @@ def test_cameras_blend_weighs_each_camera_by_its_direction():
     out = render_gaussians(g, 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=axes)
     # mid-way between the keyframes (t = 0.5) the view weight has its widest scale
     w1 = LayerBlend().view_weight(torch.tensor(0.5), 0, 0.5)
-    red, green = (render_gaussians(g.index(g.cameras == c), 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)) for c in (0, 1))
+    red, green = (
+        render_gaussians(g.index(g.cameras == c), 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)) for c in (0, 1)
+    )
     k_red, k_green = ((x.alphas / COVERAGE_FULL).clamp(max=1.0)[..., None] for x in (red, green))
     own_red, own_green = (x.colors / x.alphas.clamp(min=1e-12)[..., None] for x in (red, green))
     coverage = torch.maximum(k_red, k_green)  # over a black background
@@ -105,7 +107,9 @@ def test_cameras_blend_weighs_each_camera_by_its_direction():
     # rendered together the nearer wall wins; seen from camera 1's direction, camera 1 dominates
     together = render_gaussians(g, 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3)).colors[0, HEIGHT // 2, WIDTH // 2]
     assert together[1] > 3 * together[0]
-    turned = render_gaussians(g, 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(60.0, 0.0))
+    turned = render_gaussians(
+        g, 0.5, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(60.0, 0.0)
+    )
     assert turned.colors[0, HEIGHT // 2, WIDTH // 2, 1] > 2 * turned.colors[0, HEIGHT // 2, WIDTH // 2, 0]
     # at the layers' own keyframe a camera's own layer is its input re-rendered: it decides
     at_key = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=axes)
@@ -116,7 +120,9 @@ def test_cameras_blend_fills_a_cameras_hole_from_its_neighbour():
     left_only = _wall(5.0, (1.0, 0.0, 0.0), 0, x_range=(-3.0, 0.0), camera=0)
     everything = _wall(5.0, (0.0, 1.0, 0.0), 0, camera=1)
     g = Gaussians.cat([left_only, everything])
-    out = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(0.0, 90.0))
+    out = render_gaussians(
+        g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="cameras", source_axes=_axes(0.0, 90.0)
+    )
     torch.testing.assert_close(out.colors[0, HEIGHT // 2, WIDTH - 3], torch.tensor([0.0, 1.0, 0.0]), atol=2e-3, rtol=0)
     left = out.colors[0, HEIGHT // 2, 2]
     assert left[0] > 0.85 and left[1] < 0.15

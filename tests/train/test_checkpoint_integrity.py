@@ -34,7 +34,10 @@ def test_checkpoints_record_their_hash_and_keep_two(tmp_path):
     meta = json.loads((tmp_path / "latest.json").read_text())
     assert meta["step"] == 3 and len(meta["sha256"]) == 64 and meta["bytes"] == (tmp_path / meta["weights"]).stat().st_size
     assert sorted(p.name for p in tmp_path.glob("step_*")) == [
-        "step_0000002.json", "step_0000002.safetensors", "step_0000003.json", "step_0000003.safetensors"
+        "step_0000002.json",
+        "step_0000002.safetensors",
+        "step_0000003.json",
+        "step_0000003.safetensors",
     ]
     assert load_checkpoint(tmp_path)[0]["step"] == 3
 

@@ -366,7 +366,10 @@ def test_a_run_from_init_validates_its_starting_weights_first(data_dir, tmp_path
     scores = iter([21.0, 20.0, 20.5])
     monkeypatch.setattr(trainer, "validate", lambda model, files, config: {"psnr": next(scores)})
     out = tmp_path / "g"
-    train(_config(data_dir, out, stage="gaussians", steps=2, val_every=1, val_data=str(data_dir), init=str(static)), show_progress=False)
+    train(
+        _config(data_dir, out, stage="gaussians", steps=2, val_every=1, val_data=str(data_dir), init=str(static)),
+        show_progress=False,
+    )
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert records[0]["step"] == 0 and records[0]["val"]["psnr"] == 21.0 and "loss" not in records[0]
     assert [r["step"] for r in records[1:]] == [1, 2]

@@ -43,20 +43,49 @@ from drivingscene.errors import InputError
 # long lens) sees none of the car. Parts of the body mirror the street: they are not the world.
 EGO_BODY_POLYGONS: dict[str, list[list[tuple[float, float]]]] = {
     "CAMERA_05": [  # front-left: door and mirror along the bottom
-        [(0.0, 0.95), (0.2, 0.92), (0.4, 0.875), (0.5, 0.845), (0.62, 0.85), (0.8, 0.865), (0.93, 0.84), (1.0, 0.845),
-         (1.0, 1.0), (0.0, 1.0)],
+        [
+            (0.0, 0.95),
+            (0.2, 0.92),
+            (0.4, 0.875),
+            (0.5, 0.845),
+            (0.62, 0.85),
+            (0.8, 0.865),
+            (0.93, 0.84),
+            (1.0, 0.845),
+            (1.0, 1.0),
+            (0.0, 1.0),
+        ],
     ],
     "CAMERA_06": [  # front-right: mirror at the bottom left, door along the bottom
-        [(0.0, 0.88), (0.12, 0.89), (0.3, 0.895), (0.4, 0.865), (0.5, 0.855), (0.6, 0.88), (0.8, 0.93), (1.0, 0.975),
-         (1.0, 1.0), (0.0, 1.0)],
+        [
+            (0.0, 0.88),
+            (0.12, 0.89),
+            (0.3, 0.895),
+            (0.4, 0.865),
+            (0.5, 0.855),
+            (0.6, 0.88),
+            (0.8, 0.93),
+            (1.0, 0.975),
+            (1.0, 1.0),
+            (0.0, 1.0),
+        ],
     ],
     "CAMERA_07": [  # back-left: the rear door and wing (reflective), roof pillar top left
         [(0.0, 0.605), (0.3, 0.655), (0.5, 0.705), (0.7, 0.765), (0.9, 0.845), (1.0, 0.885), (1.0, 1.0), (0.0, 1.0)],
         [(0.0, 0.0), (0.29, 0.0), (0.21, 0.055), (0.11, 0.12), (0.0, 0.17)],
     ],
     "CAMERA_08": [  # back-right: the rear door and wing, roof pillar top right
-        [(0.0, 0.955), (0.2, 0.875), (0.4, 0.785), (0.5, 0.755), (0.6, 0.725), (0.8, 0.665), (1.0, 0.605), (1.0, 1.0),
-         (0.0, 1.0)],
+        [
+            (0.0, 0.955),
+            (0.2, 0.875),
+            (0.4, 0.785),
+            (0.5, 0.755),
+            (0.6, 0.725),
+            (0.8, 0.665),
+            (1.0, 0.605),
+            (1.0, 1.0),
+            (0.0, 1.0),
+        ],
         [(0.64, 0.0), (1.0, 0.0), (1.0, 0.34), (0.95, 0.23), (0.85, 0.13), (0.75, 0.06)],
     ],
     "CAMERA_09": [  # back: the boot lid, and the roof edge along the top
@@ -91,7 +120,9 @@ def _pose(value: dict, where: str) -> np.ndarray:
         r, t = value["rotation"], value["translation"]
         return rigid_from_quaternion([r["qw"], r["qx"], r["qy"], r["qz"]], [t["x"], t["y"], t["z"]])
     except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"{where}: expected a pose {{rotation: qw qx qy qz, translation: x y z}}, found {value!r:.80} ({e})") from None
+        raise InputError(
+            f"{where}: expected a pose {{rotation: qw qx qy qz, translation: x y z}}, found {value!r:.80} ({e})"
+        ) from None
 
 
 def _seconds(filename: str, iso: str, where: str) -> float:
@@ -106,7 +137,9 @@ def _seconds(filename: str, iso: str, where: str) -> float:
 
 def _scene_file(scene_dir: Path) -> Path:
     if not scene_dir.is_dir():
-        raise InputError(f"{scene_dir}: expected a DGP scene folder (scene_*.json, calibration/, rgb/), found {'a file' if scene_dir.exists() else 'nothing'}")
+        raise InputError(
+            f"{scene_dir}: expected a DGP scene folder (scene_*.json, calibration/, rgb/), found {'a file' if scene_dir.exists() else 'nothing'}"
+        )
     files = sorted(scene_dir.glob("scene*.json"))
     if len(files) != 1:
         found = "none" if not files else ", ".join(f.name for f in files)
@@ -122,7 +155,9 @@ def _sample_data(scene_dir: Path, scene: dict, index: int, source: Path) -> tupl
     if not isinstance(samples, list) or not samples:
         raise InputError(f"{source}: samples: expected a non-empty list, found {type(samples).__name__}")
     if not 0 <= index < len(samples):
-        raise InputError(f"{source}: samples[{index}]: expected an index in 0..{len(samples) - 1} (the scene has {len(samples)} samples)")
+        raise InputError(
+            f"{source}: samples[{index}]: expected an index in 0..{len(samples) - 1} (the scene has {len(samples)} samples)"
+        )
     entries, sample = scene.get("data"), samples[index]
     if not isinstance(entries, list) or not all(isinstance(d, dict) for d in entries):
         raise InputError(f"{source}: data: expected a list of datum objects, found {_kind(entries)}")
@@ -146,10 +181,14 @@ def _sample_data(scene_dir: Path, scene: dict, index: int, source: Path) -> tupl
                 raise TypeError
         except (KeyError, StopIteration, TypeError, AttributeError):
             raise InputError(f"{where}: expected datum.image or datum.point_cloud with filename and id.name (strings)") from None
-        out[name] = _Datum(name, kind, scene_dir / filename, _pose(body.get("pose"), f"{where}.pose"), _seconds(filename, iso, where))
+        out[name] = _Datum(
+            name, kind, scene_dir / filename, _pose(body.get("pose"), f"{where}.pose"), _seconds(filename, iso, where)
+        )
     calibration_key = sample.get("calibration_key", "")
     if not isinstance(calibration_key, str) or not calibration_key or Path(calibration_key).name != calibration_key:
-        raise InputError(f"{source}: samples[{index}].calibration_key: expected the name of a file in calibration/, found {calibration_key!r:.80}")
+        raise InputError(
+            f"{source}: samples[{index}].calibration_key: expected the name of a file in calibration/, found {calibration_key!r:.80}"
+        )
     return out, calibration_key
 
 
@@ -189,7 +228,9 @@ def _calibration(scene_dir: Path, key: str) -> dict[str, _Sensor]:
     if not all(isinstance(n, str) for n in names):
         raise InputError(f"{path}: names: expected sensor names (strings), found {names!r:.80}")
     if not len(names) == len(intrinsics) == len(extrinsics):
-        raise InputError(f"{path}: expected names, intrinsics, extrinsics of equal length, found {len(names)}, {len(intrinsics)}, {len(extrinsics)}")
+        raise InputError(
+            f"{path}: expected names, intrinsics, extrinsics of equal length, found {len(names)}, {len(intrinsics)}, {len(extrinsics)}"
+        )
     out = {}
     for i, (name, k, e) in enumerate(zip(names, intrinsics, extrinsics)):
         try:
@@ -201,7 +242,9 @@ def _calibration(scene_dir: Path, key: str) -> dict[str, _Sensor]:
         try:
             model, coeffs = _distortion(k)
         except (TypeError, ValueError, AttributeError):
-            raise InputError(f"{path}: intrinsics[{i}] ({name}): expected numeric distortion coefficients {', '.join(DISTORTION_KEYS)}") from None
+            raise InputError(
+                f"{path}: intrinsics[{i}] ({name}): expected numeric distortion coefficients {', '.join(DISTORTION_KEYS)}"
+            ) from None
         out[name] = _Sensor(mat, _pose(e, f"{path}: extrinsics[{i}] ({name})"), model, coeffs)
     return out
 
@@ -244,7 +287,9 @@ def _camera_names(datums: dict[str, _Datum], calibration: dict[str, _Sensor], so
     for n in names:  # LiDAR sensors are listed with zero focal lengths; cameras need positive ones
         k = calibration[n].intrinsics
         if not (k[0, 0] > 0 and k[1, 1] > 0):
-            raise InputError(f"{source}: calibration: {n}: expected a camera's focal lengths fx, fy > 0, found {k[0, 0]:g}, {k[1, 1]:g}")
+            raise InputError(
+                f"{source}: calibration: {n}: expected a camera's focal lengths fx, fy > 0, found {k[0, 0]:g}, {k[1, 1]:g}"
+            )
     order = order_around_car(np.stack([calibration[n].to_vehicle for n in names]))
     return [names[i] for i in order]
 
@@ -356,7 +401,9 @@ def _eval_frames(reader: _Reader, eval_samples: tuple[int, ...], times: np.ndarr
     frames = [reader.frame(s) for s in eval_samples]
     seconds = np.array([f.camera_seconds[0] for f in frames])
     if np.any(seconds <= times[0]) or np.any(seconds >= times[1]) or np.any(np.diff(seconds) <= 0):
-        raise InputError(f"--eval: expected samples strictly between the two keyframes in increasing order, found {list(eval_samples)}")
+        raise InputError(
+            f"--eval: expected samples strictly between the two keyframes in increasing order, found {list(eval_samples)}"
+        )
     return dict(
         eval_images=np.stack([f.images for f in frames]),
         eval_timestamps=seconds,

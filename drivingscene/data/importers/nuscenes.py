@@ -44,20 +44,26 @@ def open_nuscenes(dataroot: str | Path, version: str):
         raise InputError(f"{root}: --dataroot: expected the nuScenes folder (samples/, sweeps/, {version}/), found nothing")
     if not (root / version).is_dir():
         found = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("v1.0"))
-        raise InputError(f"{root / version}: --version: expected a table folder, found none (present: {', '.join(found) or 'none'})")
+        raise InputError(
+            f"{root / version}: --version: expected a table folder, found none (present: {', '.join(found) or 'none'})"
+        )
     try:
         return NuScenes(version=version, dataroot=str(root), verbose=False)
     except FileNotFoundError as e:
         raise InputError(f"{e.filename}: expected a nuScenes table, found no such file") from None
     except Exception as e:  # the devkit asserts, indexes and raises plain Exceptions on malformed tables
-        raise InputError(f"{root / version}: expected valid nuScenes tables, found {type(e).__name__}: {' '.join(str(e).split())}") from None
+        raise InputError(
+            f"{root / version}: expected valid nuScenes tables, found {type(e).__name__}: {' '.join(str(e).split())}"
+        ) from None
 
 
 def _record(nusc, table: str, token: str, where: str) -> dict:
     try:
         return nusc.get(table, token)
     except KeyError:
-        raise InputError(f"{nusc.dataroot}/{nusc.version}/{table}.json: expected a record {token!r} ({where}), found none") from None
+        raise InputError(
+            f"{nusc.dataroot}/{nusc.version}/{table}.json: expected a record {token!r} ({where}), found none"
+        ) from None
 
 
 def _pose(nusc, table: str, record: dict) -> np.ndarray:
@@ -69,7 +75,9 @@ def _pose(nusc, table: str, record: dict) -> np.ndarray:
     except KeyError as e:
         raise InputError(f"{where}: expected a rotation (w, x, y, z) and a translation (x, y, z), found no {e}") from None
     except (TypeError, ValueError) as e:
-        detail = str(e) if str(e).startswith("expected") else f"expected a rotation (w, x, y, z) and a translation (x, y, z) ({e})"
+        detail = (
+            str(e) if str(e).startswith("expected") else f"expected a rotation (w, x, y, z) and a translation (x, y, z) ({e})"
+        )
         raise InputError(f"{where}: {detail}") from None
 
 
@@ -116,7 +124,9 @@ def _scene_samples(nusc, name: str) -> list[dict]:
 def _camera_tokens(nusc, sample: dict, index: int) -> dict[str, str]:
     missing = [c for c in CAMERAS if c not in sample["data"]]
     if missing:
-        raise InputError(f"{nusc.dataroot}/{nusc.version}/sample_data.json: sample {index}: expected an image of {', '.join(missing)}, found none")
+        raise InputError(
+            f"{nusc.dataroot}/{nusc.version}/sample_data.json: sample {index}: expected an image of {', '.join(missing)}, found none"
+        )
     return {c: sample["data"][c] for c in CAMERAS}
 
 
@@ -125,7 +135,9 @@ def _next_sweeps(nusc, tokens: dict[str, str]) -> dict[str, str]:
     for channel, token in tokens.items():
         following = _record(nusc, "sample_data", token, channel)["next"]
         if not following:
-            raise InputError(f"{nusc.dataroot}/{nusc.version}/sample_data.json: {channel}: expected a sweep after {token}, found the end of the scene")
+            raise InputError(
+                f"{nusc.dataroot}/{nusc.version}/sample_data.json: {channel}: expected a sweep after {token}, found the end of the scene"
+            )
         out[channel] = following
     return out
 
@@ -191,7 +203,9 @@ def _frame(nusc, tokens: dict[str, str], order: list[str], fits: dict[str, Fit])
         rgb = read_rgb(shot.path)
         if rgb.shape[:2] != fits[channel].src:
             h, w = fits[channel].src
-            raise InputError(f"{shot.path}: expected {w}x{h} like the first frame's {channel}, found {rgb.shape[1]}x{rgb.shape[0]}")
+            raise InputError(
+                f"{shot.path}: expected {w}x{h} like the first frame's {channel}, found {rgb.shape[1]}x{rgb.shape[0]}"
+            )
         shots.append(shot)
         images.append(fits[channel].image(rgb))
     return _Frame(tuple(order), tuple(shots), np.stack(images))
@@ -242,15 +256,21 @@ def import_nuscenes(
     if next_frame not in ("keyframe", "sweep"):
         raise InputError(f"--next: expected keyframe or sweep, found {next_frame!r}")
     if eval_sweeps and next_frame == "sweep":
-        raise InputError("--eval-sweeps: expected --next keyframe (no sweep lies between a keyframe and the next sweep), found --next sweep")
+        raise InputError(
+            "--eval-sweeps: expected --next keyframe (no sweep lies between a keyframe and the next sweep), found --next sweep"
+        )
     nusc = open_nuscenes(dataroot, version)
     try:
         return _import(nusc, scene, sample, next_frame == "sweep", eval_sweeps, size, fit)
     except KeyError as e:  # a record without a field the devkit or we read
-        raise InputError(f"{nusc.dataroot}/{version}: expected nuScenes records with the field {e}, found one without it") from None
+        raise InputError(
+            f"{nusc.dataroot}/{version}: expected nuScenes records with the field {e}, found one without it"
+        ) from None
     except (TypeError, ValueError, AttributeError, IndexError) as e:  # a field of another type (a list for a token, ...)
         found = " ".join(str(e).split())[:160]
-        raise InputError(f"{nusc.dataroot}/{version}: expected nuScenes records with fields of the devkit's types, found {type(e).__name__}: {found}") from None
+        raise InputError(
+            f"{nusc.dataroot}/{version}: expected nuScenes records with fields of the devkit's types, found {type(e).__name__}: {found}"
+        ) from None
 
 
 def _import(nusc, scene: str, index: int, sweep: bool, eval_sweeps: bool, size, fit: str) -> FramePair:
@@ -258,7 +278,9 @@ def _import(nusc, scene: str, index: int, sweep: bool, eval_sweeps: bool, size, 
     last = len(samples) - (1 if sweep else 2)
     if not 0 <= index <= last:
         expected = f"0..{last}" if last >= 0 else "a scene with a next keyframe"
-        raise InputError(f"{nusc.dataroot}/{nusc.version}/sample.json: --sample: expected {expected} (scene {scene} has {len(samples)} samples), found {index}")
+        raise InputError(
+            f"{nusc.dataroot}/{nusc.version}/sample.json: --sample: expected {expected} (scene {scene} has {len(samples)} samples), found {index}"
+        )
     first = _camera_tokens(nusc, samples[index], index)
     second = _next_sweeps(nusc, first) if sweep else _camera_tokens(nusc, samples[index + 1], index + 1)
     shots = {c: _Image.load(nusc, first[c]) for c in CAMERAS}
@@ -267,8 +289,10 @@ def _import(nusc, scene: str, index: int, sweep: bool, eval_sweeps: bool, size, 
     fits = {c: Fit.make(sources[c], size or sources[c], fit) for c in order}
     frames = [_frame(nusc, first, order, fits), _frame(nusc, second, order, fits)]
     later = float(frames[1].camera_seconds.mean())
-    lidars = [samples[index]["data"].get(LIDAR, ""),
-              _nearest_lidar(nusc, samples[index], later) if sweep else samples[index + 1]["data"].get(LIDAR, "")]
+    lidars = [
+        samples[index]["data"].get(LIDAR, ""),
+        _nearest_lidar(nusc, samples[index], later) if sweep else samples[index + 1]["data"].get(LIDAR, ""),
+    ]
     refs = [_reference(nusc, frames[0], lidars[0], False), _reference(nusc, frames[1], lidars[1], sweep)]
     times = np.array([t for _, t in refs])
     out = dict(
@@ -318,7 +342,9 @@ def _eval_sweeps(nusc, first: dict, second: dict, order: list[str], fits: dict, 
             kept.append((frame, seconds))
             last = seconds
     if not kept:
-        raise InputError(f"{nusc.dataroot}/{nusc.version}/sample_data.json: --eval-sweeps: expected camera sweeps strictly between the two frames, found none")
+        raise InputError(
+            f"{nusc.dataroot}/{nusc.version}/sample_data.json: --eval-sweeps: expected camera sweeps strictly between the two frames, found none"
+        )
     return dict(
         eval_images=np.stack([f.images for f, _ in kept]),
         eval_timestamps=np.array([s for _, s in kept]),

@@ -33,12 +33,18 @@
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
+#include "front_group.h"
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <vector>
 
 namespace {
+
+using drivingscene_front::front_weights;
+using drivingscene_front::FrontWeights;
+using drivingscene_front::joins_front;
 
 constexpr float kMaxAlpha = 0.99f;
 constexpr float kMinWeightSum = 1e-6f;
@@ -60,20 +66,6 @@ Inputs check(const char* name, const at::Tensor& packed_in, const at::Tensor& ba
   Inputs c{packed_in.to(at::kFloat).contiguous(), backgrounds_in.to(at::kFloat).contiguous(), ids_in.to(at::kInt).contiguous(),
            ids_in.size(0), ids_in.size(1), packed_in.size(0), packed_in.size(1), packed_in.size(1) - kFixed, backgrounds_in.size(0)};
   return c;
-}
-
-// Whether a splat at depth z joins the front group holding `count` splats (its limit z_limit).
-inline bool joins_front(int64_t count, float tol, float z, float z_limit) { return count == 0 || (tol > 0.0f && z <= z_limit); }
-
-// The front group's coverage A = 1 - P and the factor A / S_F of its splats' alphas; one splat:
-// exactly plain compositing's w = alpha (no 1 - (1 - alpha) rounding); none: zero.
-struct FrontWeights {
-  float cover, scale;
-};
-inline FrontWeights front_weights(int64_t count, float alpha_sum, float trans) {
-  if (count == 1) return {alpha_sum, 1.0f};
-  const float cover = 1.0f - trans;
-  return {cover, alpha_sum > 0.0f ? cover / alpha_sum : 0.0f};
 }
 
 }  // namespace

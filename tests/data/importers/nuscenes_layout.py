@@ -69,26 +69,63 @@ def _lidar_points(pair, k: int, cam_egos: np.ndarray, lidar_to_world: np.ndarray
 def write_nuscenes(pair, root: Path, stride: int = 3) -> Path:
     """Write ``pair`` (with gt_depth and one eval frame) as a nuScenes dataset under ``root``."""
     root = Path(root)
-    tables: dict[str, list] = {k: [] for k in ("category", "attribute", "visibility", "instance", "sensor",
-                                               "calibrated_sensor", "ego_pose", "log", "scene", "sample",
-                                               "sample_data", "sample_annotation", "map")}
+    tables: dict[str, list] = {
+        k: []
+        for k in (
+            "category",
+            "attribute",
+            "visibility",
+            "instance",
+            "sensor",
+            "calibrated_sensor",
+            "ego_pose",
+            "log",
+            "scene",
+            "sample",
+            "sample_data",
+            "sample_annotation",
+            "map",
+        )
+    }
     tables["log"].append({"token": "log0", "logfile": "log0", "vehicle": "v", "date_captured": "2026-11-24", "location": "here"})
     tables["map"].append({"token": "map0", "filename": "maps/map0.png", "category": "semantic_prior", "log_tokens": ["log0"]})
     cam_times, cam_egos, times, egos = camera_poses(pair)
     us = lambda s: int(round(s * 1e6))  # noqa: E731
     sample_tokens = ["sample0", "sample1"]
     for k, token in enumerate(sample_tokens):
-        tables["sample"].append({"token": token, "timestamp": us(times[2 * k]), "scene_token": "scene0",
-                                 "prev": sample_tokens[k - 1] if k else "", "next": "" if k else sample_tokens[1]})
-    tables["scene"].append({"token": "scene0", "name": SCENE, "description": "", "log_token": "log0", "nbr_samples": 2,
-                            "first_sample_token": "sample0", "last_sample_token": "sample1"})
+        tables["sample"].append(
+            {
+                "token": token,
+                "timestamp": us(times[2 * k]),
+                "scene_token": "scene0",
+                "prev": sample_tokens[k - 1] if k else "",
+                "next": "" if k else sample_tokens[1],
+            }
+        )
+    tables["scene"].append(
+        {
+            "token": "scene0",
+            "name": SCENE,
+            "description": "",
+            "log_token": "log0",
+            "nbr_samples": 2,
+            "first_sample_token": "sample0",
+            "last_sample_token": "sample1",
+        }
+    )
     channels = list(pair.camera_names) + ["LIDAR_TOP"]
     for i, channel in enumerate(channels):
         lidar = channel == "LIDAR_TOP"
         tables["sensor"].append({"token": f"sensor{i}", "channel": channel, "modality": "lidar" if lidar else "camera"})
         calib = LIDAR_TO_EGO if lidar else pair.cam_to_ego[i].astype(np.float64)
-        tables["calibrated_sensor"].append({"token": f"cs{i}", "sensor_token": f"sensor{i}", **_pose_fields(calib),
-                                            "camera_intrinsic": [] if lidar else pair.intrinsics[i].astype(float).tolist()})
+        tables["calibrated_sensor"].append(
+            {
+                "token": f"cs{i}",
+                "sensor_token": f"sensor{i}",
+                **_pose_fields(calib),
+                "camera_intrinsic": [] if lidar else pair.intrinsics[i].astype(float).tolist(),
+            }
+        )
         frames = (0, 2) if lidar else (0, 1, 2)
         tokens = [f"sd_{channel}_{f}" for f in frames]
         for n, (f, token) in enumerate(zip(frames, tokens)):
@@ -105,12 +142,22 @@ def write_nuscenes(pair, root: Path, stride: int = 3) -> Path:
                 cv2.imwrite(str(root / name) + ".png", image[..., ::-1])  # lossless PNG content ...
                 (root / (name + ".png")).rename(root / name)  # ... under nuScenes' .jpg name
             tables["ego_pose"].append({"token": f"ego_{token}", "timestamp": us(t), **_pose_fields(ego)})
-            tables["sample_data"].append({
-                "token": token, "sample_token": sample_tokens[min(f, 1) if key else 1], "ego_pose_token": f"ego_{token}",
-                "calibrated_sensor_token": f"cs{i}", "timestamp": us(t), "fileformat": "pcd" if lidar else "jpg",
-                "is_key_frame": key, "height": 0 if lidar else pair.image_size[0], "width": 0 if lidar else pair.image_size[1],
-                "filename": name, "prev": tokens[n - 1] if n else "", "next": tokens[n + 1] if n + 1 < len(tokens) else "",
-            })
+            tables["sample_data"].append(
+                {
+                    "token": token,
+                    "sample_token": sample_tokens[min(f, 1) if key else 1],
+                    "ego_pose_token": f"ego_{token}",
+                    "calibrated_sensor_token": f"cs{i}",
+                    "timestamp": us(t),
+                    "fileformat": "pcd" if lidar else "jpg",
+                    "is_key_frame": key,
+                    "height": 0 if lidar else pair.image_size[0],
+                    "width": 0 if lidar else pair.image_size[1],
+                    "filename": name,
+                    "prev": tokens[n - 1] if n else "",
+                    "next": tokens[n + 1] if n + 1 < len(tokens) else "",
+                }
+            )
     (root / VERSION).mkdir(parents=True, exist_ok=True)
     (root / "maps").mkdir(exist_ok=True)
     cv2.imwrite(str(root / "maps" / "map0.png"), np.zeros((4, 4), np.uint8))  # the devkit checks it exists

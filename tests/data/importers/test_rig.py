@@ -170,8 +170,14 @@ def _distorted_rig(folder: Path, model: str, coeffs: list[float], mask: np.ndarr
     image = _pattern(rays[..., 0], rays[..., 1])
     (folder / "images").mkdir(parents=True)
     cv2.imwrite(str(folder / "images" / "front.png"), image[..., ::-1])
-    camera = {"name": "front", "width": width, "height": height, "K": k.tolist(), "cam_to_ego": FORWARD,
-              "distortion": {"model": model, "coeffs": coeffs}}
+    camera = {
+        "name": "front",
+        "width": width,
+        "height": height,
+        "K": k.tolist(),
+        "cam_to_ego": FORWARD,
+        "distortion": {"model": model, "coeffs": coeffs},
+    }
     if mask is not None:
         cv2.imwrite(str(folder / "mask.png"), np.where(mask, 255, 0).astype(np.uint8))
         camera["mask"] = "mask.png"
@@ -228,8 +234,14 @@ def _lidar_rig(folder: Path, points: np.ndarray) -> None:
     moved = np.eye(4)
     moved[0, 3] = 1.0
     frames = [
-        {"timestamp": 0.0, "ego_to_world": np.eye(4).tolist(), "images": {"front": "images/a.png"}, "lidar": "points.npy",
-         "camera_timestamps": {"front": 0.1}, "camera_ego_to_world": {"front": moved.tolist()}},
+        {
+            "timestamp": 0.0,
+            "ego_to_world": np.eye(4).tolist(),
+            "images": {"front": "images/a.png"},
+            "lidar": "points.npy",
+            "camera_timestamps": {"front": 0.1},
+            "camera_ego_to_world": {"front": moved.tolist()},
+        },
         {"timestamp": 0.5, "ego_to_world": np.eye(4).tolist(), "images": {"front": "images/a.png"}},
     ]
     rig = {"format": "drivingscene/rig", "version": 1, "cameras": [camera], "frames": frames}
@@ -254,7 +266,9 @@ def test_lidar_points_become_sparse_depth(tmp_path):
 def test_cli_writes_the_scene(tmp_path, capsys):
     export_rig(make_pair(), tmp_path / "rig")
     out = tmp_path / "scene.npz"
-    assert main(["import", "rig", str(tmp_path / "rig"), "--frames", "0", "2", "--eval", "1", "--res", "24x32", "-o", str(out)]) == 0
+    assert (
+        main(["import", "rig", str(tmp_path / "rig"), "--frames", "0", "2", "--eval", "1", "--res", "24x32", "-o", str(out)]) == 0
+    )
     assert "3 cameras, 32x24" in capsys.readouterr().out
     pair = load_frame_pair(out)
     assert pair.image_size == (24, 32) and pair.num_eval == 1 and pair.gt_depth is not None
@@ -304,22 +318,54 @@ ERRORS = [
     (_set("cameras", []), [], "rig.json: cameras: expected a list of at least 1"),
     (_set("cameras.2.K", None), [], "rig.json: cameras[2].K: expected K [[fx, 0, cx]"),
     (_set("cameras.0.K", [[1, 0, 0], [0, 1, 0]]), [], "rig.json: cameras[0].K: expected a 3x3 matrix (a list of 3 rows"),
-    (_set("cameras.1.cam_to_ego", [[1, 0, 0, 0]] * 3), [], "rig.json: cameras[1].cam_to_ego: expected a 4x4 matrix (a list of 4 rows"),
-    (_set("cameras.1.cam_to_ego", np.diag([2.0, 2, 2, 1]).tolist()), [], "rig.json: cameras[1].cam_to_ego: expected a rigid transform (rotation"),
-    (_set("cameras.1.cam_to_ego", np.diag([1.0, 1, 1, 2]).tolist()), [], "cameras[1].cam_to_ego: expected a rigid transform with last row"),
+    (
+        _set("cameras.1.cam_to_ego", [[1, 0, 0, 0]] * 3),
+        [],
+        "rig.json: cameras[1].cam_to_ego: expected a 4x4 matrix (a list of 4 rows",
+    ),
+    (
+        _set("cameras.1.cam_to_ego", np.diag([2.0, 2, 2, 1]).tolist()),
+        [],
+        "rig.json: cameras[1].cam_to_ego: expected a rigid transform (rotation",
+    ),
+    (
+        _set("cameras.1.cam_to_ego", np.diag([1.0, 1, 1, 2]).tolist()),
+        [],
+        "cameras[1].cam_to_ego: expected a rigid transform with last row",
+    ),
     (_set("cameras.1.cam_to_ego", np.diag([1.0, 1, -1, 1]).tolist()), [], "cameras[1].cam_to_ego: expected a rotation (det +1)"),
-    (_set("cameras.0.cam_to_ego", {"rotation_wxyz": [1, 0, 0]}), [], "cameras[0].cam_to_ego.rotation_wxyz: expected a list of 4 numbers"),
+    (
+        _set("cameras.0.cam_to_ego", {"rotation_wxyz": [1, 0, 0]}),
+        [],
+        "cameras[0].cam_to_ego.rotation_wxyz: expected a list of 4 numbers",
+    ),
     (_set("cameras.0.width", "16"), [], "rig.json: cameras[0].width: expected an integer >= 2, found the string '16'"),
     (_set("cameras.1.name", "CAM_0"), [], "rig.json: cameras[1].name: expected a name no other camera has"),
-    (_set("cameras.0.distortion", {"model": "kannala", "coeffs": [0.1]}), [], "rig.json: cameras[0].distortion.model: expected one of 'none'"),
-    (_set("cameras.0.distortion", {"model": "fisheye", "coeffs": [0.1]}), [], "rig.json: cameras[0].distortion.coeffs: expected 4 numbers"),
+    (
+        _set("cameras.0.distortion", {"model": "kannala", "coeffs": [0.1]}),
+        [],
+        "rig.json: cameras[0].distortion.model: expected one of 'none'",
+    ),
+    (
+        _set("cameras.0.distortion", {"model": "fisheye", "coeffs": [0.1]}),
+        [],
+        "rig.json: cameras[0].distortion.coeffs: expected 4 numbers",
+    ),
     (_set("cameras.0.mask", "masks/none.png"), [], "none.png: expected a readable mask PNG (rig.json: cameras[0].mask of CAM_0)"),
     (_set("cameras.0.width", 20), [], "rig.json: cameras: expected one image size without --res"),
     (_set("frames.1.timestamp", 99.0), [], "rig.json: frames[1].timestamp: expected a time after frames[0].timestamp (100.0 s"),
     (_set("frames.1.ego_to_world", None), [], "rig.json: frames[1].ego_to_world: expected a 4x4 matrix"),
     (_set("frames.0.images.CAM_2", None), [], "rig.json: frames[0].images.CAM_2: expected an image file for every camera"),
-    (_rename_image, [], "rig.json: frames[0].images.REAR: expected one of the cameras CAM_0, CAM_1, CAM_2, found the unknown camera 'REAR'"),
-    (_set("frames.0.camera_timestamps", {"CAM_0": "soon"}), [], "rig.json: frames[0].camera_timestamps.CAM_0: expected a finite number"),
+    (
+        _rename_image,
+        [],
+        "rig.json: frames[0].images.REAR: expected one of the cameras CAM_0, CAM_1, CAM_2, found the unknown camera 'REAR'",
+    ),
+    (
+        _set("frames.0.camera_timestamps", {"CAM_0": "soon"}),
+        [],
+        "rig.json: frames[0].camera_timestamps.CAM_0: expected a finite number",
+    ),
     ("missing image", [], "rig.json: frames[2].images.CAM_1: expected an existing image file"),
     ("image size", ["--res", "24x32"], "000001_00_CAM_0.png: expected 16x12 pixels (width x height of camera CAM_0"),
     ("lidar shape", [], "000000.npy: expected a numeric array of shape [N, 3+]"),
