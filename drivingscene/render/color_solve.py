@@ -20,10 +20,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from drivingscene import kernels
 from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import own_view_covariance
 from drivingscene.geometry.camera import unproject
-from drivingscene import kernels
 from drivingscene.render.composite import SURFACE_TOLERANCE, composite, find_pairs_torch, pair_inputs
 from drivingscene.render.project import EPS2D
 from drivingscene.render.rasterize import DEFAULT_MAX_LAYERS, choose_backend
