@@ -34,7 +34,8 @@ import torch
 
 from drivingscene.arguments import positive_int
 from drivingscene.data.atomic import atomic_write_text
-from drivingscene.gaussians.assembly import NO_FOOTPRINT_RULE, FootprintRule
+from drivingscene.gaussians.assembly import MAX_FOOTPRINT, NO_FOOTPRINT_RULE, FootprintRule
+from drivingscene.render.color_solve import ITERATIONS
 from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.project import EPS2D, EPS2D_3DGS
 from drivingscene.render.scene import LayerBlend
@@ -48,36 +49,41 @@ COMPOSITED = LayerBlend(surface_tolerance=0.0)  # each layer composited front to
 class Variant:
     name: str
     footprints: FootprintRule = FootprintRule()
-    fit_colors: int = 2
+    fit_colors: int = ITERATIONS
     eps2d: float = EPS2D
     blend: LayerBlend = LayerBlend()
     note: str = ""
 
 
+BEFORE_CAP = FootprintRule(max_footprint=1.0)  # the cap before 2026-11-28 (two solve iterations)
 VARIANTS = (
     Variant("3DGS footprints and low-pass (before)", NO_FOOTPRINT_RULE, 0, EPS2D_3DGS, BEFORE_BLEND),
     Variant("colour solve alone", NO_FOOTPRINT_RULE, 2, EPS2D_3DGS, BEFORE_BLEND),
     Variant("3D floor 0.2 px² (Mip-Splatting filter), low-pass 0.1", FootprintRule(0.0), 0, EPS2D, BEFORE_BLEND),
-    Variant("floor + cap at 1 px", FootprintRule(), 0, EPS2D, BEFORE_BLEND),
-    Variant("floor + cap + colour solve", FootprintRule(), 2, EPS2D, BEFORE_BLEND),
-    Variant("+ coverage rule (0.7)", FootprintRule(), 2, EPS2D, replace(COMPOSITED, angle_scale_at_keyframe=0.5)),
-    Variant("+ own camera at its keyframe", blend=COMPOSITED),
-    Variant(f"+ surface averaging, tolerance {SURFACE_TOLERANCE:g} (default)", note="default"),
+    Variant("floor + cap at 1 px", BEFORE_CAP, 0, EPS2D, BEFORE_BLEND),
+    Variant("floor + cap + colour solve", BEFORE_CAP, 2, EPS2D, BEFORE_BLEND),
+    Variant("+ coverage rule (0.7)", BEFORE_CAP, 2, EPS2D, replace(COMPOSITED, angle_scale_at_keyframe=0.5)),
+    Variant("+ own camera at its keyframe", BEFORE_CAP, 2, blend=COMPOSITED),
+    Variant(f"+ surface averaging, tolerance {SURFACE_TOLERANCE:g}", BEFORE_CAP, 2),
+    Variant(f"+ cap at {MAX_FOOTPRINT:g} px, {ITERATIONS} solve iterations (default)", note="default"),
     *(
         Variant(f"tolerance {tol:g} instead", blend=LayerBlend(surface_tolerance=tol))
         for tol in (0.05, 0.1, 0.3)
         if tol != SURFACE_TOLERANCE
     ),
-    Variant("cap at 0.5 px instead of 1", FootprintRule(0.5)),
-    Variant("floor 0.15 px² instead of 0.2", FootprintRule(1.0, 0.15)),
-    Variant("floor 0.3 px² instead of 0.2", FootprintRule(1.0, 0.3)),
-    Variant("floor 0.45 px², no coverage rule", FootprintRule(1.0, 0.45), 2, 0.05, LayerBlend(coverage_full=1.0)),
-    Variant("cap at 2.5 px instead of 1", FootprintRule(2.5)),
+    Variant(f"cap at {MAX_FOOTPRINT:g} px, two solve iterations", fit_colors=2),
+    Variant(f"cap at 1 px, {ITERATIONS} solve iterations", BEFORE_CAP),
+    Variant("cap at 0.7 px instead", FootprintRule(0.7)),
+    Variant("floor 0.15 px² instead of 0.2", FootprintRule(floor=0.15)),
+    Variant("floor 0.3 px² instead of 0.2", FootprintRule(floor=0.3)),
+    Variant("floor 0.45 px², no coverage rule", FootprintRule(floor=0.45), eps2d=0.05, blend=LayerBlend(coverage_full=1.0)),
+    Variant("cap at 2.5 px instead", FootprintRule(2.5)),
     Variant("no cap", FootprintRule(0.0)),
     Variant("sharp view weights at all times (0.1)", blend=LayerBlend(angle_scale=0.1, angle_scale_at_keyframe=0.1)),
     Variant("one iteration of the colour solve", fit_colors=1),
+    Variant("eight iterations of the colour solve", fit_colors=8),
 )
-DEFAULT = VARIANTS[7]
+DEFAULT = VARIANTS[8]
 QUICK = (VARIANTS[0], DEFAULT)
 
 

@@ -41,7 +41,7 @@ DEFAULT_OPACITY = 0.95  # of a pixel's Gaussian when nothing predicts one
 # pixel grid's spacing is a property of the input, not of the window, so neighbouring splats
 # overlap at any magnification instead of leaving a screen-door of gaps. The renderer's own
 # low-pass (render.EPS2D) is lowered by as much, so a view at the input's size is as before.
-MAX_FOOTPRINT = 1.0  # pixels of the source view (sigma)
+MAX_FOOTPRINT = 0.5  # pixels of the source view (sigma); 1.0 before 2026-11-28 (docs/magnification.md)
 FOOTPRINT_FLOOR = 0.2  # pixels^2 of the source view (variance); with EPS2D, 3DGS's 0.3 at the input's size
 
 
