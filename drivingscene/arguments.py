@@ -6,6 +6,7 @@ imports another for its arguments."""
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 from collections.abc import Callable
@@ -21,10 +22,20 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+# The exit status of a program that the end of its output pipe stopped (128 + SIGPIPE), as `cat`.
+BROKEN_PIPE = 141
+
+
 def run_reporting_errors(prog: str, fn: Callable[[], int | None]) -> int:
-    """Run a command; a ``DrivingSceneError`` becomes one line on stderr and exit code 2."""
+    """Run a command; a ``DrivingSceneError`` becomes one line on stderr and exit code 2; a reader
+    that closed the output pipe (``drivingscene info F | head -1``) ends it quietly with 141."""
     try:
-        return int(fn() or 0)
+        code = int(fn() or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
+        return code
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush at exit
+        return BROKEN_PIPE
     except DrivingSceneError as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2

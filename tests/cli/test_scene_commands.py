@@ -51,6 +51,17 @@ def test_info_summarises(tmp_path, small_pair, capsys):
     assert "valid_mask" not in out and "capture" not in out
 
 
+def test_info_into_a_closed_pipe_ends_quietly(tmp_path, small_pair):
+    """``drivingscene info F | head -1``: no BrokenPipeError traceback, the status of a program the
+    closed pipe stopped (141, as `cat`)."""
+    path = save_frame_pair(small_pair, tmp_path / "s.npz")
+    code = "import sys; from drivingscene.cli import main; sys.exit(main(['info', sys.argv[1]]))"
+    proc = subprocess.Popen([sys.executable, "-c", code, str(path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader is gone before the command writes (it takes a second to import)
+    stderr = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and stderr == ""
+
+
 def test_info_tells_mask_and_capture_times(tmp_path, small_pair, capsys):
     from dataclasses import replace
 
