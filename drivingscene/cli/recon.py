@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -223,6 +224,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
 def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
+    from drivingscene.data.summary import motion_warnings
     from drivingscene.gaussians.recon import save_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct, resolve_device
     from drivingscene.methods.matched_depth import match_mode
@@ -236,6 +238,8 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
         raise InputError("--lidar: the LiDAR depth is not resized; drop --scale or --lidar")
     progress.stage(f"loading {args.scene}")
     pair = load_frame_pair(args.scene)
+    for line in motion_warnings(pair):  # the reconstruction goes on, as import's geometry check
+        print(f"{args.scene}: warning: {line}", file=sys.stderr)
     if config is not None and config.lidar and pair.gt_depth is None:
         raise InputError(f"{args.scene}: --lidar: the scene has no LiDAR depth (gt_depth); drop --lidar")
     if scale != 1:

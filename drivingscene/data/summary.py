@@ -14,6 +14,35 @@ def _rotation_angle_deg(rot: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))))
 
 
+# Beyond these the keyframes are hardly consecutive frames of one drive (nuScenes' keyframes are
+# 0.5 s apart: 30 m is 216 km/h), and a pose error (a unit or frame mix-up) is the likelier cause.
+MAX_EGO_STEP_M = 30.0
+MAX_EGO_TURN_DEG = 45.0
+
+
+def ego_motion(pair: FramePair) -> tuple[float, float]:
+    """The ego's translation (m) and rotation (degrees) from keyframe 0 to keyframe 1."""
+    rel = np.linalg.inv(pair.ego_to_world[0]) @ pair.ego_to_world[1]
+    return float(np.linalg.norm(rel[:3, 3])), _rotation_angle_deg(rel[:3, :3])
+
+
+def motion_warnings(pair: FramePair) -> list[str]:
+    """One line per implausible ego motion between the keyframes (empty where it is plausible)."""
+    dist, turn = ego_motion(pair)
+    out = []
+    if dist > MAX_EGO_STEP_M:
+        out.append(
+            f"ego_to_world: the ego moves {dist:.1f} m between the keyframes; expected consecutive frames (at most "
+            f"{MAX_EGO_STEP_M:g} m): the views may not overlap, check the poses (drivingscene validate --geometry)"
+        )
+    if turn > MAX_EGO_TURN_DEG:
+        out.append(
+            f"ego_to_world: the ego turns {turn:.1f} deg between the keyframes; expected consecutive frames (at most "
+            f"{MAX_EGO_TURN_DEG:g} deg): check the poses (drivingscene validate --geometry)"
+        )
+    return out
+
+
 def summarise(pair: FramePair, path: str | os.PathLike | None = None) -> str:
     h, w = pair.image_size
     lines = []
@@ -23,10 +52,9 @@ def summarise(pair: FramePair, path: str | os.PathLike | None = None) -> str:
     lines.append(f"cameras     {pair.num_views}: {', '.join(pair.camera_names)}")
     lines.append(f"image size  {w}x{h} (W x H)")
     t0, t1 = pair.timestamps
-    rel = np.linalg.inv(pair.ego_to_world[0]) @ pair.ego_to_world[1]
-    dist = float(np.linalg.norm(rel[:3, 3]))
+    dist, turn = ego_motion(pair)
     lines.append(f"keyframes   t0={t0:.3f} s, t1={t1:.3f} s, gap {t1 - t0:.3f} s")
-    lines.append(f"ego motion  {dist:.2f} m ({dist / (t1 - t0):.2f} m/s), rotation {_rotation_angle_deg(rel[:3, :3]):.2f} deg")
+    lines.append(f"ego motion  {dist:.2f} m ({dist / (t1 - t0):.2f} m/s), rotation {turn:.2f} deg")
     fx = pair.intrinsics[:, 0, 0]
     lines.append(f"focal (fx)  {', '.join(f'{f:.1f}' for f in fx)} px")
     if pair.num_eval:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import time
+from dataclasses import replace
 
 from drivingscene.arguments import Progress
 from drivingscene.cli import main
@@ -58,3 +59,17 @@ def test_bench_inference_shows_its_runs_on_stderr(tmp_path, capsys, monkeypatch)
     captured = capsys.readouterr()
     assert "drivingscene bench inference: run 2/2 of 24x40 [50%]" in captured.err
     assert "warm-up" in captured.err and "drivingscene bench inference:" not in captured.out
+
+
+def test_reconstruct_says_in_one_line_when_the_ego_jumps_a_kilometre(tmp_path, capsys):
+    """A pose error of the kind a unit or frame mix-up makes: the reconstruction goes on (as import's
+    geometry check) but says so, one line naming the file and the field."""
+    pair = make_pair(num_views=2, height=24, width=40)
+    moved = pair.ego_to_world.copy()
+    moved[1, 0, 3] += 1000.0
+    scene = save_frame_pair(replace(pair, ego_to_world=moved), tmp_path / "jump.npz")
+    out = tmp_path / "recon.npz"
+    assert main(["reconstruct", str(scene), "-o", str(out), "--weights", str(tiny_weights(tmp_path)), "--match", "off"]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if ": warning: " in line]
+    assert len(warnings) == 1 and warnings[0].startswith(f"{scene}: warning: ego_to_world: the ego moves 100")
+    assert "at most 30 m" in warnings[0] and out.is_file()
