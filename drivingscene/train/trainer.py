@@ -13,6 +13,8 @@ precision chosen for this machine: ``amp``, and ``amp_auto`` when it was not for
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import logging
 import math
@@ -135,11 +137,45 @@ def with_data_size(config: TrainConfig, files: list[Path]) -> TrainConfig:
     return replace(config, model=replace(config.model, input_size=size))
 
 
+@contextlib.contextmanager
+def run_lock(out: Path, rank: int = 0):
+    """Hold ``out/train.lock`` (an exclusive lock the system drops when the process ends, kill -9
+    included) while a trainer writes the run folder: a second trainer on it, ``--resume`` or not,
+    is refused with a line naming the first one's process. Ranks other than 0 write nothing."""
+    if rank != 0:
+        yield
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "train.lock", "a+") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "unknown"
+            raise InputError(
+                f"{out}: another trainer (pid {holder}) is writing this run folder; let it finish or stop it, then --resume"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"{os.getpid()}\n")
+        f.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
 def train(config: TrainConfig, resume: bool = False, show_progress: bool = True) -> Path:
-    """Run (or resume) a training job; returns the exported weights path."""
+    """Run (or resume) a training job; returns the exported weights path. One trainer per run
+    folder (`run_lock`)."""
     files = list_pairs(config.data)
     config = with_data_size(config, files).resolve_precision()  # amp: bf16 where the CPU does it natively
     rank, world = _distributed()
+    with run_lock(Path(config.out), rank):
+        return _train(config, files, resume, show_progress, rank, world)
+
+
+def _train(config: TrainConfig, files: list[Path], resume: bool, show_progress: bool, rank: int, world: int) -> Path:
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed + rank)
     out, ckpt = _prepare_out(config, resume, rank)

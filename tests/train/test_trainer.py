@@ -118,6 +118,37 @@ def test_refuses_to_overwrite_or_resume_nothing(data_dir, tmp_path):
         train(_config(data_dir, tmp_path / "empty", steps=1), resume=True, show_progress=False)
 
 
+def test_a_second_trainer_on_a_run_folder_is_refused_naming_the_first(data_dir, tmp_path):
+    from drivingscene.errors import InputError
+    from drivingscene.train.trainer import run_lock
+
+    out = tmp_path / "run"
+    train(_config(data_dir, out, steps=1), show_progress=False)
+    with run_lock(out):  # another trainer writing the folder
+        for resume in (True, False):
+            with pytest.raises(InputError, match=rf"another trainer \(pid {os.getpid()}\) is writing this run folder"):
+                train(_config(data_dir, out, steps=2), resume=resume, show_progress=False)
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [1]  # nothing written twice
+    train(_config(data_dir, out, steps=2), resume=True, show_progress=False)  # free again once it ends
+
+
+def test_a_second_trainer_exits_2_with_one_line(data_dir, tmp_path):
+    from drivingscene.train.trainer import run_lock
+
+    out = tmp_path / "run"
+    config = tmp_path / "config.json"
+    config.write_text(_config(data_dir, out, steps=1).to_json())
+    args = [sys.executable, "-m", "drivingscene", "train", "--stage", "static", "--config", str(config)]
+    args += ["--data", str(data_dir), "--out", str(out), "--no-progress", "--resume"]
+    with run_lock(out):
+        proc = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        f"drivingscene train: error: {out}: another trainer (pid {os.getpid()}) is writing this run folder; "
+        "let it finish or stop it, then --resume"
+    ]
+
+
 def test_torchrun_two_processes(data_dir, tmp_path):
     """DistributedDataParallel over gloo: 2 processes, 2 steps, one exported model."""
     config = tmp_path / "config.json"
