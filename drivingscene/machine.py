@@ -52,7 +52,8 @@ _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 def available_memory_bytes() -> int:
     """Bytes this process may still allocate: ``DRIVINGSCENE_MEMORY_LIMIT`` (bytes, or with a K, M,
     G or T suffix, binary) where set, else the kernel's MemAvailable, capped by the room left under a
-    cgroup (container) memory limit, which is what the OOM killer enforces."""
+    cgroup (container) memory limit, which is what the OOM killer enforces, and under the process's
+    address-space limit (``ulimit -v``)."""
     text = os.environ.get(MEMORY_LIMIT_ENV, "").strip()
     if text:
         from drivingscene.errors import InputError
@@ -65,9 +66,8 @@ def available_memory_bytes() -> int:
         if not value >= 0:
             raise InputError(f"{MEMORY_LIMIT_ENV}: expected a number of bytes (e.g. 8G), found {text!r}")
         return int(value)
-    available = _meminfo_available()
-    room = _cgroup_room()
-    return available if room is None else min(available, room)
+    rooms = [r for r in (_cgroup_room(), _address_space_room()) if r is not None]
+    return min([_meminfo_available(), *rooms])
 
 
 def _meminfo_available() -> int:
@@ -76,6 +76,22 @@ def _meminfo_available() -> int:
             return next(int(line.split()[1]) for line in f if line.startswith("MemAvailable:")) * 1024
     except (OSError, StopIteration, ValueError):
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def _address_space_room() -> int | None:
+    """Bytes of address space left under the process's ``ulimit -v`` (RLIMIT_AS), None without one:
+    past it an allocation fails however much memory the machine has."""
+    import resource
+
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if limit == resource.RLIM_INFINITY:
+        return None
+    try:
+        with open("/proc/self/status") as f:
+            used = next(int(line.split()[1]) for line in f if line.startswith("VmSize:")) * 1024
+    except (OSError, StopIteration, ValueError):
+        return None
+    return max(0, limit - used)
 
 
 def _cgroup_room() -> int | None:

@@ -74,7 +74,7 @@ def source_kind(path: str | Path) -> str:
     from drivingscene.data.npz import load_npz
 
     try:
-        return _kind_of_arrays(load_npz(path))
+        return _kind_of_arrays(load_npz(path, keys={"format"}))  # the format alone: nothing else decompressed
     except InputError:
         return "scene"
 
@@ -95,10 +95,11 @@ def open_source(path: str | Path) -> Source:
         return Source(path, "ply", recon=ply_reconstruction(read_ply(path)), up=ply_up_axis(path), low_pass=low_pass)
     if suffix != ".npz":
         raise InputError(f"{path}: expected a .npz (scene or reconstruction) or a .ply file, found '{path.suffix}'")
-    from drivingscene.data.npz import load_npz
-    from drivingscene.gaussians.recon import recon_from_arrays
+    from drivingscene.data import validate
+    from drivingscene.data.npz import load_format, load_npz
+    from drivingscene.gaussians import recon as recon_format
 
-    arrays = load_npz(path)
-    if _kind_of_arrays(arrays) == "recon":
-        return Source(path, "recon", recon=recon_from_arrays(arrays, str(path)))
-    return Source(path, "scene", pair=FramePair.from_arrays(arrays, str(path)))
+    if _kind_of_arrays(load_npz(path, keys={"format"})) == "recon":
+        arrays = load_format(path, recon_format.REQUIRED, recon_format.OPTIONAL)
+        return Source(path, "recon", recon=recon_format.recon_from_arrays(arrays, str(path)))
+    return Source(path, "scene", pair=FramePair.from_arrays(load_format(path, validate.REQUIRED, validate.OPTIONAL), str(path)))

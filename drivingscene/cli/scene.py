@@ -65,6 +65,7 @@ def run_validate(args: argparse.Namespace) -> int:
                 source = open_source(path)  # a recon.npz is validated on reading, a PLY is only read
                 verdict = "valid" if kind == "recon" else "readable (validate checks scene.npz and recon.npz files)"
                 print(f"{describe_gaussians(source)}: {verdict}")
+                _warn_unknown_members(path, kind)
                 continue
             except SceneFormatError as e:
                 problems = [str(p) for p in e.problems]
@@ -76,9 +77,25 @@ def run_validate(args: argparse.Namespace) -> int:
             bad += 1
         else:
             print(f"{path}: valid")
+            _warn_unknown_members(path, kind)
             if args.geometry:
                 disagree += check_geometry(path)
     return 2 if bad else 1 if disagree else 0
+
+
+def unknown_member_lines(path: Path, kind: str) -> list[str]:
+    """`data.validate.unknown_members` of a scene or recon .npz (nothing for other files)."""
+    from drivingscene.data import validate
+    from drivingscene.data.memory import declared_npz
+    from drivingscene.gaussians import recon
+
+    specs = {"scene": (validate.REQUIRED, validate.OPTIONAL), "recon": (recon.REQUIRED, recon.OPTIONAL)}.get(kind)
+    return [] if specs is None else validate.unknown_members(declared_npz(path), *specs)
+
+
+def _warn_unknown_members(path: Path, kind: str) -> None:
+    for line in unknown_member_lines(path, kind):
+        print(f"{path}: warning: {line}", file=sys.stderr)
 
 
 def check_geometry(path: Path) -> int:
@@ -117,4 +134,6 @@ def run_info(args: argparse.Namespace) -> int:
     from drivingscene.data.summary import summarise
 
     print(summarise(load_frame_pair(args.file), args.file))
+    for line in unknown_member_lines(args.file, kind):
+        print(f"unknown     {line}")
     return 0

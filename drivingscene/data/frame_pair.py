@@ -13,11 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drivingscene.data.npz import load_npz, save_npz
+from drivingscene.data.npz import load_format, save_npz
 from drivingscene.data.validate import (
     FORMAT_NAME,
     FORMAT_VERSION,
+    OPTIONAL,
     OPTIONAL_KEYS,
+    REQUIRED,
     REQUIRED_KEYS,
     validate_arrays,
 )
@@ -150,14 +152,16 @@ class FramePair:
 def validate_frame_pair_file(path: str | os.PathLike) -> list[Problem]:
     """Every problem of a scene file; an empty list means valid."""
     try:
-        arrays = load_npz(path)
+        arrays = load_format(path, REQUIRED, OPTIONAL)
+    except SceneFormatError as e:
+        return list(e.problems)
     except InputError as e:
         return [_read_problem(str(path), str(e))]
     return validate_arrays(arrays, str(path))
 
 
 def _read_problem(source: str, message: str) -> Problem:
-    """The ``Problem`` of a file that could not be read (``load_npz``'s one-line message)."""
+    """The ``Problem`` of a file that could not be read (``load_format``'s one-line message)."""
     text = message.removeprefix(f"{source}: ")
     match = re.fullmatch(r"(?:([\w\[\].]+): )?expected (.*?), found (.*)", text)
     if match is None:
@@ -171,7 +175,7 @@ def load_frame_pair(path: str | os.PathLike) -> FramePair:
     Raises:
         InputError: unreadable file; SceneFormatError: invalid contents (one line, every problem kept).
     """
-    return FramePair.from_arrays(load_npz(path), source=str(path))
+    return FramePair.from_arrays(load_format(path, REQUIRED, OPTIONAL), source=str(path))
 
 
 def save_frame_pair(pair: FramePair, path: str | os.PathLike, *, compress: bool = True) -> Path:

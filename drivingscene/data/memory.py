@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ def declared_arrays(zf: zipfile.ZipFile) -> dict[str, tuple[tuple[int, ...], np.
         try:
             with zf.open(name) as f:
                 shape, dtype = read_npy_header(f)
-        except (*HEADER_ERRORS, OSError, zipfile.BadZipFile, NotImplementedError):
+        except (*HEADER_ERRORS, OSError, zipfile.BadZipFile, NotImplementedError, zlib.error):
             continue
         out[name.removesuffix(".npy")] = (shape, dtype)
     return out
@@ -44,14 +45,17 @@ def declared_nbytes(shape: tuple[int, ...], dtype: np.dtype) -> int:
     return int(np.prod(shape, dtype=object)) * dtype.itemsize
 
 
-def check_npz_fits(path: str | os.PathLike, zf: zipfile.ZipFile) -> int:
-    """Refuse an ``.npz`` whose arrays, as their headers declare them, would not fit in the memory
-    available now (`machine.available_memory_bytes`); the declared bytes otherwise.
+def check_npz_fits(path: str | os.PathLike, zf: zipfile.ZipFile, keys: list[str] | None = None) -> int:
+    """Refuse an ``.npz`` whose arrays (those of ``keys``, or all), as their headers declare them,
+    would not fit in the memory available now (`machine.available_memory_bytes`); the declared
+    bytes otherwise.
 
     Raises:
         InputError: one line naming the file and its largest array.
     """
-    arrays = declared_arrays(zf)
+    arrays = {k: v for k, v in declared_arrays(zf).items() if keys is None or k in keys}
+    if not arrays:
+        return 0
     sizes = {key: declared_nbytes(shape, dtype) for key, (shape, dtype) in arrays.items()}
     total = sum(sizes.values())
     available = available_memory_bytes()
@@ -64,6 +68,17 @@ def check_npz_fits(path: str | os.PathLike, zf: zipfile.ZipFile) -> int:
             f"(a smaller scene, or more memory; {MEMORY_LIMIT_ENV} overrides the measured figure)"
         )
     return total
+
+
+def declared_npz_complete(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dtype]] | None:
+    """``declared_arrays`` of the file at ``path`` where every member's header reads; None where
+    one does not or the file is no zip (the loader then says what is wrong)."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            declared = declared_arrays(zf)
+            return declared if len(declared) == len(zf.namelist()) else None
+    except (OSError, zipfile.BadZipFile, ValueError):
+        return None
 
 
 def declared_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dtype]]:

@@ -13,14 +13,14 @@ import io
 import os
 import zipfile
 import zlib
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from drivingscene.data.atomic import atomic_write
-from drivingscene.data.memory import HEADER_ERRORS, check_npz_fits, declared_nbytes, read_npy_header
-from drivingscene.errors import InputError
+from drivingscene.data.memory import HEADER_ERRORS, check_npz_fits, declared_nbytes, declared_npz_complete, read_npy_header
+from drivingscene.errors import InputError, SceneFormatError
 
 _FIXED_DATE = (1980, 1, 1, 0, 0, 0)
 
@@ -46,8 +46,9 @@ def save_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], *, compr
     return atomic_write(path, write)
 
 
-def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read every array of an ``.npz`` file into memory without unpickling.
+def load_npz(path: str | os.PathLike, keys: Collection[str] | None = None) -> dict[str, np.ndarray]:
+    """Read the arrays of an ``.npz`` file into memory without unpickling: every one, or those of
+    ``keys`` that the file holds (the others are never decompressed nor counted against memory).
 
     Raises:
         InputError: one line naming the file and what is wrong with it.
@@ -73,9 +74,10 @@ def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
         if not isinstance(loaded, np.lib.npyio.NpzFile):
             raise InputError(f"{path}: expected an .npz archive of named arrays, found a single .npy array")
         with loaded as data:
-            check_npz_fits(path, loaded.zip)  # before any array is allocated
+            wanted = [key for key in data.files if keys is None or key in keys]
+            check_npz_fits(path, loaded.zip, wanted)  # before any array is allocated
             out = {}
-            for key in data.files:
+            for key in wanted:
                 _check_member(path, loaded.zip, key)
                 try:
                     out[key] = data[key]
@@ -87,6 +89,27 @@ def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
     except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, NotImplementedError, RuntimeError) as e:
         found = f"a damaged archive ({_one_line(e)})"
         raise InputError(f"{path}: expected an .npz archive of named arrays (a zip of .npy files), found {found}") from None
+
+
+def load_format(path: str | os.PathLike, required: Mapping, optional: Mapping) -> dict[str, np.ndarray]:
+    """The members of a file format (the keys of ``required`` and ``optional``, `data.validate`
+    specs) that the ``.npz`` at ``path`` holds. Their shapes and dtypes are checked against each
+    other from the ``.npy`` headers first, so a member that disagrees is refused before anything is
+    decompressed; members the format does not define are never read (`data.validate.unknown_members`
+    lists them).
+
+    Raises:
+        SceneFormatError: the headers disagree (one line per problem); InputError: unreadable file.
+    """
+    from drivingscene.data.validate import declared_problems
+
+    declared = declared_npz_complete(path)
+    # a pickled member of the format is refused by name when it is read (load_npz)
+    if declared and not any(dtype.hasobject for key, (_, dtype) in declared.items() if key in required or key in optional):
+        problems = declared_problems(declared, required, optional, str(path))
+        if problems:
+            raise SceneFormatError(problems)
+    return load_npz(path, keys={*required, *optional})
 
 
 def _one_line(e: BaseException) -> str:

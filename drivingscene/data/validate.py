@@ -252,3 +252,35 @@ def validate_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -> 
 def unknown_keys(arrays: dict[str, np.ndarray]) -> list[str]:
     """Keys that this format version does not define (kept, ignored by readers)."""
     return sorted(set(arrays) - set(REQUIRED) - set(OPTIONAL))
+
+
+def _stub(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """An array of ``shape`` and ``dtype`` that takes no memory (every element the same one)."""
+    return np.lib.stride_tricks.as_strided(np.zeros(1, dtype), shape=shape, strides=(0,) * len(shape))
+
+
+def declared_problems(
+    declared: dict[str, tuple[tuple[int, ...], np.dtype]], required: dict[str, KeySpec], optional: dict[str, KeySpec], source: str
+) -> list[Problem]:
+    """`check_keys` on the shapes and dtypes the members' ``.npy`` headers declare (``declared``,
+    `data.memory.declared_npz`), before any member is decompressed: a member whose shape disagrees
+    with the others is refused without inflating it."""
+    known = {k: v for k, v in declared.items() if k in required or k in optional}
+    return check_keys({k: _stub(*v) for k, v in known.items()}, required, optional, source)[0]
+
+
+def unknown_members(
+    declared: dict[str, tuple[tuple[int, ...], np.dtype]], required: dict[str, KeySpec], optional: dict[str, KeySpec]
+) -> list[str]:
+    """One line per member the format does not define (``name: shape dtype, size``): readers never
+    decompress them."""
+    from drivingscene.data.memory import declared_nbytes
+    from drivingscene.machine import gib
+
+    out = []
+    for key, (shape, dtype) in sorted(declared.items()):
+        if key not in required and key not in optional:
+            out.append(
+                f"{key}: not part of the format, never read (declares {dtype} {_fmt_shape(shape)}, {gib(declared_nbytes(shape, dtype))})"
+            )
+    return out

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from drivingscene.data.frame_pair import FramePair
-from drivingscene.data.npz import load_npz, save_npz
+from drivingscene.data.npz import load_format, save_npz
 from drivingscene.data.validate import KeySpec, check_header, check_intrinsics, check_keys, check_rigid
 from drivingscene.errors import Problem, SceneFormatError
 from drivingscene.gaussians.core import Gaussians
@@ -262,7 +262,7 @@ def save_reconstruction(recon: Reconstruction, path: str | os.PathLike) -> Path:
 
 
 def load_reconstruction(path: str | os.PathLike) -> Reconstruction:
-    return recon_from_arrays(load_npz(path), str(path))
+    return recon_from_arrays(load_format(path, REQUIRED, OPTIONAL), str(path))
 
 
 def is_reconstruction_file(arrays: dict[str, np.ndarray]) -> bool:

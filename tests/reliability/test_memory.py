@@ -153,3 +153,93 @@ def test_huge_declared_shape_allocates_nothing(tmp_path):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert "REFUSED" in result.stdout and "images" in result.stdout
+
+
+def _with_zero_member(path: Path, pair: FramePair, key: str, shape: tuple[int, ...]) -> Path:
+    """``pair`` saved, with member ``key`` replaced or added: ``shape`` uint8 of zeros, streamed
+    into the archive (deflated to a few hundred KB) without holding it in memory."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, value in pair.to_arrays().items():
+            if name != key:
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, np.asarray(value), allow_pickle=False)
+                zf.writestr(f"{name}.npy", buf.getvalue())
+        with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
+            header = io.BytesIO()
+            np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": shape})
+            f.write(header.getvalue())
+            chunk = bytes(2**20)
+            for _ in range(int(np.prod(shape)) // len(chunk)):
+                f.write(chunk)
+    return path
+
+
+def _peak_bytes(fn) -> int:
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+BOMB = (256, 2**20)  # 256 MiB of zeros: a few hundred KB in the archive
+
+
+def test_an_unknown_member_is_reported_and_never_inflated(tmp_path, capsys):
+    from drivingscene.cli import main
+
+    pair = make_pair(2, 16, 24, with_gt=False)
+    scene = _with_zero_member(tmp_path / "bomb.npz", pair, "junk", BOMB)
+    assert scene.stat().st_size < 2**20
+    assert _peak_bytes(lambda: load_frame_pair(scene)) < 32 * 2**20  # the member alone is 256 MiB
+    assert main(["validate", str(scene)]) == 0
+    captured = capsys.readouterr()
+    assert captured.out.strip() == f"{scene}: valid"
+    assert (
+        captured.err.strip()
+        == f"{scene}: warning: junk: not part of the format, never read (declares uint8 [256, 1048576], 0.25 GiB)"
+    )
+    assert main(["info", str(scene)]) == 0
+    assert "unknown     junk: not part of the format" in capsys.readouterr().out
+
+
+def test_a_member_whose_header_disagrees_is_refused_before_it_is_inflated(tmp_path, capsys):
+    from drivingscene.cli import main
+    from drivingscene.errors import SceneFormatError
+
+    pair = make_pair(2, 16, 24, with_gt=False)
+    scene = _with_zero_member(tmp_path / "images.npz", pair, "images", (2, 3, 1024, 21846, 3))  # 3 cameras, not 2: 400 MB
+    with pytest.raises(
+        SceneFormatError,
+        match=r"images: expected shape \[2, V=2, H=1024, W=21846, 3\] \(RGB at the two keyframes\), found uint8 \[2, 3,",
+    ) as info:
+        _peak_bytes(lambda: load_frame_pair(scene))
+    assert "\n" not in str(info.value)
+    peak = _peak_bytes(lambda: main(["validate", str(scene)]))
+    assert peak < 32 * 2**20 and "images: expected shape [2, V=2" in capsys.readouterr().err
+
+
+def test_the_address_space_limit_counts(tmp_path):
+    """Under ``ulimit -v`` a scene that fits in the machine's memory but not in the process's
+    address space is refused in one line, not by numpy's MemoryError mid-load."""
+    scene = _forged_scene(tmp_path / "gig.npz", (2, 6, 4096, 8192, 3), make_pair(6, 8, 8, with_gt=False))  # 1.1 GiB declared
+    code = textwrap.dedent(
+        f"""
+        import resource
+        from drivingscene.data.frame_pair import load_frame_pair
+        from drivingscene.errors import InputError
+        with open("/proc/self/status") as f:
+            used = next(int(line.split()[1]) for line in f if line.startswith("VmSize:")) * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (used + 2**29, used + 2**29))  # half a GiB of room
+        try:
+            load_frame_pair({str(scene)!r})
+        except InputError as e:
+            print("REFUSED", e)
+        """
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "REFUSED" in result.stdout and "gig.npz: images: expected arrays that fit in the 0." in result.stdout
