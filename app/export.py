@@ -178,7 +178,14 @@ def export_ply(doc: SceneDoc, path: Path, kind: str = "3dgs", t: float | None = 
     if kind not in PLY_KINDS:
         raise InputError(f"PLY kind: expected one of {', '.join(PLY_KINDS)}, found {kind!r}")
     t = None if kind == "dynamic" else t
-    return write_ply(doc.visible_gaussians(), _prepare(Path(path), overwrite), kind=kind, t=t, up=doc.info.get("up", "z"))
+    return write_ply(
+        doc.visible_gaussians(),
+        _prepare(Path(path), overwrite),
+        kind=kind,
+        t=t,
+        up=doc.info.get("up", "z"),
+        origin=doc.recon.origin,
+    )
 
 
 def save_edited(doc: SceneDoc, path: Path) -> Path:

@@ -45,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
             f"(reconstruct it first: drivingscene reconstruct {args.source} -o recon.npz)"
         )
     gaussians = source.recon.gaussians if args.include_hidden else source.recon.visible()
-    path = write_ply(gaussians, args.out, kind=args.kind, t=args.time, sh_degree=args.sh_degree, up=source.up)
+    origin = source.recon.origin if source.recon is not None else None
+    path = write_ply(gaussians, args.out, kind=args.kind, t=args.time, sh_degree=args.sh_degree, up=source.up, origin=origin)
     moving = int(gaussians.dynamic.sum())
     when = "" if args.time is None else f" at t={args.time:g}"
     print(f"{path}: {len(gaussians)} Gaussians ({moving} dynamic), {args.kind}{when}")

@@ -25,6 +25,11 @@ from drivingscene.data.validate import (
 )
 from drivingscene.errors import InputError, Problem, SceneFormatError
 
+# Beyond this distance from the world's origin float32 positions lose millimetres (1e4 m: ~1 mm
+# steps; 6.4e6 m: half a metre), and a pair is moved to its first ego pose (`FramePair.origin`).
+FAR_FROM_ORIGIN_M = 1e4
+POSE_FIELDS = ("ego_to_world", "eval_ego_to_world", "camera_ego_to_world", "eval_camera_ego_to_world")
+
 
 @dataclass(frozen=True, eq=False)
 class FramePair:
@@ -49,6 +54,29 @@ class FramePair:
     camera_timestamps: np.ndarray | None = None  # [2, V] float64, seconds, each image's capture time
     eval_camera_ego_to_world: np.ndarray | None = None  # [M, V, 4, 4] float64
     eval_camera_timestamps: np.ndarray | None = None  # [M, V] float64, seconds
+    origin: np.ndarray | None = None  # [3] float64: the world point every pose above is relative to
+
+    def __post_init__(self) -> None:
+        """A world frame far from its origin (UTM, ECEF: 6.4e6 m) is moved to the first ego pose,
+        kept in ``origin``: every float32 computation downstream (Gaussian centres, cameras) then
+        works with metres near zero instead of steps of half a metre."""
+        if self.origin is not None:
+            return
+        poses = [
+            p
+            for p in (self.ego_to_world, self.eval_ego_to_world, self.camera_ego_to_world, self.eval_camera_ego_to_world)
+            if p is not None
+        ]
+        if max(float(np.abs(p[..., :3, 3]).max()) for p in poses) <= FAR_FROM_ORIGIN_M:
+            return
+        origin = np.array(self.ego_to_world[0, :3, 3], dtype=np.float64)
+        object.__setattr__(self, "origin", origin)
+        for name in POSE_FIELDS:
+            value = getattr(self, name)
+            if value is not None:
+                moved = np.array(value, dtype=np.float64)
+                moved[..., :3, 3] -= origin
+                object.__setattr__(self, name, moved)
 
     @property
     def num_views(self) -> int:
@@ -138,7 +166,7 @@ class FramePair:
         out = {}
         for f in fields(self):
             value = getattr(self, f.name)
-            if value is None or f.name in ("ego_to_world", "timestamps", "eval_timestamps", "eval_ego_to_world"):
+            if value is None or f.name in ("ego_to_world", "timestamps", "eval_timestamps", "eval_ego_to_world", "origin"):
                 out[f.name] = value
             elif f.name == "camera_names":
                 out[f.name] = tuple(value[i] for i in idx)

@@ -55,6 +55,9 @@ def summarise(pair: FramePair, path: str | os.PathLike | None = None) -> str:
     dist, turn = ego_motion(pair)
     lines.append(f"keyframes   t0={t0:.3f} s, t1={t1:.3f} s, gap {t1 - t0:.3f} s")
     lines.append(f"ego motion  {dist:.2f} m ({dist / (t1 - t0):.2f} m/s), rotation {turn:.2f} deg")
+    if pair.origin is not None:
+        x, y, z = pair.origin
+        lines.append(f"origin      poses relative to ({x:.3f}, {y:.3f}, {z:.3f}) m (a world frame far from its origin)")
     fx = pair.intrinsics[:, 0, 0]
     lines.append(f"focal (fx)  {', '.join(f'{f:.1f}' for f in fx)} px")
     if pair.num_eval:

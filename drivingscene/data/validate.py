@@ -47,6 +47,7 @@ OPTIONAL = {
     "camera_timestamps": KeySpec("float64", (2, "V"), "when each keyframe image was taken"),
     "eval_camera_ego_to_world": KeySpec("float64", ("M", "V", 4, 4), "ego pose when each intermediate image was taken"),
     "eval_camera_timestamps": KeySpec("float64", ("M", "V"), "when each intermediate image was taken"),
+    "origin": KeySpec("float64", (3,), "world point the poses are relative to (world frames far from their origin)"),
 }
 REQUIRED_KEYS = tuple(REQUIRED)
 OPTIONAL_KEYS = tuple(OPTIONAL)
@@ -184,7 +185,7 @@ def _check_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
             out.append(Problem(source, "gt_depth", "finite values", "NaN or inf"))
         elif d.min() < 0:
             out.append(Problem(source, "gt_depth", "depth >= 0 (0 = unknown or sky)", f"minimum {d.min():.4g}"))
-    for key in ("gt_flow", "gt_scene_flow"):
+    for key in ("gt_flow", "gt_scene_flow", "origin"):
         if key in arrays and not np.all(np.isfinite(arrays[key])):
             out.append(Problem(source, key, "finite values", "NaN or inf"))
     if "eval_timestamps" in arrays and times_ok:

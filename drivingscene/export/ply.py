@@ -139,8 +139,13 @@ def write_ply(
     t: float | None = None,
     sh_degree: int | None = None,
     up: str = "z",
+    origin: np.ndarray | None = None,
 ) -> Path:
     """Write Gaussians as ``kind`` ("3dgs", "dynamic" or "points").
+
+    ``origin`` (float64 [3], `Reconstruction.origin`): the world point the Gaussians' coordinates
+    are relative to, stated in the header (``comment DrivingScene origin X Y Z``: add it for the
+    world frame), as float32 coordinates far from zero would lose centimetres.
 
     ``t`` (normalised time) moves dynamic Gaussians first; "dynamic" keeps them at their keyframe
     with their flow, so ``t`` must be None for it. ``sh_degree`` (0-3, "3dgs" and "dynamic") is
@@ -159,6 +164,9 @@ def write_ply(
         raise InputError(f"--sh-degree: expected 0 to {MAX_SH_DEGREE}, found {sh_degree!r}")
     g = gaussians if t is None else gaussians.at_time(t)
     comments = [frame_comment(up)] + ([f"time {t:.6f} (normalised between keyframes)"] if t is not None else [])
+    if origin is not None:
+        x, y, z = (float(v) for v in np.asarray(origin, dtype=np.float64))
+        comments.append(f"{PLY_MARKER} origin {x!r} {y!r} {z!r} (coordinates are relative to this world point)")
     if kind == "points":
         rgb = np.round(g.colors().detach().cpu().numpy() * 255).astype(np.uint8)
         means = g.means.detach().cpu().float().numpy()

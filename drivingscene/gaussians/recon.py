@@ -56,6 +56,7 @@ OPTIONAL = {
     "moving": KeySpec("bool", (2, "V", "H", "W"), "pixels whose Gaussian moves: the residual is applied there only"),
     "meta": KeySpec("str", (), "JSON: method, source, timings"),
     "valid_mask": KeySpec("bool", ("V", "H", "W"), "pixels that see the world (False: ego body, hood)"),
+    "origin": KeySpec("float64", (3,), "world point that means and poses are relative to"),
 }
 PER_CAMERA = ("images", "depth", "rigid_flow", "residual_flow", "moving")
 
@@ -79,6 +80,7 @@ class Reconstruction:
     residual_flow: np.ndarray | None = None  # [2, V, H, W, 2] float32, as proposed (also where static)
     moving: np.ndarray | None = None  # [2, V, H, W] bool: pixels whose Gaussian moves
     valid_mask: np.ndarray | None = None  # [V, H, W] bool: the input pixels that see the world
+    origin: np.ndarray | None = None  # [3] float64: the world point positions and poses are relative to (`FramePair.origin`)
     meta: dict = field(default_factory=dict)
 
     @classmethod
@@ -86,6 +88,7 @@ class Reconstruction:
         """Wrap Gaussians with the rig and poses of ``pair`` (and its images unless given)."""
         kwargs.setdefault("images", pair.images)
         kwargs.setdefault("valid_mask", pair.valid_mask)
+        kwargs.setdefault("origin", pair.origin)
         return cls(
             gaussians=gaussians,
             intrinsics=pair.intrinsics,
@@ -173,6 +176,8 @@ def recon_to_arrays(recon: Reconstruction) -> dict[str, np.ndarray]:
         arrays["hidden"] = recon.hidden.cpu().numpy().astype(bool)
     if recon.valid_mask is not None:
         arrays["valid_mask"] = np.asarray(recon.valid_mask, dtype=bool)
+    if recon.origin is not None:
+        arrays["origin"] = np.asarray(recon.origin, dtype=np.float64)
     for key in PER_CAMERA:
         value = getattr(recon, key)
         if value is not None:
@@ -184,7 +189,7 @@ def _check_recon_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
     out = check_header(arrays, RECON_FORMAT, RECON_VERSION, source)
     if dims["K"] not in (1, 4, 9, 16):
         out.append(Problem(source, "sh", "1, 4, 9 or 16 coefficients (SH degree 0-3)", f"{dims['K']}"))
-    for key in ("means", "quats", "log_scales", "sh", "dynamic_flows"):
+    for key in ("means", "quats", "log_scales", "sh", "dynamic_flows", *(("origin",) if "origin" in arrays else ())):
         if not np.all(np.isfinite(arrays[key])):
             out.append(Problem(source, key, "finite values", "NaN or inf"))
     if np.any(np.isnan(arrays["opacity_logits"])):  # +-inf logits are opacities 1 and 0
@@ -245,6 +250,7 @@ def recon_from_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -
         sky_sh=t(arrays["sky_sh"]) if "sky_sh" in arrays else None,
         hidden=t(arrays["hidden"]) if "hidden" in arrays else None,
         valid_mask=arrays.get("valid_mask"),
+        origin=arrays.get("origin"),
         meta=json.loads(str(arrays.get("meta", "{}"))),
         **{k: arrays[k] for k in PER_CAMERA if k in arrays},
     )
