@@ -343,10 +343,7 @@ class SplatRenderer:
         if "fbo" not in self._acc or self._acc["key"] != (acc[0].texture.glo, acc[1].texture.glo):
             if "fbo" in self._acc:
                 self._acc["fbo"].release()
-            self._acc = {
-                "fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]),
-                "key": (acc[0].texture.glo, acc[1].texture.glo),
-            }
+            self._acc = {"fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]), "key": (acc[0].texture.glo, acc[1].texture.glo)}
         acc_fbo = self._acc["fbo"]
         if start == 0:
             acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
@@ -428,9 +425,7 @@ class SplatRenderer:
             self._draw_splats(splats, cam, t, opts, start, count, layer, surface_pass, front)
         return target
 
-    def _accumulate(
-        self, layer: Target, acc_fbo, weight: float, coverage_full: float, surface: SurfaceLayer | None = None
-    ) -> None:
+    def _accumulate(self, layer: Target, acc_fbo, weight: float, coverage_full: float, surface: SurfaceLayer | None = None) -> None:
         acc_fbo.use()
         self.ctx.viewport = (0, 0, layer.width, layer.height)
         self.ctx.enable(self.ctx.BLEND)
