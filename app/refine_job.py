@@ -60,7 +60,7 @@ class RefineState:
 def refine_pair(viewer) -> FramePair:
     """The frame pair behind the open document: the scene it was reconstructed from, else one made
     from the reconstruction's own images and rig."""
-    from drivingscene.methods.refine_inputs import pair_from_reconstruction
+    from drivingscene.methods.refine.inputs import pair_from_reconstruction
 
     doc, pair = viewer.doc, viewer.pair
     recon = doc.recon

@@ -16,6 +16,10 @@ each layer is one contiguous range of it. With surface averaging (``LayerBlend.s
 > 0, ``drivingscene.render.composite``) a layer is drawn twice: its front depth per pixel (MIN
 blending), then its splats into three targets, the front surface's sums and what lies behind it
 (``shaders/splat.glsl``), which the compose pass combines.
+
+Why one file: it owns one moderngl context's resources (data textures, programs, framebuffers and
+the sorted order) and their lifetimes; every draw path (splats, layers, compose, present) uses them
+all, and a split would hand the context's state across modules.
 """
 
 from __future__ import annotations

@@ -139,7 +139,7 @@ def parse_variant(text: str) -> Variant:
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
-    from drivingscene.models.pipeline import EPIPOLAR_DEPTHS
+    from drivingscene.models.lift import EPIPOLAR_DEPTHS
 
     values: dict = {"name": text}
     for item in filter(None, text.split(",")):

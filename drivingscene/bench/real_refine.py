@@ -132,7 +132,7 @@ def refine_methods(args: argparse.Namespace, model, options) -> list[tuple]:
 
 def refine_table(scenes, lpips_name: str) -> str:
     """The refinement section of the report: one row per scene and method."""
-    from drivingscene.bench.real import BASELINES, FULL, _fmt, _mean, _table
+    from drivingscene.bench.real_common import BASELINES, FULL, _fmt, _mean, _table
 
     rows = []
     for s in scenes:

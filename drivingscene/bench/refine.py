@@ -18,10 +18,8 @@ import math
 import statistics
 from pathlib import Path
 
-import numpy as np
-import torch
-
 from drivingscene.bench import write_report
+from drivingscene.bench.refine_scores import _fmt, _mean, keyframe_psnr, scaled_depth
 from drivingscene.errors import InputError
 from drivingscene.machine import machine_description
 
@@ -79,33 +77,6 @@ def cpu_flags_line() -> str:
     )
 
 
-def scaled_depth(recon, pair, factor: float):
-    """``recon`` with every Gaussian slid along its ray to ``factor`` times its depth (and its depth map)."""
-    from dataclasses import replace
-
-    from drivingscene.methods.refine_inputs import refine_inputs
-    from drivingscene.methods.refine_params import RefineParams, gaussian_rays
-
-    if factor == 1.0:
-        return recon
-    inputs = refine_inputs(pair)
-    local = recon.gaussians.transform(inputs.world_to_local)
-    params = RefineParams(local, gaussian_rays(local, inputs.cam_to_local, inputs.intrinsics, inputs.image_size), ())
-    params.set_depth(torch.full((len(local),), math.log(factor)))
-    with torch.no_grad():
-        moved = params.gaussians().transform(inputs.local_to_world)
-    depth = None if recon.depth is None else (recon.depth * factor).astype(np.float32)
-    return replace(recon, gaussians=moved, depth=depth)
-
-
-def keyframe_psnr(recon, pair) -> float:
-    from drivingscene.bench.real import _images, image_scores, render_keyframes
-
-    mask = None if pair.valid_mask is None else torch.from_numpy(pair.world_mask())[None].expand(2, *pair.valid_mask.shape)
-    scores = image_scores(render_keyframes(recon, pair), _images(pair.images), mask, None, pair.num_views)
-    return float(np.nanmean(scores["psnr"]))
-
-
 def score_pair(model, pair, args, perceptual) -> dict:
     """Scores of the baselines, the model and each refinement budget on one pair."""
     from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
@@ -147,15 +118,6 @@ def stage_config(args, seconds: float):
     if args.lpips_weight is not None:
         config = replace(config, lpips_weight=args.lpips_weight)
     return config
-
-
-def _mean(rows: list[dict], key: str) -> float:
-    vals = [r[key] for r in rows if r.get(key) is not None and not math.isnan(r[key])]
-    return sum(vals) / len(vals) if vals else math.nan
-
-
-def _fmt(x: float, fmt: str) -> str:
-    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else fmt.format(x)
 
 
 def report(scores: dict[str, dict], args, lpips_name: str, machine: str) -> str:

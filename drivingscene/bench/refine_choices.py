@@ -41,7 +41,7 @@ def variant_config(name: str, steps: int, lidar: bool = False) -> RefineConfig:
 
 def choices_scores(model, pairs: dict, steps: int, depth_scale: float, perceptual) -> dict[str, dict[str, dict]]:
     """pair -> variant -> scores (``"model"``: the reconstruction refinement starts from)."""
-    from drivingscene.bench.refine import keyframe_psnr, scaled_depth
+    from drivingscene.bench.refine_scores import keyframe_psnr, scaled_depth
     from drivingscene.eval.reconstruction import score_depth, score_novel_views
     from drivingscene.methods.feedforward import reconstruct
     from drivingscene.methods.refine import refine
@@ -61,7 +61,7 @@ def choices_scores(model, pairs: dict, steps: int, depth_scale: float, perceptua
 
 
 def choices_report(scores: dict, lpips_name: str) -> str:
-    from drivingscene.bench.refine import _fmt, _mean
+    from drivingscene.bench.refine_scores import _fmt, _mean
 
     names = list(scores)
     variants = list(next(iter(scores.values())))

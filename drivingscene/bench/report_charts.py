@@ -6,6 +6,9 @@ Matplotlib with the Agg backend (no display). Every figure is 1600 px wide, its 
 panels, and is written atomically (a temporary file beside the target, then a rename). A family
 keeps its colour and marker in every chart: `family_styles` pins the project's own families and
 gives the others the free colours in name order.
+
+Why one file: every chart shares the family styles, the figure size, the legend placement and the
+atomic writer; split by chart, each file would import all of them and hold one function.
 """
 
 from __future__ import annotations

@@ -43,6 +43,9 @@ ABLATION: ``{"name": str, "paper_db": float | None, "ours_db": float, "reproduce
 from __future__ import annotations
 
 import math
+from pathlib import Path
+
+from drivingscene.errors import InputError
 
 FORMAT = "drivingscene/benchmark"
 VERSION = 1
@@ -187,3 +190,30 @@ def example_report() -> dict:
         },
         "ablations": [{"name": "residual flow", "paper_db": 2.4, "ours_db": 0.1, "reproduces": True, "note": ""}],
     }
+
+
+def load_report(path: Path) -> dict:
+    """A report saved with ``--json``, checked for its format and version."""
+    import json
+
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(
+            f"{path}: --from-json: expected a JSON report of `drivingscene bench report --json`, could not read it: {e}"
+        ) from None
+    if not isinstance(report, dict) or report.get("format") != FORMAT or report.get("version") != VERSION:
+        found = report.get("format") if isinstance(report, dict) else type(report).__name__
+        raise InputError(f"{path}: format: expected {FORMAT!r} version {VERSION}, found {found!r}")
+    return report
+
+
+def finite_or_none(obj):
+    """``obj`` with every non-finite float replaced by None (strict JSON: other tools reject NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_none(v) for v in obj]
+    return obj

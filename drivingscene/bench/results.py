@@ -87,7 +87,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _methods(args):
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
     from drivingscene.methods.oracle import oracle_reconstruction
-    from drivingscene.models.pipeline import MotionSearchConfig
+    from drivingscene.models.lift import MotionSearchConfig
 
     model = load_model(args.weights)
     methods = [

@@ -55,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def parse_setting(text: str):
     """A `MotionSearchConfig` from ``key=value,...`` (fields not named keep their defaults)."""
-    from drivingscene.models.pipeline import MotionSearchConfig
+    from drivingscene.models.lift import MotionSearchConfig
 
     kinds = {f.name: f.type for f in fields(MotionSearchConfig)}
     changes = {}
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.eval.reconstruction import score_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
-    from drivingscene.models.pipeline import MotionSearchConfig
+    from drivingscene.models.lift import MotionSearchConfig
     from drivingscene.train.data import list_pairs
 
     settings = [(s, parse_setting(s)) for s in (args.setting or DEFAULT_SETTINGS)]  # errors before any work
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
             "",
             "At inference the model refines R's flow per pixel: among s x the rigid flow (s on a grid) and R's own flow, "
             "it keeps the one along which the other keyframe matches the pixel best (`MotionSearchConfig` in "
-            "`drivingscene/models/pipeline.py`, `drivingscene/geometry/flow_search.py`; docs/results-notes.md says why). "
+            "`drivingscene/models/lift.py`, `drivingscene/geometry/flow_search.py`; docs/results-notes.md says why). "
             f"Defaults: {defaults}. Each row changes the named fields only. The settings were chosen here, on validation pairs; "
             "docs/results.md reports the chosen one on the test pairs.",
             "",

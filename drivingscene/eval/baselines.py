@@ -49,20 +49,6 @@ def blend_frames(pair: FramePair) -> Tensor:
     return (1 - t) * images[0] + t * images[1]
 
 
-def road_plane_depth(pair: FramePair, far: float = 80.0) -> np.ndarray:
-    """``[2, V, H, W]`` float32 z-depth where each pixel's ray meets the ego frame's z = 0 plane,
-    ``far`` where it does not within ``far`` (at and above the horizon, or a camera mounted below z = 0)."""
-    from drivingscene.geometry.camera import unproject
-
-    height, width = pair.image_size
-    rays = unproject(torch.ones(pair.num_views, height, width), torch.from_numpy(pair.intrinsics).float())  # z = 1
-    cam_to_ego = torch.from_numpy(pair.cam_to_ego).float()
-    down = -torch.einsum("vj,vhwj->vhw", cam_to_ego[:, 2, :3], rays)  # metres the ray drops per metre of depth
-    mount = cam_to_ego[:, 2, 3].view(-1, 1, 1)  # camera height above z = 0
-    depth = torch.where((down > 0) & (mount > 0), mount / down.clamp(min=1e-9), torch.full_like(down, far)).clamp(max=far)
-    return np.broadcast_to(depth.numpy().astype(np.float32), (2, *depth.shape)).copy()
-
-
 def nearest_return_depth(kept: np.ndarray) -> np.ndarray:
     """``[..., H, W]`` float32: at every pixel the depth of the nearest (Euclidean, in pixels)
     non-zero return of ``kept`` ``[..., H, W]``; 0 in images with no return at all."""

@@ -57,7 +57,7 @@ def lift_dense(
     """Scene flow ``[V, H, W, 3]`` float32 (metres, in the frame of ``*_to_world``; 0 where not
     dynamic) and dynamic ``[V, H, W]`` bool = candidate & both depths valid & forward/backward
     consistent, one pass per pixel. Reference path: the torch dense branch of
-    ``drivingscene.models.pipeline.lift_scene_flow``
+    ``drivingscene.models.lift.lift_scene_flow``
     (``geometry.scene_flow.scene_flow_from_optical_flow`` and
     ``geometry.flow.forward_backward_consistency``; the same up to float rounding)."""
     return call(
@@ -77,7 +77,7 @@ def epipolar_parallax(
     pixel's ray whose image is nearest the end point (least squares), its distance off the line
     ``[V, H, W]`` (pixels), the parallax ``[V, H, W, 2]`` (offset from the image of the point at
     infinite depth, pixels) and valid ``[V, H, W]`` bool. Reference path: the torch branch of
-    ``drivingscene.models.pipeline.epipolar_geometry``."""
+    ``drivingscene.models.lift.epipolar_geometry``."""
     return call("epipolar_parallax", flow, intrinsics, inverse, relative, near_z)
 
 

@@ -58,8 +58,8 @@ import torch
 from torch import Tensor
 
 from drivingscene.data.frame_pair import FramePair
+from drivingscene.data.road_plane import road_plane_depth
 from drivingscene.data.tensors import PairTensors, pair_to_tensors, world_cameras
-from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.gaussians.assembly import gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
@@ -67,16 +67,8 @@ from drivingscene.geometry.flow import forward_backward_consistency, vector_leng
 from drivingscene.geometry.se3 import rotate_vectors
 from drivingscene.methods.oracle import refine_colors, surfel_maps
 from drivingscene.models.depth import DepthConfig
-from drivingscene.models.pipeline import (
-    LiftConfig,
-    epipolar_geometry,
-    epipolar_tests,
-    lift_scene_flow,
-    rigid_flows,
-    rigid_flows_and_behind,
-    sky_mask,
-    texture_along,
-)
+from drivingscene.models.lift import LiftConfig, epipolar_geometry, epipolar_tests, lift_scene_flow, sky_mask, texture_along
+from drivingscene.models.pipeline import rigid_flows, rigid_flows_and_behind
 from drivingscene.render.color_solve import ITERATIONS as COLOR_ITERATIONS
 from drivingscene.render.sky import fit_sky_from_pixels
 

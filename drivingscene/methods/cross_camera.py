@@ -33,7 +33,7 @@ from torch import Tensor
 from drivingscene import kernels
 from drivingscene.data.tensors import PairTensors
 from drivingscene.methods.classical import DIS_PRESETS, dis_calc, in_dis_threads
-from drivingscene.models.pipeline import LiftConfig
+from drivingscene.models.lift import LiftConfig
 
 
 @dataclass(frozen=True)

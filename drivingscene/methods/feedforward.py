@@ -28,20 +28,9 @@ from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
 from drivingscene.methods.memory import check_reconstruct_memory
+from drivingscene.models.lift import LiftConfig, MotionSearchConfig, explain_by_parallax, lift_scene_flow, search_motion, sky_mask
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
-from drivingscene.models.pipeline import (
-    LiftConfig,
-    MotionSearchConfig,
-    assemble,
-    explain_by_parallax,
-    lift_scene_flow,
-    predict_flow,
-    predict_static,
-    search_motion,
-    sky_mask,
-    with_depth,
-    without_gaussian_head,
-)
+from drivingscene.models.pipeline import assemble, predict_flow, predict_static, with_depth, without_gaussian_head
 from drivingscene.precision import resolve_amp
 from drivingscene.render.color_solve import ITERATIONS as COLOR_ITERATIONS
 from drivingscene.render.composite import SURFACE_TOLERANCE
@@ -58,7 +47,7 @@ class InferenceOptions:
     # search's flow only where matching did not already triangulate one and the image has texture
     # along the epipolar line (docs/choices-matching.md, run 4).
     lift: LiftConfig = LiftConfig(epipolar_depth="unmatched", epipolar_min_texture=0.02)
-    # R's flow refined by a photometric search along the rigid flow (models/pipeline.py); None: R alone
+    # R's flow refined by a photometric search along the rigid flow (models/lift.py); None: R alone
     search: MotionSearchConfig | None = MotionSearchConfig()
     # bf16 autocast for D and P (R runs in float32: faster there, see training-notes). None: where the
     # hardware does bf16 natively (drivingscene.precision: float32 on an AVX2-only CPU); True/False: forced.

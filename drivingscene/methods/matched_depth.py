@@ -33,6 +33,9 @@ corrected.
 
 Chosen on validation pairs (``data/val176``, ``data/val176rand``; `drivingscene bench choices`,
 docs/choices-matching.md), never on the test pairs or the real scene.
+
+Why one file: it is one pipeline (guide, DIS both ways, triangulate, smooth the log ratio, fall
+back where D disagrees) whose stages share the per-pair buffers and are called from nowhere else.
 """
 
 from __future__ import annotations
@@ -49,12 +52,13 @@ from torch import Tensor
 
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.resize import resized_pair
+from drivingscene.data.road_plane import road_plane_depth
 from drivingscene.data.tensors import PairTensors, pair_to_tensors
-from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.geometry.flow import backward_warp
 from drivingscene.methods.classical import DIS_PRESETS, dis_flows, triangulate
 from drivingscene.methods.cross_camera import CrossCameraConfig, cross_camera_depth
-from drivingscene.models.pipeline import LiftConfig, rigid_flows
+from drivingscene.models.lift import LiftConfig
+from drivingscene.models.pipeline import rigid_flows
 
 GUIDES = ("depth", "prior", "both", "best", "fallback")
 LEVELS = ("none", "image", "rig", "affine")

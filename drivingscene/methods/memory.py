@@ -9,7 +9,7 @@ model and the pair (AMD EPYC, 2 cores, torch CPU with bf16 autocast, 6-camera pr
     96x176: 253 MiB   176x320: 279 MiB   352x640: 803 MiB   528x960: 1716 MiB   704x1280: 2870 MiB
 
 that is 256-283 bytes per pixel above ~75 MiB, and ~250 MiB at the smallest sizes (the networks'
-fixed cost). Refinement (`methods/refine.py`, 2 steps) peaks ~1175 bytes per pixel above the
+fixed cost). Refinement (`methods/refine/__init__.py`, 2 steps) peaks ~1175 bytes per pixel above the
 reconstruction it starts from (96x176: 278 MiB, 176x320: 755 MiB, 352x640: 3028 MiB).
 The estimates below round these up.
 """

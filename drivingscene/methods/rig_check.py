@@ -10,7 +10,7 @@ tests say which image disagrees with the others:
   image at the other by OpenCV's DIS optical flow, unguided (a guide from the poses would pull
   the matches onto the very lines under test). Where a match is forward/backward consistent and
   the image has texture, the poses predict a line that its end point must lie on, whatever the
-  depth (`models.pipeline.epipolar_geometry`). The median distance from that line, in the
+  depth (`models.lift.epipolar_geometry`). The median distance from that line, in the
   scene's pixels, is DIS's own error (well under a pixel) where the geometry is right; a rotation
   error of the camera's extrinsics, or of the ego's motion between the images, moves every line
   and shows as pixels. Moving objects are off their lines too, which the median ignores while
@@ -39,11 +39,12 @@ import torch
 
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.resize import resized_pair
+from drivingscene.data.road_plane import road_plane_depth
 from drivingscene.data.tensors import pair_to_tensors
-from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
 from drivingscene.methods.classical import dis_flows
-from drivingscene.models.pipeline import epipolar_geometry, rigid_flows
+from drivingscene.models.lift import epipolar_geometry
+from drivingscene.models.pipeline import rigid_flows
 
 # The depth of the motion prior: the road plane, capped at this depth, and this depth at and above
 # the horizon (the matching at inference guides by the same depth above the horizon,

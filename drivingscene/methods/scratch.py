@@ -3,7 +3,7 @@
 The starting point has no learnt part: every input pixel becomes a Gaussian (the oracle's assembly,
 `methods/oracle.py`) at the depth where its ray meets the road plane (the ego frame's z = 0),
 ``far`` metres where it does not (a backdrop), or, with LiDAR, at the depth of the nearest LiDAR
-return in its image; nothing moves. Test-time refinement (`methods/refine.py`: its depth sweep
+return in its image; nothing moves. Test-time refinement (`methods/refine/__init__.py`: its depth sweep
 first, then gradient steps on depth, colour, opacity and scale) then fits it to the two keyframes
 within a budget of seconds, exactly as it refines the model's reconstruction.
 """
@@ -21,7 +21,8 @@ from drivingscene.gaussians.recon import Reconstruction
 def flat_initialisation(pair: FramePair, far: float = 40.0, lidar: np.ndarray | None = None) -> Reconstruction:
     """Per-pixel Gaussians at the road plane (else ``far``), or at the nearest return of ``lidar``
     ``[2, V, H, W]`` (0: no return) in images that have any; static, colours as the pixels."""
-    from drivingscene.eval.baselines import nearest_return_depth, road_plane_depth
+    from drivingscene.data.road_plane import road_plane_depth
+    from drivingscene.eval.baselines import nearest_return_depth
     from drivingscene.methods.oracle import oracle_reconstruction
 
     depth = road_plane_depth(pair, far=far)

@@ -21,10 +21,9 @@ def gsplat_available() -> bool:
 def rasterize_gsplat(
     means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, sh_degree, near, far, eps2d
 ):
-    """``rasterize`` through ``gsplat.rasterization`` (render mode RGB+ED); returns ``RenderOutput``."""
+    """``rasterize`` through ``gsplat.rasterization`` (render mode RGB+ED): colours, depths and
+    alphas, which ``rasterize`` wraps as its ``RenderOutput``."""
     from gsplat import rasterization
-
-    from drivingscene.render.rasterize import RenderOutput
 
     Ks = Ks.clone()
     Ks[:, :2, 2] += 0.5
@@ -35,4 +34,4 @@ def rasterize_gsplat(
     alphas = alphas[..., 0]  # [B, H, W]
     rgb = out[..., :-1] + (1.0 - alphas[..., None]) * backgrounds[:, None, None, :]
     depths = torch.where(alphas >= 1e-6, out[..., -1], torch.zeros_like(alphas))
-    return RenderOutput(colors=rgb, depths=depths, alphas=alphas)
+    return rgb, depths, alphas

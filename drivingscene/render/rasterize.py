@@ -107,9 +107,10 @@ def rasterize(
             raise InputError("views and surface_tolerance: not supported by the gsplat backend; use backend 'torch' or 'cpp'")
         from drivingscene.render.gsplat_backend import rasterize_gsplat
 
-        return rasterize_gsplat(
+        rgb, depths, alphas = rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, sh_degree, near, far, eps2d
         )
+        return RenderOutput(colors=rgb, depths=depths, alphas=alphas)
     from drivingscene.render.composite import composite, find_pairs_cpp, find_pairs_torch, pair_inputs
     from drivingscene.render.splats import make_splats
 

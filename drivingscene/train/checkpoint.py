@@ -155,8 +155,7 @@ def model_from_run(run_dir: Path):
     if loaded is None:
         raise InputError(f"{run_dir}: expected a training run folder with latest.json")
     meta, tensors = loaded
-    from drivingscene.train.data import list_pairs
-    from drivingscene.train.trainer import with_data_size
+    from drivingscene.train.data import list_pairs, with_data_size
 
     config = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
     if config.model.input_size is None:  # runs started before the size was recorded

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import numpy as np
 from drivingscene.data.frame_pair import load_frame_pair
 from drivingscene.data.tensors import PairTensors, pair_to_tensors
 from drivingscene.errors import InputError
+from drivingscene.train.config import TrainConfig
 
 
 def list_pairs(folders: str | Path) -> list[Path]:
@@ -57,3 +59,11 @@ class PairSequence:
 
     def get(self, step: int, slot: int = 0, per_step: int = 1) -> PairTensors:
         return pair_to_tensors(load_frame_pair(self.files[self.index(step, slot, per_step)]))
+
+
+def with_data_size(config: TrainConfig, files: list[Path]) -> TrainConfig:
+    """The config with the model's ``input_size`` set to the training images' size."""
+    if config.model.input_size is not None:
+        return config
+    size = load_frame_pair(files[0]).image_size
+    return replace(config, model=replace(config.model, input_size=size))

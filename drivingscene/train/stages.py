@@ -34,6 +34,7 @@ from drivingscene.errors import InputError
 from drivingscene.geometry.camera import pixel_grid
 from drivingscene.geometry.flow import backward_warp, forward_backward_consistency, rigid_flow
 from drivingscene.geometry.se3 import invert_rigid
+from drivingscene.models.lift import LiftConfig, MotionSearchConfig, lift_scene_flow, search_motion, sky_mask
 from drivingscene.models.losses import (
     blank_masked,
     consistency_loss,
@@ -49,18 +50,7 @@ from drivingscene.models.losses import (
 )
 from drivingscene.models.matching import neighbour_views
 from drivingscene.models.model import DrivingSceneModel
-from drivingscene.models.pipeline import (
-    FlowPrediction,
-    LiftConfig,
-    MotionSearchConfig,
-    StaticPrediction,
-    assemble,
-    lift_scene_flow,
-    predict_flow,
-    predict_static,
-    search_motion,
-    sky_mask,
-)
+from drivingscene.models.pipeline import FlowPrediction, StaticPrediction, assemble, predict_flow, predict_static
 from drivingscene.precision import resolve_amp
 from drivingscene.render.scene import render_gaussians
 from drivingscene.render.sky import fit_sky_from_pixels

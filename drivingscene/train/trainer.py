@@ -32,7 +32,7 @@ from drivingscene.errors import InputError
 from drivingscene.models.model import DrivingSceneModel
 from drivingscene.train.checkpoint import export_weights, load_checkpoint, restore, save_checkpoint
 from drivingscene.train.config import TrainConfig
-from drivingscene.train.data import PairSequence, list_pairs
+from drivingscene.train.data import PairSequence, list_pairs, with_data_size
 from drivingscene.train.stages import TrainStep, is_finite
 from drivingscene.train.validate import validate
 
@@ -125,16 +125,6 @@ def _prepare_out(config: TrainConfig, resume: bool, rank: int):
         out.mkdir(parents=True, exist_ok=True)
         atomic_write(out / "config.json", lambda f: f.write(config.to_json().encode()))
     return out, ckpt
-
-
-def with_data_size(config: TrainConfig, files: list[Path]) -> TrainConfig:
-    """The config with the model's ``input_size`` set to the training images' size."""
-    if config.model.input_size is not None:
-        return config
-    from drivingscene.data.frame_pair import load_frame_pair
-
-    size = load_frame_pair(files[0]).image_size
-    return replace(config, model=replace(config.model, input_size=size))
 
 
 @contextlib.contextmanager

@@ -121,7 +121,8 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
 
     from drivingscene.gaussians.recon import load_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
-    from drivingscene.models.pipeline import LiftConfig, MotionSearchConfig, predict_flow
+    from drivingscene.models.lift import LiftConfig, MotionSearchConfig
+    from drivingscene.models.pipeline import predict_flow
 
     scene = save_frame_pair(synth_pair, tmp_path / "scene.npz")
     recons = {}

@@ -123,7 +123,7 @@ def test_depth_scores_ignore_masked_pixels():
 
 
 def test_road_plane_depth_meets_the_ground():
-    from drivingscene.eval.baselines import road_plane_depth
+    from drivingscene.data.road_plane import road_plane_depth
     from drivingscene.geometry.camera import unproject
 
     pair = make_pair(3, 12, 16)  # cameras level, 1.5 m above the ego's z = 0

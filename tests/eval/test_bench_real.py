@@ -9,7 +9,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from drivingscene.bench.real import BLEND, COPY, FULL, NEAREST, ROAD, WITHOUT_SKY, losers
+from drivingscene.bench.real_common import BLEND, COPY, FULL, NEAREST, ROAD, WITHOUT_SKY
+from drivingscene.bench.real_markdown import losers
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
@@ -137,7 +138,8 @@ def test_identical_images_score_the_ceiling_not_infinity():
     mean over cameras (the summary's) stays finite and comparable; others keep their own figure."""
     import torch
 
-    from drivingscene.bench.real import PSNR_CEILING, image_scores
+    from drivingscene.bench.real import image_scores
+    from drivingscene.bench.real_common import PSNR_CEILING
 
     target = torch.rand(1, 2, 16, 24, 3, generator=torch.Generator().manual_seed(0))
     pred = target.clone()
@@ -150,7 +152,9 @@ def test_identical_images_score_the_ceiling_not_infinity():
 def test_magnified_rows_stop_at_what_a_window_shows():
     """A camera image already as wide as a window is scored at 1x only (its 4x would not fit in
     memory on the CPU); the table marks the missing magnifications instead of failing."""
-    from drivingscene.bench.real import WINDOW_WIDTH, SceneScores, magnifications_for, magnified_table
+    from drivingscene.bench.real import magnifications_for
+    from drivingscene.bench.real_common import WINDOW_WIDTH, SceneScores
+    from drivingscene.bench.real_markdown import magnified_table
 
     assert magnifications_for(320) == (1, 2, 4)
     assert magnifications_for(640) == (1, 2)

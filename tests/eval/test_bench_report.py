@@ -9,8 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from drivingscene.bench.report import (
-    AXES,
+from drivingscene.bench.report_methods import (
     BLEND,
     CLASSICAL,
     COPY,
@@ -25,12 +24,13 @@ from drivingscene.bench.report import (
     STATIC,
     TWO_STAGE,
     at_full_size,
-    finite_or_none,
-    resized_pair,
+    mark_fronts,
 )
-from drivingscene.bench.report_schema import FORMAT, VERSION
+from drivingscene.bench.report_schema import FORMAT, VERSION, finite_or_none
+from drivingscene.bench.report_stability import AXES
 from drivingscene.cli import main
 from drivingscene.data import save_frame_pair
+from drivingscene.data.resize import resized_pair
 from tests.eval.test_bench_real import _real_like
 from tests.eval.test_bench_results import tiny_weights  # noqa: F401  (fixture)
 
@@ -193,7 +193,7 @@ def test_bench_report_adds_ablation_models_to_a_saved_report(tiny_weights, tmp_p
 
 
 def test_network_widths_are_scored_and_reported(synth_pair, tiny_weights, tmp_path):  # noqa: F811
-    from drivingscene.bench.report import network_widths
+    from drivingscene.bench.report_ablations import network_widths
     from drivingscene.bench.report_charts import write_charts
     from drivingscene.bench.report_markdown import markdown
     from drivingscene.bench.report_schema import example_report
@@ -215,7 +215,7 @@ def test_network_widths_are_scored_and_reported(synth_pair, tiny_weights, tmp_pa
 def test_carried_ablation_models_keep_their_run(tmp_path):
     """Without the ablation weights, ``--carry-from`` keeps an earlier run's ablation points and
     widths: off this run's points, in the ablation rows, and the report says whose they are."""
-    from drivingscene.bench.report import carry_ablations
+    from drivingscene.bench.report_ablations import carry_ablations, drop_remeasured
     from drivingscene.bench.report_markdown import markdown
     from drivingscene.bench.report_schema import example_report
 
@@ -248,3 +248,11 @@ def test_carried_ablation_models_keep_their_run(tmp_path):
     assert main(["bench", "report", "--from-json", str(saved), "--json", str(tmp_path / "again.json")]) == 0
     again = {a["name"]: a for a in json.loads((tmp_path / "again.json").read_text())["ablations"]}
     assert again["two-stage − single-stage"]["ours_db"] == pytest.approx(0.5)
+    # once this run scores the ablation models and the widths itself, nothing is carried any more
+    new["sets"]["procedural"]["points"] += [point(SINGLE, 20.0, 0.2), point(TWO_STAGE, 21.5, 0.15)]
+    drop_remeasured(new, widths_measured=False)
+    assert [p["method"] for p in new["carried"]["points"]] == [NO_WARP] and new["carried"]["widths"]
+    new["sets"]["procedural"]["points"].append(point(NO_WARP, 21.2, 0.15))
+    drop_remeasured(new, widths_measured=True)
+    mark_fronts(new["sets"]["procedural"]["points"])
+    assert "carried" not in new and "earlier run" not in markdown(new, {}, None)

@@ -11,8 +11,8 @@ import torch
 
 from drivingscene.cli import main
 from drivingscene.data.frame_pair import save_frame_pair
+from drivingscene.data.road_plane import road_plane_depth
 from drivingscene.data.tensors import pair_to_tensors
-from drivingscene.eval.baselines import road_plane_depth
 from drivingscene.eval.metrics import depth_metrics
 from drivingscene.eval.reconstruction import score_reconstruction
 from drivingscene.gaussians.recon import load_reconstruction

@@ -11,7 +11,7 @@ import torch
 
 from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.methods.cross_camera import CrossCameraConfig, cross_camera_depth, rig_triangulate
-from drivingscene.models.pipeline import LiftConfig
+from drivingscene.models.lift import LiftConfig
 
 
 def _camera(fx: float, width: int, height: int) -> np.ndarray:

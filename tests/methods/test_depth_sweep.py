@@ -18,7 +18,7 @@ from drivingscene.methods.depth_sweep import (
     neighbour_cameras,
     source_indices,
 )
-from drivingscene.methods.refine_inputs import refine_inputs
+from drivingscene.methods.refine.inputs import refine_inputs
 from drivingscene.models.losses import photometric_error
 from tests.factories import make_rig
 

@@ -1,4 +1,4 @@
-"""Test-time refinement (drivingscene/methods/refine*.py) on a small procedural pair: Gaussians move
+"""Test-time refinement (drivingscene/methods/refine/) on a small procedural pair: Gaussians move
 only along their rays, the loss goes down, any stop leaves a valid reconstruction, the held-out
 frames are never read, LiDAR counts only when asked."""
 
@@ -16,10 +16,10 @@ from drivingscene.gaussians.recon import load_reconstruction, recon_to_arrays, s
 from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.methods.oracle import oracle_reconstruction
 from drivingscene.methods.refine import RefineConfig, refine
-from drivingscene.methods.refine_inputs import refine_inputs
-from drivingscene.methods.refine_loop import local_axes
-from drivingscene.methods.refine_params import RefineParams, gaussian_rays
-from drivingscene.methods.refine_render import render_views, view_set, views_loss
+from drivingscene.methods.refine.inputs import refine_inputs
+from drivingscene.methods.refine.loop import local_axes
+from drivingscene.methods.refine.params import RefineParams, gaussian_rays
+from drivingscene.methods.refine.render import render_views, view_set, views_loss
 from drivingscene.render.scene import render_input_views
 
 FAST = dict(seconds=600.0, sweep=None, lpips_weight=0.0, views_per_step=2, threads=1)  # one thread: bit-exact reruns
@@ -149,7 +149,7 @@ def test_any_stop_leaves_a_valid_reconstruction(synth_pair, start, tmp_path):
 def test_scaled_inputs_keep_the_geometry_and_the_masks(pair):
     """At half size a pixel covers 2x2: its colour their mean, valid only where all four are, its
     LiDAR the nearest of their returns; a point projects where it did, at half the coordinates."""
-    from drivingscene.methods.refine_inputs import scaled_inputs
+    from drivingscene.methods.refine.inputs import scaled_inputs
 
     valid = np.ones(pair.image_size, dtype=bool)
     valid[-5:, :] = False  # an ego body: rows 86-87 of the half-size image touch it
@@ -222,7 +222,7 @@ def test_bad_configurations_are_one_line_errors(synth_pair, start):
 
 def test_flows_are_lifted_again_with_the_corrected_depth(synth_pair):
     from drivingscene.geometry.flow import rigid_flow
-    from drivingscene.methods.refine_loop import relift_flows
+    from drivingscene.methods.refine.loop import relift_flows
 
     recon = oracle_reconstruction(synth_pair, refine=0)
     inputs = refine_inputs(synth_pair)
@@ -297,8 +297,8 @@ def test_the_adaptation_ends_within_its_share_of_the_budget(synth_pair, monkeypa
     """A step of the adaptation begins only where it ends within ``adapt_share`` of the budget, or
     past that share where no gradient step would fit after it anyway; with no room for any step,
     nothing is adapted and the reconstruction is not rebuilt."""
-    from drivingscene.methods import refine_adapt
     from drivingscene.methods.refine import Clock
+    from drivingscene.methods.refine import adapt as refine_adapt
 
     model = _tiny_model()
 
@@ -353,8 +353,8 @@ def test_the_adaptation_ends_within_its_share_of_the_budget(synth_pair, monkeypa
 def test_the_first_gradient_step_must_fit_as_long_as_an_adaptation_step(synth_pair, start):
     """Before any step is timed, the first must fit in what is left as the adaptation's step times
     `STEP_PER_ADAPT_STEP` (a gradient step renders every layer of the blend)."""
-    from drivingscene.methods.refine_adapt import STEP_PER_ADAPT_STEP
-    from drivingscene.methods.refine_loop import gradient_steps
+    from drivingscene.methods.refine.adapt import STEP_PER_ADAPT_STEP
+    from drivingscene.methods.refine.loop import gradient_steps
 
     class OneSecondLeft:
         fraction = 0.9
@@ -401,7 +401,7 @@ def test_thread_choice_keeps_the_faster_of_one_thread_and_many():
 def test_the_next_step_is_estimated_from_the_chosen_threads():
     """Once a setting is chosen, the budget's estimate of a step is the median of the steps that
     ran on it: the slower trial (here three times as long) no longer counts."""
-    from drivingscene.methods.refine import ThreadChoice, typical_step
+    from drivingscene.methods.refine.threads import ThreadChoice, typical_step
 
     choice = ThreadChoice(2)
     times, threads_of = [], []
@@ -423,7 +423,7 @@ def test_the_gradient_steps_run_on_the_threads_their_timing_chose(synth_pair, st
     """With ``threads=None`` the steps try torch's threads and one, then keep the faster: on a fake
     clock where a step on two threads takes three times as long, the rest run on one; the reverse
     keeps two. Refinement leaves torch's threads as they were."""
-    from drivingscene.methods import refine_loop
+    from drivingscene.methods.refine import loop as refine_loop
 
     class ThreadTimedClock:
         def __init__(self, slow_threads: int):

@@ -70,7 +70,8 @@ def test_search_keeps_unseen_static_surfaces_static(synth_pair):
     from drivingscene.geometry.camera import pixel_grid
     from drivingscene.geometry.flow import inside_image
     from drivingscene.methods.feedforward import load_model
-    from drivingscene.models.pipeline import MotionSearchConfig, predict_flow, predict_static, search_motion
+    from drivingscene.models.lift import MotionSearchConfig, search_motion
+    from drivingscene.models.pipeline import predict_flow, predict_static
 
     model = load_model()
     batch = pair_to_tensors(synth_pair, with_gt=False, with_eval=False)

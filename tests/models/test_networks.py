@@ -14,16 +14,14 @@ from drivingscene.gaussians.assembly import surfel_frames
 from drivingscene.geometry.camera import pixel_grid
 from drivingscene.models import DrivingSceneModel, ModelConfig
 from drivingscene.models.depth import DepthConfig
+from drivingscene.models.lift import LiftConfig, lift_scene_flow, sky_mask
 from drivingscene.models.pipeline import (
-    LiftConfig,
     assemble,
-    lift_scene_flow,
     predict_depth,
     predict_flow,
     predict_static,
     rigid_flows,
     rigid_flows_and_behind,
-    sky_mask,
 )
 from drivingscene.models.residual_flow import CameraDecoder, FlowConfig, ResidualFlowNet, decoder_slots, local_cost_volume
 from tests.factories import make_pair, make_rig
@@ -391,7 +389,7 @@ def test_sparse_lift_matches_the_dense_definition_and_passes_gradients():
     flows.square().sum().backward()
     assert total.grad is not None and total.grad.abs().sum() > 0
     # Many candidates: the dense path gives the same flows and masks.
-    import drivingscene.models.pipeline as pipeline
+    import drivingscene.models.lift as pipeline
 
     many = residual + 3.0 * (torch.rand(2, 3, 20, 28, 1, generator=g) < 0.5)
     previous = pipeline.DENSE_LIFT_SHARE
@@ -421,7 +419,7 @@ def test_sparse_lift_matches_the_dense_definition_and_passes_gradients():
 
 
 def test_photometric_check_keeps_only_residuals_that_explain_the_images():
-    from drivingscene.models.pipeline import total_flow_matches_better
+    from drivingscene.models.lift import total_flow_matches_better
 
     g = torch.Generator().manual_seed(5)
     target = torch.rand(1, 24, 32, 3, generator=g)
@@ -483,7 +481,8 @@ def test_pixels_without_rigid_flow_move_with_the_ego_when_consistent():
 def test_search_keeps_the_flow_that_explains_the_images_at_full_size():
     """Both keyframes show the same image although the rigid flow says 3 px: the content kept pace
     with the ego, and the search (run at half size, applied at full size) finds the zero flow."""
-    from drivingscene.models.pipeline import FlowPrediction, MotionSearchConfig, search_motion
+    from drivingscene.models.lift import MotionSearchConfig, search_motion
+    from drivingscene.models.pipeline import FlowPrediction
 
     batch = pair_to_tensors(make_pair(num_views=2, height=24, width=32))
     g = torch.Generator().manual_seed(3)
@@ -544,7 +543,7 @@ def test_compiled_dense_lift_matches_the_torch_path(compiled_kernels, monkeypatc
 def test_compiled_epipolar_geometry_matches_the_torch_path(compiled_kernels):
     """`epipolar_geometry`'s compiled op and torch path agree: flows around the rigid flow of a
     turning ego, some pixels pushed off the image or behind the camera."""
-    from drivingscene.models.pipeline import epipolar_geometry
+    from drivingscene.models.lift import epipolar_geometry
 
     pair = make_pair(num_views=3, height=24, width=32)
     yaw = math.radians(8.0)
@@ -572,7 +571,7 @@ def test_texture_along_the_line_is_what_kornia_computes(scale):
     from kornia.filters import box_blur, spatial_gradient
 
     from drivingscene.geometry.flow_search import luma
-    from drivingscene.models.pipeline import texture_along
+    from drivingscene.models.lift import texture_along
 
     g = torch.Generator().manual_seed(2)
     images, direction = torch.rand(3, 3, 30, 40, generator=g), torch.randn(3, 30, 40, 2, generator=g)
@@ -584,7 +583,7 @@ def test_texture_along_the_line_is_what_kornia_computes(scale):
 
 
 def test_small_dynamic_regions_are_dropped():
-    from drivingscene.models.pipeline import drop_small_regions
+    from drivingscene.models.lift import drop_small_regions
 
     mask = torch.zeros(2, 1, 10, 12, dtype=torch.bool)
     mask[0, 0, 1:4, 1:4] = True  # 9 pixels
@@ -601,7 +600,8 @@ def test_parallax_explains_a_wrong_depth_but_not_motion_off_the_epipolar_line():
     rigid flow) is explained at its true depth, also with the ego turning; flow 4 px off the
     epipolar line, or a point that would have to lie behind the camera, is not explained; without
     enough parallax or texture along the line a pixel is explained but keeps its depth."""
-    from drivingscene.models.pipeline import FlowPrediction, explain_by_parallax, with_depth
+    from drivingscene.models.lift import explain_by_parallax
+    from drivingscene.models.pipeline import FlowPrediction, with_depth
 
     g = torch.Generator().manual_seed(5)
     pair = make_pair(num_views=3, height=24, width=32)

@@ -22,8 +22,8 @@ from torch import Tensor
 from drivingscene.data.tensors import PairTensors
 from drivingscene.geometry.flow import backward_warp, rigid_flow
 from drivingscene.methods.depth_sweep import neighbour_cameras
-from drivingscene.methods.refine import ThreadChoice, typical_step
-from drivingscene.methods.refine_inputs import RefineInputs, scaled_inputs
+from drivingscene.methods.refine.inputs import RefineInputs, scaled_inputs
+from drivingscene.methods.refine.threads import ThreadChoice, typical_step
 from drivingscene.models.losses import blank_masked, reprojection_loss, sampled_from, smoothness_loss
 from drivingscene.models.pipeline import predict_depth
 from drivingscene.precision import resolve_amp

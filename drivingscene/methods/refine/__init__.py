@@ -1,4 +1,7 @@
-"""Test-time refinement: accuracy for time (docs/refinement.md).
+"""Test-time refinement: accuracy for time (docs/refinement.md). The package: this entry point
+and its config, `threads` (each phase's threads, by timing), `inputs` (what it reads of the pair),
+`params` (what it optimises), `render` (its losses' renders), `adapt` (D adapted to the pair) and
+`loop` (the phases in order).
 
     refine(model_or_none, pair, recon, config, progress, should_stop) -> Reconstruction
 
@@ -6,27 +9,26 @@ From a feed-forward reconstruction, within a budget of seconds:
 
 1. (where the model is given; ``adapt_steps``, by default `DEFAULT_ADAPT_STEPS` without LiDAR) a
    copy of D is adapted to the pair for K self-supervised steps (L_loc + L_smooth at
-   ``adapt_scale`` of the image size, `refine_adapt`) and the pair is reconstructed again, both
+   ``adapt_scale`` of the image size, `refine.adapt`) and the pair is reconstructed again, both
    within ``adapt_share`` of the budget;
 2. (``sweep``, before ``sweep_share`` of the budget, and only where D was not adapted) the depth of every pixel is corrected by a plane sweep over depth, checked across
    images, and LiDAR with ``lidar`` (`depth_sweep`): the Gaussians slide along their rays, and the
    dynamic ones' flows are lifted again with the corrected depth;
 3. Adam on the Gaussians' depth along their rays, colours, opacities, scales and the dynamic
    Gaussians' flow, against the input images with L2 (``lpips_weight`` adds the paper's LPIPS term)
-   and, with ``lidar``, rendered depth against LiDAR (`refine_render`). Each step renders a few
+   and, with ``lidar``, rendered depth against LiDAR (`refine.render`). Each step renders a few
    input views (all Gaussians, both keyframes) at one image scale, in the blend the output is
    shown with (``blend``).
 
 Anytime: the budget, ``should_stop()`` or ``max_steps`` end it after any step, and what comes back
 is a valid reconstruction of the last step whose values were all finite. The held-out frames
-(``eval_*``) are never read (`refine_inputs`).
+(``eval_*``) are never read (`refine.inputs`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -39,8 +41,9 @@ from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.timing import BLEND_MODES, DEFAULT_BLEND
 from drivingscene.methods.depth_sweep import SweepConfig
 from drivingscene.methods.memory import check_reconstruct_memory
-from drivingscene.methods.refine_inputs import refine_inputs
-from drivingscene.methods.refine_params import GROUPS, RefineParams, gaussian_rays
+from drivingscene.methods.refine.inputs import refine_inputs
+from drivingscene.methods.refine.params import GROUPS, RefineParams, gaussian_rays
+from drivingscene.methods.refine.threads import ThreadChoice, typical_step  # noqa: F401 (the package's names)
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +100,7 @@ class RefineConfig:
     # job holds a core (measured: 2.9 s per step with 2 threads against 1.1 s with 1 beside one
     # busy process; 0.7 s against 1.1 s on the quiet machine).
     threads: int | None = None
-    # Self-supervised steps on D before rebuilding (`refine_adapt`). None: `DEFAULT_ADAPT_STEPS`
+    # Self-supervised steps on D before rebuilding (`refine.adapt`). None: `DEFAULT_ADAPT_STEPS`
     # where the model is given and ``lidar`` is off, else none (a saved reconstruction refined on
     # its own; fitting LiDAR); 0: never. An explicit K needs the model.
     adapt_steps: int | None = None
@@ -216,54 +219,8 @@ def refine_threads(config: RefineConfig) -> int:
     return config.threads if config.threads is not None else torch.get_num_threads()
 
 
-class ThreadChoice:
-    """The threads of one phase's steps (the adaptation's, the gradient steps'), chosen by timing
-    where ``RefineConfig.threads`` is None: the phase's first step runs on torch's threads (a
-    warm-up: caches, allocations), the second on one thread, the third on torch's again, and the
-    faster of those two runs the rest. Refinement's tensors are small: on a quiet 2-core machine two
-    threads made a step 1.6 times faster than one, but with one other busy process 2.8 times slower
-    (docs/refinement.md, *Seconds per step*), and neither the load average (which counts this
-    process too) nor the core count tells the two apart beforehand. With one thread to start with
-    there is nothing to choose."""
-
-    def __init__(self, many: int):
-        self.many = max(1, int(many))
-        self.trials: dict[int, float] = {}
-        self.steps = 0
-        self.chosen: int | None = None if self.many > 1 else 1
-
-    def threads(self) -> int:
-        """The threads of the next step."""
-        if self.chosen is not None:
-            return self.chosen
-        return 1 if self.steps == 1 else self.many
-
-    def record(self, threads: int, seconds: float) -> None:
-        """A step's time on ``threads``; after the two trials the faster setting is kept (ties: one thread)."""
-        if self.chosen is None and self.steps >= 1:
-            self.trials[threads] = seconds
-            if len(self.trials) == 2:
-                self.chosen = min(sorted(self.trials), key=self.trials.get)
-        self.steps += 1
-
-    def begin_step(self) -> int:
-        """Set torch's threads for the next step; returns them."""
-        threads = self.threads()
-        if torch.get_num_threads() != threads:
-            torch.set_num_threads(threads)
-        return threads
-
-
-def typical_step(choice: ThreadChoice | None, times: list[float], threads_of: list[int]) -> float:
-    """What the next step of a phase should take: the median of its step ``times`` (``threads_of``:
-    each step's threads) that ran on the setting ``choice`` chose, or of all of them before a choice
-    or where the threads are fixed (``choice`` None); 0 before any step."""
-    chosen = [t for t, n in zip(times, threads_of) if choice is None or choice.chosen in (None, n)]
-    return statistics.median(chosen or times) if times else 0.0
-
-
 def _refine(model, pair: FramePair, recon: Reconstruction, config: RefineConfig, progress, should_stop) -> Reconstruction:
-    from drivingscene.methods.refine_loop import adapt_and_rebuild, corrected_gaussians, gradient_steps, refined_reconstruction
+    from drivingscene.methods.refine.loop import adapt_and_rebuild, corrected_gaussians, gradient_steps, refined_reconstruction
 
     clock = Clock(config.seconds, should_stop)
     report = progress or (lambda fraction, message: None)

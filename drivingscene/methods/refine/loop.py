@@ -21,11 +21,11 @@ from drivingscene.geometry.flow import forward_backward_consistency, rigid_flow
 from drivingscene.geometry.scene_flow import scene_flow_from_optical_flow
 from drivingscene.geometry.se3 import invert_rigid, transform_points
 from drivingscene.methods.depth_sweep import corrected_depth
-from drivingscene.methods.refine import ThreadChoice, typical_step
-from drivingscene.methods.refine_adapt import STEP_PER_ADAPT_STEP
-from drivingscene.methods.refine_inputs import RefineInputs
-from drivingscene.methods.refine_params import GaussianRays, RefineParams
-from drivingscene.methods.refine_render import view_set, views_loss
+from drivingscene.methods.refine.adapt import STEP_PER_ADAPT_STEP
+from drivingscene.methods.refine.inputs import RefineInputs
+from drivingscene.methods.refine.params import GaussianRays, RefineParams
+from drivingscene.methods.refine.render import view_set, views_loss
+from drivingscene.methods.refine.threads import ThreadChoice, typical_step
 from drivingscene.render.scene import source_axes
 
 log = logging.getLogger(__name__)
@@ -37,10 +37,10 @@ RELIFT_THRESHOLD = 1.0 / 176  # of the image width: the model's dynamic gate, 1 
 def adapt_and_rebuild(
     model, pair, recon: Reconstruction, inputs: RefineInputs, config, clock, report, meta: dict, rebuild_s: float
 ) -> Reconstruction:
-    """Adapt a copy of D to the pair (`refine_adapt`; ``rebuild_s`` of the budget kept for the
+    """Adapt a copy of D to the pair (`refine.adapt`; ``rebuild_s`` of the budget kept for the
     reconstruction after it), then reconstruct the pair again (``recon`` as it is where no step fitted)."""
     from drivingscene.methods.feedforward import reconstruct
-    from drivingscene.methods.refine_adapt import adapt_model
+    from drivingscene.methods.refine.adapt import adapt_model
 
     adapted, info = adapt_model(model, inputs, config, clock, report, reserve_s=rebuild_s)
     meta["adapt"] = info

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.se3 import invert_rigid
-from drivingscene.methods.refine_inputs import RefineInputs, scaled_inputs
+from drivingscene.methods.refine.inputs import RefineInputs, scaled_inputs
 from drivingscene.models.losses import render_loss
 from drivingscene.render.scene import render_gaussians
 from drivingscene.render.sky import ray_directions, sky_colors
