@@ -61,10 +61,10 @@ real-data: setup
 # method at its settings on generated procedural test pairs and on the real DDAD pair (import it
 # first: `make real-data`), stability sweeps, parsimony, ablations. About 30-45 minutes on 2 cores.
 # The single-stage ablation needs a joint run and its two-stage pair (docs/benchmark-notes.md).
-ABLATION_RUNS := $(wildcard runs/dynamic-match2/model.safetensors)
-BENCH_ABLATION ?= $(if $(ABLATION_RUNS),--two-stage-weights runs/dynamic-match2/model.safetensors \
-	$(if $(wildcard runs/joint-match3/model.safetensors),--joint-weights runs/joint-match3/model.safetensors,) \
-	$(if $(wildcard runs/dynamic-nowarp2/model.safetensors),--no-warp-weights runs/dynamic-nowarp2/model.safetensors,),)
+ABLATION_RUNS := $(wildcard runs/dynamic-match4/model.safetensors)
+BENCH_ABLATION ?= $(if $(ABLATION_RUNS),--two-stage-weights runs/dynamic-match4/model.safetensors \
+	$(if $(wildcard runs/joint-match4/model.safetensors),--joint-weights runs/joint-match4/model.safetensors,) \
+	$(if $(wildcard runs/dynamic-nowarp4/model.safetensors),--no-warp-weights runs/dynamic-nowarp4/model.safetensors,),)
 # Network width against quality and speed: the two width runs of docs/training-notes.md, when present.
 WIDTH_RUNS := $(wildcard runs/width16/model.safetensors runs/width32/model.safetensors)
 BENCH_WIDTHS ?= $(if $(WIDTH_RUNS),--width-weights $(WIDTH_RUNS),)

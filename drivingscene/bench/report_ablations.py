@@ -226,7 +226,16 @@ def add_ablation_models(report: dict, args) -> None:
         if v is not None
     )
     report["command"] += f" && drivingscene bench report --from-json {args.from_json} {flags}"
-    report["machine"] += f" (the second command, which added {', '.join(m.name for m in methods)}: {machine_description()})"
+    _record_addition(report, "the ablation models (" + "; ".join(m.name for m in methods) + ")")
+
+
+def _record_addition(report: dict, what: str) -> None:
+    """Say in the report what a later command scored into it, on which machine and when (the
+    report's own ``machine`` and ``created`` stay those of its main run)."""
+    from datetime import datetime, timezone
+
+    entry = {"what": what, "machine": machine_description(), "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    report["additions"] = [a for a in report.get("additions", []) if a["what"] != what] + [entry]
 
 
 def _saved_pairs(report: dict, args, what: str) -> tuple[list, Profile]:
@@ -259,7 +268,7 @@ def add_width_models(report: dict, args) -> None:
     perceptual = load_perceptual("auto") if profile.perceptual else None
     report["parsimony"]["widths"] = finite_or_none(network_widths(pairs, args.width_weights, perceptual))
     report["command"] += f" && drivingscene bench report --from-json {args.from_json}" + width_flag(args.width_weights)
-    report["machine"] += f" (the command that added the network widths: {machine_description()})"
+    _record_addition(report, "the network widths")
 
 
 def drop_remeasured(report: dict, widths_measured: bool) -> None:

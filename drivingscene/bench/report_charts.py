@@ -233,6 +233,12 @@ def _legend_two_rows(fig, first: list[tuple], second: list[tuple]) -> None:
     _legend_below(fig, [h for h, _ in entries], [n for _, n in entries], ncols=ncols)
 
 
+def _machine(report: dict) -> str:
+    """The main run's machine; rows a later command added are said to be so (details in the page)."""
+    later = " (some rows added later: see the page)" if report.get("additions") else ""
+    return f"{report.get('machine', '?')}{later}"
+
+
 def _title(fig, text: str) -> None:
     """The figure's title, wrapped: the machine description alone can be a hundred characters."""
     import textwrap
@@ -337,7 +343,7 @@ def speed_accuracy_chart(report: dict, set_name: str, path: str | os.PathLike) -
         _title(
             fig,
             f"{set_name} set: {s.get('description', '')} — {s.get('pairs', '?')} pairs at {s.get('size', '?')}; "
-            f"machine: {report.get('machine', '?')}, {report.get('precision', '?')}",
+            f"machine: {_machine(report)}, {report.get('precision', '?')}",
         )
         _place_labels(fig, labels)
         return _save(fig, path)
@@ -444,7 +450,7 @@ def stability_chart(report: dict, path: str | os.PathLike) -> Path:
         )
         _title(
             fig,
-            f"Stability: PSNR as one generator knob moves away from its easiest setting (machine: {report.get('machine', '?')})",
+            f"Stability: PSNR as one generator knob moves away from its easiest setting (machine: {_machine(report)})",
         )
         _place_labels(fig, labels)
         return _save(fig, path)
@@ -530,7 +536,7 @@ def parsimony_chart(report: dict, path: str | os.PathLike) -> Path:
             _width_panel(axes[0][1], widths)
         handles, names = _unique_handles(fig.axes)  # with the width panel's twin axis
         _legend_below(fig, handles, names)
-        _title(fig, f"Parsimony: fewer Gaussians for the same picture (machine: {report.get('machine', '?')})")
+        _title(fig, f"Parsimony: fewer Gaussians for the same picture (machine: {_machine(report)})")
         _place_labels(fig, labels)
         return _save(fig, path)
 
@@ -577,7 +583,7 @@ def ablation_chart(report: dict, path: str | os.PathLike) -> Path:
         ax.xaxis.set_major_formatter(lambda v, _pos: f"{v:g}")
         handles, names = _unique_handles(fig.axes)
         _legend_below(fig, handles, names)
-        _title(fig, f"The paper's ablations (machine: {report.get('machine', '?')})")
+        _title(fig, f"The paper's ablations (machine: {_machine(report)})")
         return _save(fig, path)
 
 

@@ -15,7 +15,8 @@ Top level::
       "run_seconds": float,                 # wall-clock seconds of the whole run (absent in re-renders of old reports)
       "carried": {"from": str, "created": str, "command": str,   # optional (--carry-from): an earlier
                   "points": [POINT, ...], "widths": [WIDTH, ...]},  # run's ablation models and widths
-    }
+      "additions": [{"what": str, "machine": str, "created": str}, ...],  # optional: what a later
+    }                                       # --from-json command scored in (its machine, its time)
 
 POINT: one method at one setting, means over the set's pairs::
 

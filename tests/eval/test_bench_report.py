@@ -190,6 +190,11 @@ def test_bench_report_adds_ablation_models_to_a_saved_report(tiny_weights, tmp_p
     (width,) = after["parsimony"]["widths"]  # the width models, scored on the same regenerated pairs
     assert width["width"] == 8 and width["psnr"] is not None and "--width-weights" in after["command"]
     assert "### Network width against quality and speed" in (tmp_path / "b.md").read_text()
+    # the main run's machine stays its own; each later command is one addition with its machine and time
+    assert after["machine"] == before["machine"]
+    assert [a["what"].split(" (")[0] for a in after["additions"]] == ["the ablation models", "the network widths"]
+    assert all(a["machine"] and a["created"] for a in after["additions"])
+    assert "Added later: the ablation models" in (tmp_path / "b.md").read_text()
 
 
 def test_network_widths_are_scored_and_reported(synth_pair, tiny_weights, tmp_path):  # noqa: F811
@@ -256,3 +261,16 @@ def test_carried_ablation_models_keep_their_run(tmp_path):
     drop_remeasured(new, widths_measured=True)
     mark_fronts(new["sets"]["procedural"]["points"])
     assert "carried" not in new and "earlier run" not in markdown(new, {}, None)
+
+
+def test_an_ablation_within_noise_reads_level_not_reproduced():
+    from drivingscene.bench.report_markdown import LEVEL_DB, _direction
+
+    def row(diff):
+        return {"ours_db": diff, "reproduces": diff > 0}
+
+    assert _direction(row(0.5)) == "yes"
+    assert _direction(row(-0.5)) == "**no**"
+    assert _direction(row(LEVEL_DB / 2)).startswith("level")
+    assert _direction(row(-LEVEL_DB / 2)).startswith("level")
+    assert _direction({"ours_db": None, "reproduces": None}) == "–"
