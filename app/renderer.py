@@ -36,6 +36,7 @@ from drivingscene.gaussians.timing import DEFAULT_BLEND, LAYERED_BLENDS, shader_
 from drivingscene.gl import load_program
 from drivingscene.render.project import EPS2D
 from drivingscene.render.scene import LayerBlend
+from drivingscene.render.sky import HORIZON_BAND
 
 TEX_W = 4096
 MODES = ("rgb", "depth", "dynamic", "flow")
@@ -262,6 +263,7 @@ class SplatRenderer:
         self._quads = 0
         self._ibo = self._splat_vao = None
         self.sky = np.zeros((1, 3), np.float32)
+        self.ground: tuple[np.ndarray, np.ndarray] | None = None  # world plane [4] (n, d), rgb [3]
         self.source_axes: np.ndarray | None = None  # [2, V, 3] input cameras' optical axes ("cameras")
 
     def _quad_vao(self, count: int):
@@ -283,6 +285,11 @@ class SplatRenderer:
         if sky_sh is None:
             sky_sh = np.array([[(0.18 - 0.5) / 0.28209479177387814] * 3], np.float32)
         self.sky = np.asarray(sky_sh, np.float32)[:16]
+
+    def set_ground(self, plane: np.ndarray | None, rgb: np.ndarray | None = None) -> None:
+        """The road plane ``[4]`` (unit normal up, offset; world frame) and its colour ``[3]``, drawn
+        below the horizon with the sky (`drivingscene.render.sky.with_ground`); None: the sky alone."""
+        self.ground = None if plane is None else (np.asarray(plane, np.float64), np.asarray(rgb, np.float32))
 
     def set_cameras(self, source_axes: np.ndarray | None) -> None:
         """World optical axes ``[2, V, 3]`` of the input cameras (origin-independent), for the
@@ -422,7 +429,7 @@ class SplatRenderer:
             if opts.mode == "depth":
                 target.fbo.clear(0.0, 0.0, 0.0, 0.0)
             else:
-                self._draw_sky(cam)
+                self._draw_sky(cam, splats.origin)
         count = min(count, splats.count - start)
         if count > 0:
             front = target.front if surface_pass == 2 else None
@@ -469,8 +476,17 @@ class SplatRenderer:
         prog["u_skew"].value = k[0, 1]
         prog["u_size"].value = (cam.width, cam.height)
 
-    def _draw_sky(self, cam: ViewCamera) -> None:
+    def _draw_sky(self, cam: ViewCamera, origin: np.ndarray) -> None:
+        """The sky (and ground) for ``cam``, a camera already shifted by the splats' ``origin``."""
         prog = self.sky_prog
+        prog["u_has_ground"].value = int(self.ground is not None)
+        if self.ground is not None:
+            plane, rgb = self.ground
+            n = plane[:3]
+            prog["u_ground"].value = (*n, plane[3] + float(n @ np.asarray(origin, np.float64)))
+            prog["u_ground_rgb"].value = tuple(float(c) for c in rgb)
+            prog["u_cam_pos"].value = tuple(float(c) for c in cam.centre)
+            prog["u_horizon_band"].value = HORIZON_BAND
         self.ctx.disable(self.ctx.BLEND)
         self._camera_uniforms(prog, cam)
         prog["u_cam_rot"].write(cam.cam_to_world[:3, :3].T.astype("f4").tobytes())

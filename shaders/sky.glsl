@@ -1,6 +1,8 @@
 #version 330 core
 // The sky background (drivingscene/render/sky.py): colour = max(SH(d) + 0.5, 0) of the world direction d
-// through each pixel centre, drawn as one full-screen triangle before the splats (alpha 0).
+// through each pixel centre, and below the horizon the ground (with_ground: the road's colour where the ray
+// from a camera above the road plane descends, blended in over HORIZON_BAND), drawn as one full-screen
+// triangle before the splats (alpha 0).
 
 #if defined VERTEX_SHADER
 
@@ -17,6 +19,11 @@ uniform mat3 u_cam_rot;   // camera-to-world rotation
 uniform vec4 u_intr;      // fx, fy, cx, cy
 uniform float u_skew;
 uniform vec2 u_size;      // W, H
+uniform int u_has_ground;
+uniform vec4 u_ground;    // road plane n (up), d: n . x + d = 0, in the splats' (origin-relative) frame
+uniform vec3 u_ground_rgb;
+uniform vec3 u_cam_pos;   // camera centre, same frame
+uniform float u_horizon_band;
 out vec4 fragColor;
 
 const float SH_C0 = 0.28209479177387814;
@@ -48,7 +55,12 @@ void main() {
     float y = (v - u_intr.w) / u_intr.y;
     float x = (u - u_intr.z - u_skew * y) / u_intr.x;
     vec3 d = normalize(u_cam_rot * vec3(x, y, 1.0));
-    fragColor = vec4(max(eval_sh(d) + 0.5, 0.0), 0.0);
+    vec3 color = max(eval_sh(d) + 0.5, 0.0);
+    if (u_has_ground == 1 && dot(u_ground.xyz, u_cam_pos) + u_ground.w > 0.0) {
+        float w = clamp(-dot(d, u_ground.xyz) / u_horizon_band, 0.0, 1.0);
+        color += w * (u_ground_rgb - color);
+    }
+    fragColor = vec4(color, 0.0);
 }
 
 #endif

@@ -206,7 +206,7 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
             )
             res = render_gaussians(
                 g, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k,
-                sky_sh=recon.sky_sh, blend="cameras", source_axes=axes, **raster,
+                sky_sh=recon.sky_sh, ground=recon.ground, blend="cameras", source_axes=axes, **raster,
             )  # fmt: skip
             image = res.colors[0].clamp(0, 1)
             if ("bicubic", k, v) not in references:

@@ -38,7 +38,9 @@ def _input_psnr(recon, pair) -> list[float]:
     out = []
     for kf in (0, 1):
         g = recon.gaussians.index(recon.gaussians.keyframes == kf)
-        rendered = render_gaussians(g, float(kf), recon.world_to_cam_at(float(kf)), k, height, width, sky_sh=recon.sky_sh)
+        rendered = render_gaussians(
+            g, float(kf), recon.world_to_cam_at(float(kf)), k, height, width, sky_sh=recon.sky_sh, ground=recon.ground
+        )
         target = torch.from_numpy(pair.images[kf]).float().permute(0, 3, 1, 2) / 255
         out.append(float(psnr(rendered.colors.clamp(0, 1).permute(0, 3, 1, 2), target).mean()))
     return out
@@ -72,7 +74,9 @@ def _write_image(recon, pair, path: Path) -> None:
     height, width = recon.image_size
     g = recon.gaussians.index(recon.gaussians.keyframes == 0)
     k = torch.from_numpy(recon.intrinsics)[:1]
-    rendered = render_gaussians(g, 0.0, recon.world_to_cam_at(0.0)[:1], k, height, width, sky_sh=recon.sky_sh)
+    rendered = render_gaussians(
+        g, 0.0, recon.world_to_cam_at(0.0)[:1], k, height, width, sky_sh=recon.sky_sh, ground=recon.ground
+    )
     ren = (rendered.colors[0].clamp(0, 1).numpy() * 255).round().astype(np.uint8)
     inp = pair.images[0, 0]
     err = np.abs(ren.astype(np.int16) - inp.astype(np.int16)).mean(-1)

@@ -283,11 +283,13 @@ def markdown(report: dict, charts: dict[str, str]) -> str:
         f"*holes*: the share of pixels with true depth (not sky) whose accumulated alpha (for the mesh: coverage) is below 0.95. "
         f"*PSNR seen*: PSNR over the pixels with true depth that the oracle covers (alpha at least 0.95), i.e. surfaces some input "
         f"image saw, the same pixels for every method: what a method makes of what was seen, without what nobody saw. "
-        f'Gaussians render with the default "cameras" blend and rasterizer settings.\n',
+        f'Gaussians render with the default "cameras" blend and rasterizer settings, over their reconstruction\'s background: the '
+        f"sky model, and below the horizon the ground (the road's colour where a ray from a camera above the road plane descends; "
+        f"`drivingscene.render.sky.with_ground`).\n",
         f"The mesh baseline (`drivingscene.methods.depth_mesh`): the model's per-camera depth as one triangle mesh per input image, "
         f"vertices at pixel centres, coloured by the image; a triangle is dropped where its source camera sees it within "
         f"{90 - s['mesh_max_angle_deg']:g}° of edge-on (normal more than {s['mesh_max_angle_deg']:g}° from the ray: depth edges); vertices move "
-        "with the model's Gaussian of the same pixel; the images' meshes are blended with the Gaussians' \"cameras\" weights over the model's sky.\n",
+        "with the model's Gaussian of the same pixel; the images' meshes are blended with the Gaussians' \"cameras\" weights over the model's sky and ground.\n",
     ]
     proc = [r for r in rows if r["set"] == "procedural"]
     if proc:

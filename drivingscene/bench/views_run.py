@@ -94,6 +94,7 @@ def gaussian_method(recon) -> Method:
                     height,
                     width,
                     sky_sh=recon.sky_sh,
+                    ground=recon.ground,
                     blend="cameras",
                     source_axes=axes,
                 )

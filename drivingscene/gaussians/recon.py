@@ -20,7 +20,8 @@ from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.npz import load_format, save_npz
 from drivingscene.data.validate import KeySpec, check_header, check_intrinsics, check_keys, check_rigid
 from drivingscene.errors import Problem, SceneFormatError
-from drivingscene.gaussians.core import Gaussians
+from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
+from drivingscene.gaussians.ground import Ground, fit_ground, road_plane
 from drivingscene.geometry.flow import cams_to_world
 from drivingscene.geometry.se3 import interpolate_pose, invert_rigid
 
@@ -57,6 +58,7 @@ OPTIONAL = {
     "meta": KeySpec("str", (), "JSON: method, source, timings"),
     "valid_mask": KeySpec("bool", ("V", "H", "W"), "pixels that see the world (False: ego body, hood)"),
     "origin": KeySpec("float64", (3,), "world point that means and poses are relative to"),
+    "ground_rgb": KeySpec("float32", (3,), "colour of the road plane, the background below the horizon"),
 }
 PER_CAMERA = ("images", "depth", "rigid_flow", "residual_flow", "moving")
 
@@ -82,6 +84,27 @@ class Reconstruction:
     valid_mask: np.ndarray | None = None  # [V, H, W] bool: the input pixels that see the world
     origin: np.ndarray | None = None  # [3] float64: the world point positions and poses are relative to (`FramePair.origin`)
     meta: dict = field(default_factory=dict)
+    # [3] the road's colour, drawn below the horizon with the sky model (`ground`); fitted from the
+    # Gaussians on the road plane when not given (files written before it existed too)
+    ground_rgb: Tensor | None = None
+
+    def __post_init__(self):
+        if self.ground_rgb is None and self.sky_sh is not None:
+            g = self.gaussians
+            fitted = fit_ground(g.means.detach(), sh0_to_rgb(g.sh[:, 0].detach()), self.road_plane())
+            object.__setattr__(self, "ground_rgb", None if fitted is None else fitted.rgb)
+
+    def road_plane(self) -> Tensor:
+        """``[4]`` the road plane (n, d) in the world frame: the ego frame's z = 0 at keyframe 0."""
+        return road_plane(torch.from_numpy(np.asarray(self.ego_to_world[0], np.float64)))
+
+    @property
+    def ground(self) -> Ground | None:
+        """The background below the horizon (`drivingscene.render.sky.Ground`); None without a sky
+        model or where too few Gaussians lie on the road plane to colour it."""
+        if self.ground_rgb is None or self.sky_sh is None:
+            return None
+        return Ground(self.road_plane(), self.ground_rgb.float())
 
     @classmethod
     def from_pair(cls, pair: FramePair, gaussians: Gaussians, **kwargs) -> Reconstruction:
@@ -172,6 +195,8 @@ def recon_to_arrays(recon: Reconstruction) -> dict[str, np.ndarray]:
     }
     if recon.sky_sh is not None:
         arrays["sky_sh"] = recon.sky_sh.detach().cpu().float().numpy()
+    if recon.ground_rgb is not None:
+        arrays["ground_rgb"] = recon.ground_rgb.detach().cpu().float().numpy()
     if recon.hidden is not None:
         arrays["hidden"] = recon.hidden.cpu().numpy().astype(bool)
     if recon.valid_mask is not None:
@@ -189,7 +214,8 @@ def _check_recon_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
     out = check_header(arrays, RECON_FORMAT, RECON_VERSION, source)
     if dims["K"] not in (1, 4, 9, 16):
         out.append(Problem(source, "sh", "1, 4, 9 or 16 coefficients (SH degree 0-3)", f"{dims['K']}"))
-    for key in ("means", "quats", "log_scales", "sh", "dynamic_flows", *(("origin",) if "origin" in arrays else ())):
+    optional = tuple(k for k in ("origin", "ground_rgb") if k in arrays)
+    for key in ("means", "quats", "log_scales", "sh", "dynamic_flows", *optional):
         if not np.all(np.isfinite(arrays[key])):
             out.append(Problem(source, key, "finite values", "NaN or inf"))
     if np.any(np.isnan(arrays["opacity_logits"])):  # +-inf logits are opacities 1 and 0
@@ -248,6 +274,7 @@ def recon_from_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -
         camera_names=tuple(str(n) for n in arrays["camera_names"]),
         image_size=(int(arrays["image_size"][0]), int(arrays["image_size"][1])),
         sky_sh=t(arrays["sky_sh"]) if "sky_sh" in arrays else None,
+        ground_rgb=t(arrays["ground_rgb"]) if "ground_rgb" in arrays else None,
         hidden=t(arrays["hidden"]) if "hidden" in arrays else None,
         valid_mask=arrays.get("valid_mask"),
         origin=arrays.get("origin"),

@@ -317,7 +317,9 @@ class DepthMeshRenderer:
             depths[b] = torch.from_numpy(z / norm).float()
             coverage[b] = torch.from_numpy(hit).float()
         sky = None if self.recon.sky_sh is None else self.recon.sky_sh.float()  # black without a sky model
-        background = render_scene.background_colors(torch.from_numpy(w2c), torch.from_numpy(ks), height, width, sky)
+        background = render_scene.background_colors(
+            torch.from_numpy(w2c), torch.from_numpy(ks), height, width, sky, ground=self.recon.ground
+        )
         cov = coverage[..., None]
         return DepthMeshRender(colors=(cov * colors + (1 - cov) * background).clamp(0, 1), depths=depths, coverage=coverage)
 

@@ -1,4 +1,4 @@
-"""Rendering Gaussians of a frame pair at a time t into cameras, over the sky background."""
+"""Rendering Gaussians of a frame pair at a time t into cameras, over the sky and ground background."""
 
 from __future__ import annotations
 
@@ -11,11 +11,12 @@ from torch import Tensor
 
 from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
+from drivingscene.gaussians.ground import Ground
 from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.rasterize import RenderOutput, rasterize
-from drivingscene.render.sky import ray_directions, sky_colors
+from drivingscene.render.sky import ray_directions, sky_colors, with_ground
 
 
 def render_gaussians(
@@ -28,6 +29,7 @@ def render_gaussians(
     *,
     sky_sh: Tensor | None = None,  # [K, 3]
     background: Tensor | None = None,  # [3], used when there is no sky model
+    ground: Ground | None = None,  # the road plane below the horizon (with a sky model only)
     blend: str = "all",  # how both keyframes' Gaussians combine at t (Gaussians.time_weights, "layers", "cameras")
     source_axes: Tensor | None = None,  # [2, V, 3] world optical axes of the input cameras ("cameras")
     layer_blend: LayerBlend | None = None,  # the layered blends' rule (default LayerBlend())
@@ -47,6 +49,7 @@ def render_gaussians(
             source_axes,
             sky_sh=sky_sh,
             background=background,
+            ground=ground,
             layer_blend=layer_blend,
             **raster_kwargs,
         )
@@ -60,6 +63,7 @@ def render_gaussians(
             width,
             sky_sh=sky_sh,
             background=background,
+            ground=ground,
             layer_blend=layer_blend,
             **raster_kwargs,
         )
@@ -84,8 +88,7 @@ def render_gaussians(
     )
     if sky_sh is None:
         return out
-    cam_to_world = torch.linalg.inv(world_to_cam.double()).float()
-    sky = sky_colors(sky_sh, ray_directions(cam_to_world, intrinsics.float(), height, width))
+    sky = background_colors(world_to_cam, intrinsics, height, width, sky_sh, ground=ground)
     return RenderOutput(colors=out.colors + (1 - out.alphas[..., None]) * sky, depths=out.depths, alphas=out.alphas)
 
 
@@ -104,6 +107,7 @@ def render_layers(
     *,
     sky_sh: Tensor | None = None,
     background: Tensor | None = None,
+    ground: Ground | None = None,
     layer_blend: LayerBlend | None = None,
     **kwargs,
 ) -> RenderOutput:
@@ -119,7 +123,7 @@ def render_layers(
     sets = [(gaussians.keyframes == k, torch.full((world_to_cam.shape[0],), layer_time_weight(k, t))) for k in (0, 1)]
     return _render_sets(
         gaussians, t, world_to_cam, intrinsics, height, width, sets,
-        sky_sh=sky_sh, background=background, layer_blend=layer_blend, **kwargs,
+        sky_sh=sky_sh, background=background, ground=ground, layer_blend=layer_blend, **kwargs,
     )  # fmt: skip
 
 
@@ -173,6 +177,7 @@ def render_camera_layers(
     *,
     sky_sh: Tensor | None = None,
     background: Tensor | None = None,
+    ground: Ground | None = None,
     layer_blend: LayerBlend | None = None,
     **kwargs,
 ) -> RenderOutput:
@@ -199,7 +204,7 @@ def render_camera_layers(
             sets.append(((gaussians.keyframes == k) & (gaussians.cameras == c), layer_time_weight(k, t) * view_weight))
     return _render_sets(
         gaussians, t, world_to_cam, intrinsics, height, width, sets,
-        sky_sh=sky_sh, background=background, layer_blend=rule, **kwargs,
+        sky_sh=sky_sh, background=background, ground=ground, layer_blend=rule, **kwargs,
     )  # fmt: skip
 
 
@@ -214,6 +219,7 @@ def _render_sets(
     *,
     sky_sh: Tensor | None,
     background: Tensor | None,
+    ground: Ground | None = None,
     layer_blend: LayerBlend | None = None,
     **kwargs,
 ) -> RenderOutput:
@@ -221,7 +227,16 @@ def _render_sets(
     background; no sets: the background alone."""
     if not sets:
         return render_gaussians(
-            gaussians, t, world_to_cam, intrinsics, height, width, sky_sh=sky_sh, background=background, **kwargs
+            gaussians,
+            t,
+            world_to_cam,
+            intrinsics,
+            height,
+            width,
+            sky_sh=sky_sh,
+            background=background,
+            ground=ground,
+            **kwargs,
         )
     black = torch.zeros(3, device=world_to_cam.device)
     rule = layer_blend or LayerBlend()
@@ -231,7 +246,7 @@ def _render_sets(
         for part in _layer_parts(gaussians, [mask for mask, _ in sets])
     ]
     weights = torch.stack([w for _, w in sets])
-    background = background_colors(world_to_cam, intrinsics, height, width, sky_sh, background)
+    background = background_colors(world_to_cam, intrinsics, height, width, sky_sh, background, ground)
     return _compose(layers, weights, background, rule.coverage_full)
 
 
@@ -265,13 +280,15 @@ def _compose(
     return RenderOutput(colors=alpha[..., None] * colors + (1 - alpha[..., None]) * background, depths=depths, alphas=alpha)
 
 
-def background_colors(world_to_cam, intrinsics, height, width, sky_sh, background=None) -> Tensor:
-    """``[B, H, W, 3]`` what shows where no Gaussian covers a pixel: the sky model, else a colour."""
+def background_colors(world_to_cam, intrinsics, height, width, sky_sh, background=None, ground=None) -> Tensor:
+    """``[B, H, W, 3]`` what shows where no Gaussian covers a pixel: the sky model (and ``ground``
+    below the horizon, `drivingscene.render.sky.with_ground`), else a colour."""
     if sky_sh is None:
         bg = torch.zeros(3) if background is None else background
         return bg.to(world_to_cam.device).float().expand(world_to_cam.shape[0], height, width, 3)
     cam_to_world = torch.linalg.inv(world_to_cam.double()).float()
-    return sky_colors(sky_sh, ray_directions(cam_to_world, intrinsics.float(), height, width))
+    dirs = ray_directions(cam_to_world, intrinsics.float(), height, width)
+    return with_ground(sky_colors(sky_sh, dirs), cam_to_world, dirs, ground)
 
 
 def source_axes(recon) -> Tensor:
@@ -306,6 +323,7 @@ def render_eval_frames(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
                 height,
                 width,
                 sky_sh=recon.sky_sh,
+                ground=recon.ground,
                 blend=blend,
                 source_axes=source_axes(recon),
                 **raster_kwargs,
@@ -340,6 +358,7 @@ def render_input_views(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
                 height,
                 width,
                 sky_sh=recon.sky_sh,
+                ground=recon.ground,
                 blend=blend,
                 source_axes=source_axes(recon),
                 **raster_kwargs,

@@ -4,6 +4,14 @@ The sky colour is a low-degree spherical-harmonic function of the world viewing 
 ``colour = max(SH(d) + 0.5, 0)`` (the Gaussians' own colour convention), fitted by ridge
 least squares to the pixels classified as sky. Degree 2 (9 coefficients per channel) captures
 the horizon-to-zenith gradient and the sun side; it costs nothing to render.
+
+Below the horizon the background is the ground, not the sky (`Ground`): a ray from a camera above
+the road plane that meets it shows the road's colour, the median colour of the Gaussians lying on
+that plane. The sky model is fitted to sky pixels, which are all above the horizon; extrapolated
+below it, it drew light-blue holes on the road wherever a view left the rig's poses and saw ground
+that no input pixel covered. On the procedural test pairs of docs/views (2026-11-28) the ground
+raised the model's views from 10 m up and the overview by 1.4 dB and its in-between frame at the rig
+poses by 0.24 dB (what the keyframes' holes show).
 """
 
 from __future__ import annotations
@@ -11,6 +19,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from drivingscene.gaussians.ground import Ground
 from drivingscene.geometry.camera import pixel_grid
 from drivingscene.render.sh import SH_C0, eval_sh, num_sh_coeffs, sh_basis
 
@@ -72,3 +81,21 @@ def fit_sky(dirs: Tensor, colors: Tensor, degree: int = SKY_DEGREE, ridge: float
     target = colors.double() - 0.5
     gram = basis.T @ basis + ridge * dirs.shape[0] * torch.diag(torch.tensor([0.0] + [1.0] * (k - 1), dtype=torch.float64))
     return torch.linalg.solve(gram, basis.T @ target).to(colors.dtype)
+
+
+# The sky turns into the ground over this band of -n.d (the sine of the angle below the horizon,
+# ~1 degree): no seam at the horizon.
+HORIZON_BAND = 0.0175
+
+
+def with_ground(sky: Tensor, cam_to_world: Tensor, dirs: Tensor, ground: Ground | None) -> Tensor:
+    """Background colours ``[B, H, W, 3]``: ``sky`` where a pixel's ray ``dirs`` ``[B, H, W, 3]``
+    from cameras ``[B, 4, 4]`` rises or the camera is not above the plane, ``ground.rgb`` where it
+    meets the plane, blended over `HORIZON_BAND` just below the horizon."""
+    if ground is None:
+        return sky
+    n = ground.plane[:3].to(dirs)
+    above = cam_to_world[:, :3, 3].to(dirs) @ n + ground.plane[3].to(dirs) > 0  # [B]
+    down = -(dirs @ n)  # [B, H, W]: > 0 where the ray descends
+    w = (down / HORIZON_BAND).clamp(0.0, 1.0) * above[:, None, None].to(dirs)
+    return sky + w[..., None] * (ground.rgb.to(sky) - sky)

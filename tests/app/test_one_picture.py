@@ -42,7 +42,8 @@ def test_headless_rig_views_are_the_cpu_rasterizers(synth_pair_96, tmp_path, sca
     def cpu(rule: LayerBlend) -> np.ndarray:
         return render_gaussians(
             recon.visible(), t, recon.world_to_cam_at(t)[1:2].float(), k, height * scale, width * scale,
-            sky_sh=recon.sky_sh, blend="cameras", source_axes=source_axes(recon), max_layers=256, layer_blend=rule,
+            sky_sh=recon.sky_sh, ground=recon.ground, blend="cameras", source_axes=source_axes(recon), max_layers=256,
+            layer_blend=rule,
         ).colors[0].clamp(0, 1).numpy()  # fmt: skip
 
     same = cpu(LayerBlend())

@@ -13,6 +13,7 @@ from drivingscene_view.renderer import GpuSplats, RenderOptions, SplatRenderer
 from drivingscene_view.sorter import SortRequest, depth_order, layer_ids, make_sort_input
 from drivingscene_view.splats import SplatArrays
 
+from drivingscene.gaussians.ground import Ground
 from drivingscene.render.scene import render_gaussians
 from tests.app.scenes import random_gaussians
 
@@ -26,11 +27,13 @@ def _camera():
     return rig_camera(c2w, K, (H, W))
 
 
-def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None):
+def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, ground=None):
     renderer, gpu = SplatRenderer(ctx), GpuSplats(ctx)
     splats = SplatArrays.from_gaussians(gaussians)
     gpu.set_splats(splats, origin=np.array([0.1, 0.2, 3.0]))
     renderer.set_sky(sky.numpy())
+    if ground is not None:
+        renderer.set_ground(ground.plane.numpy(), ground.rgb.numpy())
     renderer.set_cameras(axes)
     cam = _camera()
     req = SortRequest(cam.shifted(gpu.origin).world_to_cam, cam.intrinsics, W, H, t, blend, keys=keys)
@@ -187,3 +190,26 @@ def test_sort_culls_conservatively():
     assert drawn <= set(order.tolist())
     assert not hidden[order].any()
     assert len(order) < len(splats) * 0.9  # something was culled
+
+
+@pytest.mark.gl
+def test_gl_ground_matches_torch(gl_ctx):
+    """The ground below the horizon: the same background in the window as in the CPU renderer, with
+    the splats' origin shifted (the plane moves with it)."""
+    gaussians = random_gaussians(100, sh_degree=0, seed=3)
+    sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(2)) * 0.3
+    # world y points down in this camera: the plane y = 0.5 lies below it (n = -y, up; d = 0.5)
+    ground = Ground(torch.tensor([0.0, -1.0, 0.0, 0.5]), torch.tensor([0.9, 0.2, 0.1]))
+    cam = _camera()
+    args = (torch.from_numpy(cam.world_to_cam)[None].float(), torch.from_numpy(K)[None].float(), H, W)
+    ref = render_gaussians(gaussians, 0.0, *args, sky_sh=sky, ground=ground, max_layers=1024, backend="torch")
+    without = render_gaussians(gaussians, 0.0, *args, sky_sh=sky, max_layers=1024, backend="torch")
+    ref_img = ref.colors[0].clamp(0, 1).numpy()
+    gl = _gl_render(gl_ctx, gaussians, sky, 0.0, "all", "u16", ground=ground)
+    assert _psnr(gl, ref_img) >= 35.0
+    # the ground shows in the lower half (rays descend), not in the upper half
+    bare = ref.alphas[0].numpy() < 1e-4
+    lower, upper = bare & (np.arange(H)[:, None] > 0.6 * H), bare & (np.arange(H)[:, None] < 0.3 * H)
+    assert lower.any() and upper.any()
+    np.testing.assert_allclose(ref_img[lower], np.broadcast_to([0.9, 0.2, 0.1], ref_img[lower].shape), atol=1e-3)
+    np.testing.assert_allclose(ref_img[upper], without.colors[0].clamp(0, 1).numpy()[upper], atol=1e-3)

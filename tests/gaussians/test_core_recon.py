@@ -310,3 +310,69 @@ def test_sky_pixel_directions_match_the_full_ray_grid():
     cam[:3, :3] = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)))[0]
     mask = torch.rand(24, 32, generator=torch.Generator().manual_seed(2)) < 0.3
     torch.testing.assert_close(pixel_directions(cam, k, mask), ray_directions(cam[None], k[None], 24, 32)[0][mask])
+
+
+def test_ground_colour_is_the_median_of_the_gaussians_on_the_road_plane():
+    from drivingscene.gaussians.ground import GROUND_BAND, GROUND_MIN_GAUSSIANS, fit_ground, road_plane
+
+    ego = torch.eye(4, dtype=torch.float64)
+    ego[:3, 3] = torch.tensor([3.0, -2.0, 1.5])  # the ego frame's z = 0 is the world's z = 1.5
+    plane = road_plane(ego)
+    torch.testing.assert_close(plane, torch.tensor([0.0, 0.0, 1.0, -1.5]))
+    g = torch.Generator().manual_seed(0)
+    n = 3 * GROUND_MIN_GAUSSIANS
+    on = torch.cat([torch.randn(n, 2, generator=g) * 10, 1.5 + (torch.rand(n, 1, generator=g) - 0.5) * GROUND_BAND], 1)
+    off = on + torch.tensor([0.0, 0.0, 3.0])  # a wall's colour above the road
+    rgb_on = torch.tensor([0.3, 0.3, 0.35]) + torch.randn(n, 3, generator=g) * 0.02
+    rgb_on[:10] = torch.tensor([1.0, 1.0, 0.0])  # lane paint: a few outliers the median ignores
+    ground = fit_ground(torch.cat([on, off]), torch.cat([rgb_on, torch.full((n, 3), 0.9)]), plane)
+    torch.testing.assert_close(ground.rgb, torch.tensor([0.3, 0.3, 0.35]), atol=0.01, rtol=0)
+    assert fit_ground(off, torch.full((n, 3), 0.9), plane) is None  # nothing on the road: no ground
+
+
+def test_ground_shows_where_rays_descend_from_a_camera_above_the_plane():
+    from drivingscene.gaussians.ground import Ground
+    from drivingscene.render.scene import background_colors
+    from drivingscene.render.sky import HORIZON_BAND, ray_directions, sky_colors
+
+    k = torch.tensor([[[20.0, 0.0, 15.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]]])
+    # a camera looking along world +x, its image y axis along world -z (down), 1.5 m above z = 0
+    c2w = torch.eye(4)
+    c2w[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    c2w[2, 3] = 1.5
+    sky_sh = torch.randn(9, 3, generator=torch.Generator().manual_seed(3)) * 0.2
+    ground = Ground(torch.tensor([0.0, 0.0, 1.0, 0.0]), torch.tensor([0.25, 0.5, 0.75]))
+    out = background_colors(torch.linalg.inv(c2w)[None], k, 24, 32, sky_sh, ground=ground)[0]
+    dirs = ray_directions(c2w[None], k, 24, 32)[0]
+    sky = sky_colors(sky_sh, dirs)
+    below = dirs[..., 2] < -HORIZON_BAND
+    rising = dirs[..., 2] >= 0
+    assert below.any() and rising.any()
+    torch.testing.assert_close(out[below], ground.rgb.expand(int(below.sum()), 3))
+    torch.testing.assert_close(out[rising], sky[rising])
+    # a camera under the plane sees the sky everywhere
+    c2w[2, 3] = -0.5
+    under = background_colors(torch.linalg.inv(c2w)[None], k, 24, 32, sky_sh, ground=ground)[0]
+    torch.testing.assert_close(under, sky_colors(sky_sh, ray_directions(c2w[None], k, 24, 32)[0]))
+
+
+def test_recon_ground_is_stored_and_fitted_for_files_without_it(tmp_path):
+    pair = make_pair(num_views=3, height=6, width=8)
+    plane_z = float(pair.ego_to_world[0, 2, 3])
+    g = torch.Generator().manual_seed(4)
+    gaussians = random_gaussians(400)
+    means = gaussians.means.clone()
+    means[:200, 2] = plane_z  # half of them on the road plane (the ego frame is z-up, level)
+    rgb = torch.full((400, 3), 0.8)
+    rgb[:200] = torch.tensor([0.2, 0.4, 0.3]) + torch.rand(200, 3, generator=g) * 0.01
+    from drivingscene.gaussians.core import rgb_to_sh0
+
+    gaussians = replace(gaussians, means=means, sh=rgb_to_sh0(rgb)[:, None])
+    recon = Reconstruction.from_pair(pair, gaussians, sky_sh=torch.rand(9, 3))
+    torch.testing.assert_close(recon.ground.rgb, torch.tensor([0.2, 0.4, 0.3]), atol=0.011, rtol=0)
+    assert Reconstruction.from_pair(pair, gaussians).ground is None  # no sky model: no ground either
+    arrays = recon_to_arrays(recon)
+    torch.testing.assert_close(load_reconstruction(save_reconstruction(recon, tmp_path / "r.npz")).ground_rgb, recon.ground_rgb)
+    del arrays["ground_rgb"]  # a file written before the ground existed: fitted on load
+    save_npz(tmp_path / "old.npz", arrays)
+    torch.testing.assert_close(load_reconstruction(tmp_path / "old.npz").ground_rgb, recon.ground_rgb)

@@ -87,6 +87,7 @@ def test_eval_frames_render_each_camera_at_its_own_time(synth_pair):
         h,
         w,
         sky_sh=recon.sky_sh,
+        ground=recon.ground,
         blend=DEFAULT_BLEND,
         source_axes=source_axes(recon),
     )

@@ -81,6 +81,7 @@ def _assert_finite_render(recon) -> None:
         height,
         width,
         sky_sh=recon.sky_sh,
+        ground=recon.ground,
         source_axes=source_axes(recon),
     )
     for f in fields(out):
