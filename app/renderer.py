@@ -32,6 +32,7 @@ from drivingscene_view.camera import ViewCamera
 from drivingscene_view.sorter import layer_ids
 from drivingscene_view.splats import SplatArrays, covariances
 
+from drivingscene.gaussians.ground import Ground
 from drivingscene.gaussians.timing import DEFAULT_BLEND, LAYERED_BLENDS, shader_blend_code, shader_blend_defines
 from drivingscene.gl import load_program
 from drivingscene.render.project import EPS2D
@@ -286,10 +287,10 @@ class SplatRenderer:
             sky_sh = np.array([[(0.18 - 0.5) / 0.28209479177387814] * 3], np.float32)
         self.sky = np.asarray(sky_sh, np.float32)[:16]
 
-    def set_ground(self, plane: np.ndarray | None, rgb: np.ndarray | None = None) -> None:
-        """The road plane ``[4]`` (unit normal up, offset; world frame) and its colour ``[3]``, drawn
-        below the horizon with the sky (`drivingscene.render.sky.with_ground`); None: the sky alone."""
-        self.ground = None if plane is None else (np.asarray(plane, np.float64), np.asarray(rgb, np.float32))
+    def set_ground(self, ground: Ground | None) -> None:
+        """A reconstruction's ground (road plane in the world frame and its colour), drawn below the
+        horizon with the sky (`drivingscene.render.sky.with_ground`); None: the sky alone."""
+        self.ground = None if ground is None else (ground.plane.double().numpy(), ground.rgb.float().numpy())
 
     def set_cameras(self, source_axes: np.ndarray | None) -> None:
         """World optical axes ``[2, V, 3]`` of the input cameras (origin-independent), for the

@@ -141,8 +141,7 @@ class Viewport:
             self.doc, self.levels, self._lod_result = doc, [], None
             self.ladder.set_levels(0)
             self.renderer.set_sky(None if doc.recon.sky_sh is None else doc.recon.sky_sh.cpu().numpy())
-            ground = doc.recon.ground
-            self.renderer.set_ground(*((None,) if ground is None else (ground.plane.numpy(), ground.rgb.numpy())))
+            self.renderer.set_ground(doc.recon.ground)
             self.renderer.set_cameras(source_axes(doc.recon).numpy())
             self._start_lod(doc)
         if new_doc or v["geometry"] != self._versions["geometry"]:

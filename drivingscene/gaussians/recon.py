@@ -100,7 +100,7 @@ class Reconstruction:
 
     @property
     def ground(self) -> Ground | None:
-        """The background below the horizon (`drivingscene.render.sky.Ground`); None without a sky
+        """The background below the horizon (`drivingscene.gaussians.ground.Ground`); None without a sky
         model or where too few Gaussians lie on the road plane to colour it."""
         if self.ground_rgb is None or self.sky_sh is None:
             return None

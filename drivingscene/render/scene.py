@@ -227,17 +227,9 @@ def _render_sets(
     background; no sets: the background alone."""
     if not sets:
         return render_gaussians(
-            gaussians,
-            t,
-            world_to_cam,
-            intrinsics,
-            height,
-            width,
-            sky_sh=sky_sh,
-            background=background,
-            ground=ground,
-            **kwargs,
-        )
+            gaussians, t, world_to_cam, intrinsics, height, width,
+            sky_sh=sky_sh, background=background, ground=ground, **kwargs,
+        )  # fmt: skip
     black = torch.zeros(3, device=world_to_cam.device)
     rule = layer_blend or LayerBlend()
     kwargs.setdefault("surface_tolerance", rule.surface_tolerance)

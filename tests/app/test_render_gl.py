@@ -32,8 +32,7 @@ def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, groun
     splats = SplatArrays.from_gaussians(gaussians)
     gpu.set_splats(splats, origin=np.array([0.1, 0.2, 3.0]))
     renderer.set_sky(sky.numpy())
-    if ground is not None:
-        renderer.set_ground(ground.plane.numpy(), ground.rgb.numpy())
+    renderer.set_ground(ground)
     renderer.set_cameras(axes)
     cam = _camera()
     req = SortRequest(cam.shifted(gpu.origin).world_to_cam, cam.intrinsics, W, H, t, blend, keys=keys)
