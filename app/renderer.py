@@ -32,6 +32,7 @@ from drivingscene_view.camera import ViewCamera
 from drivingscene_view.sorter import layer_ids
 from drivingscene_view.splats import SplatArrays, covariances
 
+from drivingscene.gaussians.core import view_fade_cosines
 from drivingscene.gaussians.ground import Ground
 from drivingscene.gaussians.timing import DEFAULT_BLEND, LAYERED_BLENDS, shader_blend_code, shader_blend_defines
 from drivingscene.gl import load_program
@@ -190,6 +191,8 @@ class GpuSplats:
         sh = np.concatenate([splats.sh.reshape(-1, 3), np.zeros((n * self.sh_k, 1), np.float32)], axis=1)
         sh_texels = _rows(n * self.sh_k) * TEX_W
         self._texture("sh", sh_texels, 4, "f4", _pad(sh, sh_texels).tobytes())
+        rays = np.concatenate([splats.view_rays.astype(np.float32), np.zeros((n, 1), np.float32)], axis=1)
+        self._texture("view_ray", texels, 4, "f4", _pad(rays, texels).tobytes())
         self.set_flags(np.zeros(n, np.uint8))
         self.set_order(np.zeros(0, np.uint32))
 
@@ -355,7 +358,10 @@ class SplatRenderer:
         if "fbo" not in self._acc or self._acc["key"] != (acc[0].texture.glo, acc[1].texture.glo):
             if "fbo" in self._acc:
                 self._acc["fbo"].release()
-            self._acc = {"fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]), "key": (acc[0].texture.glo, acc[1].texture.glo)}
+            self._acc = {
+                "fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]),
+                "key": (acc[0].texture.glo, acc[1].texture.glo),
+            }
         acc_fbo = self._acc["fbo"]
         if start == 0:
             acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
@@ -437,7 +443,9 @@ class SplatRenderer:
             self._draw_splats(splats, cam, t, opts, start, count, layer, surface_pass, front)
         return target
 
-    def _accumulate(self, layer: Target, acc_fbo, weight: float, coverage_full: float, surface: SurfaceLayer | None = None) -> None:
+    def _accumulate(
+        self, layer: Target, acc_fbo, weight: float, coverage_full: float, surface: SurfaceLayer | None = None
+    ) -> None:
         acc_fbo.use()
         self.ctx.viewport = (0, 0, layer.width, layer.height)
         self.ctx.enable(self.ctx.BLEND)
@@ -510,7 +518,7 @@ class SplatRenderer:
         front: Target | None = None,  # surface_pass 2: the layer's front depth
     ) -> None:
         prog = self.splat_prog
-        units = ("pos", "motion", "cov_a", "cov_b", "sh", "flags", "order")
+        units = ("pos", "motion", "cov_a", "cov_b", "sh", "flags", "order", "view_ray")
         for unit, name in enumerate(units):
             splats.texture(name).use(unit)
             prog[f"u_{name}"].value = unit
@@ -519,6 +527,7 @@ class SplatRenderer:
         self._camera_uniforms(prog, cam)
         prog["u_view"].write(cam.world_to_cam.T.astype("f4").tobytes())
         prog["u_cam_centre"].value = tuple(cam.centre)
+        prog["u_view_fade"].value = view_fade_cosines()
         prog["u_count"].value = splats.count
         prog["u_sh_k"].value = splats.sh_k
         prog["u_t"].value = float(t)

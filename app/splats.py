@@ -30,6 +30,11 @@ class SplatArrays:
     keyframes: np.ndarray  # [N] uint8
     cameras: np.ndarray  # [N] int16
     uid: np.ndarray  # [N] int64 stable identity of each Gaussian (kept through deletes and undo)
+    view_rays: np.ndarray | None = None  # [N, 3] Gaussians.view_rays (zero: not view-bound); None: all zero
+
+    def __post_init__(self):
+        if self.view_rays is None:
+            object.__setattr__(self, "view_rays", np.zeros((len(self.means), 3), np.float32))
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -48,6 +53,7 @@ class SplatArrays:
             keyframes=g.keyframes.numpy().astype(np.uint8),
             cameras=g.cameras.numpy().astype(np.int16),
             uid=np.arange(len(g), dtype=np.int64),
+            view_rays=f32(g.view_rays),
         )
 
     def to_gaussians(self, mask: np.ndarray | None = None) -> Gaussians:
@@ -63,6 +69,7 @@ class SplatArrays:
             flows=t(self.flows),
             keyframes=t(self.keyframes).to(torch.int64),
             cameras=t(self.cameras).to(torch.int64),
+            view_rays=t(self.view_rays),
         )
 
     @property

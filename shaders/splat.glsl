@@ -21,6 +21,8 @@ uniform sampler2D u_cov_b;    // RGBA32F [i]: Σyz Σzz |flow| 0
 uniform sampler2D u_sh;       // RGBA32F [i * K + k]: SH coefficient k (rgb)
 uniform usampler2D u_flags;   // R8UI [i]: bit 0 hidden, bit 1 selected
 uniform usampler2D u_order;   // R32UI [j]: Gaussian index of the j-th splat front to back
+uniform sampler2D u_view_ray; // RGBA32F [i]: view ray xyz of a view-bound Gaussian (zero: not view-bound)
+uniform vec2 u_view_fade;     // cosines (gaussians.core.view_fade): full opacity at or above x, none at or below y
 uniform sampler2D u_lut;      // 256 x 1 colour map for the flow-magnitude mode
 
 uniform int u_count;          // splats in u_order
@@ -114,6 +116,12 @@ void main() {
     float opacity = motion.w * time_weight(pos.w, u_t, u_blend, u_layer);
     if ((flags & 1u) != 0u || opacity < 1.0 / 255.0) { cull(); return; }
     vec3 mean = mean_at(pos.xyz, pos.w, motion.xyz, u_t);
+    vec3 view_ray = texelFetch(u_view_ray, texel(gid), 0).xyz;
+    if (view_ray != vec3(0.0)) {  // view-bound: faded with the angle between the view ray and its own
+        float cosine = dot(normalize(mean - u_cam_centre), view_ray);
+        opacity *= clamp((cosine - u_view_fade.y) / (u_view_fade.x - u_view_fade.y), 0.0, 1.0);
+        if (opacity < 1.0 / 255.0) { cull(); return; }
+    }
     vec3 p = (u_view * vec4(mean, 1.0)).xyz;
     if (p.z < u_near || p.z > u_far) { cull(); return; }
 

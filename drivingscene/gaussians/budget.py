@@ -58,13 +58,14 @@ def _footprint(g: Gaussians) -> Tensor:
 
 
 def merge_keys(g: Gaussians, cell: float, flow_tolerance: float) -> Tensor:
-    """Integer group id ``[N]``: same size level, same grid cell, same quantised flow."""
+    """Integer group id ``[N]``: same size level, same grid cell, same quantised flow, both view-bound
+    or neither (`Gaussians.view_rays`)."""
     size = _footprint(g).clamp(min=1e-6)
     level = torch.floor(torch.log2(size * cell)).long()  # cells of 2^level metres
     width = torch.exp2(level.double())
     coords = torch.floor(g.means.double() / width[:, None]).long()
     flow_q = torch.round(g.flows.double() / flow_tolerance).long()
-    key = torch.cat([level[:, None], coords, flow_q], dim=1)
+    key = torch.cat([level[:, None], coords, flow_q, g.view_bound.long()[:, None]], dim=1)
     _, ids = torch.unique(key, dim=0, return_inverse=True)
     return ids
 
@@ -103,6 +104,7 @@ def merge_groups(g: Gaussians, ids: Tensor) -> Gaussians:
         flows=wsum(multi.flows).float(),
         keyframes=torch.zeros(m, dtype=torch.int64).scatter_reduce(0, local, multi.keyframes, "amin", include_self=False),
         cameras=torch.full((m,), -1, dtype=torch.int64),
+        view_rays=torch.nn.functional.normalize(wsum(multi.view_rays).float(), dim=-1),  # zero stays zero
     )
     return Gaussians.cat([keep, merged])
 

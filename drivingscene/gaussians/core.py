@@ -16,6 +16,7 @@ Quaternions need not be unit length (renderers normalise them), again as in 3DGS
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 
@@ -24,6 +25,11 @@ from torch import Tensor
 
 from drivingscene.errors import InputError
 from drivingscene.gaussians import timing
+
+# A view-bound Gaussian (`Gaussians.view_rays`) is drawn at full opacity while the angle at its mean
+# between the view ray and the ray it was seen along is at most VIEW_FADE_DEG[0], not at all beyond
+# VIEW_FADE_DEG[1], linearly in the cosine between (chosen on validation pairs; docs/magnification.md).
+VIEW_FADE_DEG = (3.0, 15.0)
 
 SH_C0 = 0.28209479177387814  # Y_0^0; colour = SH_C0 * sh[:, 0] + 0.5 (3DGS convention)
 
@@ -60,9 +66,16 @@ class Gaussians:
     flows: Tensor  # [N, 3] world displacement towards the other keyframe
     keyframes: Tensor  # [N] int64, 0 or 1
     cameras: Tensor  # [N] int64 source camera index, -1 if unknown
+    # [N, 3] unit direction along which a *view-bound* Gaussian was seen (from its source camera
+    # centre to its mean); zero for every other Gaussian. A view-bound Gaussian is one whose depth
+    # another input image contradicts (it sees through it: `gaussians.visibility`): drawn at full
+    # opacity from its source direction, faded away from it (`view_fade`). None: all zero.
+    view_rays: Tensor | None = None
 
     def __post_init__(self):
         n = self.means.shape[0]
+        if self.view_rays is None:
+            object.__setattr__(self, "view_rays", self.means.new_zeros(n, 3))
         expected = {
             "means": (n, 3),
             "quats": (n, 4),
@@ -71,6 +84,7 @@ class Gaussians:
             "flows": (n, 3),
             "keyframes": (n,),
             "cameras": (n,),
+            "view_rays": (n, 3),
         }
         for name, shape in expected.items():
             if tuple(getattr(self, name).shape) != shape:
@@ -149,6 +163,11 @@ class Gaussians:
         """``[N]`` bool: Gaussians that move relative to the world."""
         return self.flows.abs().amax(dim=-1) > 0
 
+    @property
+    def view_bound(self) -> Tensor:
+        """``[N]`` bool: Gaussians drawn only near the direction they were seen along (`view_rays`)."""
+        return self.view_rays.abs().amax(dim=-1) > 0
+
     def colors(self) -> Tensor:
         """View-independent RGB ``[N, 3]`` from the DC coefficient."""
         return sh0_to_rgb(self.sh[:, 0]).clamp(0, 1)
@@ -176,8 +195,9 @@ class Gaussians:
         rot, trans = mat[:3, :3], mat[:3, 3]
         means = (self.means.double() @ rot.T + trans).to(self.means.dtype)
         flows = (self.flows.double() @ rot.T).to(self.flows.dtype)
+        view_rays = (self.view_rays.double() @ rot.T).to(self.view_rays.dtype)
         quats = quat_multiply(matrix_to_quat(rot).to(self.quats.dtype).expand_as(self.quats), self.quats)
-        return replace(self, means=means, flows=flows, quats=quats)
+        return replace(self, means=means, flows=flows, quats=quats, view_rays=view_rays)
 
     def index(self, selector: Tensor | slice | Sequence[int]) -> Gaussians:
         """A subset by bool mask or integer indices."""
@@ -213,3 +233,18 @@ class Gaussians:
         degree = max(p.sh_degree for p in parts)
         parts = [p.with_sh_degree(degree) for p in parts]
         return Gaussians(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Gaussians)})
+
+
+def view_fade_cosines() -> tuple[float, float]:
+    """The cosines of `VIEW_FADE_DEG`: full opacity at or above the first, none at or below the second."""
+    return math.cos(math.radians(VIEW_FADE_DEG[0])), math.cos(math.radians(VIEW_FADE_DEG[1]))
+
+
+def view_fade(view_rays: Tensor, means: Tensor, centre: Tensor) -> Tensor:
+    """``[N]`` opacity multipliers of Gaussians at ``means`` ``[N, 3]`` seen from a camera at
+    ``centre`` ``[3]``: 1 for those not view-bound (zero ``view_rays``), else 1 within
+    `VIEW_FADE_DEG` [0] of their view ray, 0 beyond [1], linear in the cosine between."""
+    full, zero = view_fade_cosines()
+    cos = (torch.nn.functional.normalize(means - centre.to(means), dim=-1) * view_rays).sum(-1)
+    fade = ((cos - zero) / (full - zero)).clamp(0.0, 1.0)
+    return torch.where(view_rays.abs().amax(dim=-1) > 0, fade, torch.ones_like(fade))

@@ -59,6 +59,8 @@ OPTIONAL = {
     "valid_mask": KeySpec("bool", ("V", "H", "W"), "pixels that see the world (False: ego body, hood)"),
     "origin": KeySpec("float64", (3,), "world point that means and poses are relative to"),
     "ground_rgb": KeySpec("float32", (3,), "colour of the road plane, the background below the horizon"),
+    "view_bound_index": KeySpec("int64", ("B",), "indices of view-bound Gaussians (drawn near their view ray only)"),
+    "view_bound_rays": KeySpec("float32", ("B", 3), "their unit view rays, world (source camera to mean)"),
 }
 PER_CAMERA = ("images", "depth", "rigid_flow", "residual_flow", "moving")
 
@@ -199,6 +201,10 @@ def recon_to_arrays(recon: Reconstruction) -> dict[str, np.ndarray]:
         arrays["ground_rgb"] = recon.ground_rgb.detach().cpu().float().numpy()
     if recon.hidden is not None:
         arrays["hidden"] = recon.hidden.cpu().numpy().astype(bool)
+    bound = g.view_bound.nonzero().squeeze(1)
+    if len(bound):
+        arrays["view_bound_index"] = bound.numpy().astype(np.int64)
+        arrays["view_bound_rays"] = g.view_rays[bound].float().numpy()
     if recon.valid_mask is not None:
         arrays["valid_mask"] = np.asarray(recon.valid_mask, dtype=bool)
     if recon.origin is not None:
@@ -224,10 +230,17 @@ def _check_recon_values(arrays: dict, dims: dict, source: str) -> list[Problem]:
         out.append(Problem(source, "quats", "non-zero quaternions", "a zero quaternion"))
     if arrays["keyframes"].size and arrays["keyframes"].max() > 1:
         out.append(Problem(source, "keyframes", "0 or 1", f"maximum {arrays['keyframes'].max()}"))
-    idx = arrays["dynamic_index"]
     n = dims["N"]
-    if idx.size and (idx.min() < 0 or idx.max() >= n or np.unique(idx).size != idx.size):
-        out.append(Problem(source, "dynamic_index", f"unique indices in [0, {n})", f"range [{idx.min()}, {idx.max()}]"))
+    for key in ("dynamic_index", "view_bound_index"):
+        idx = arrays.get(key, np.zeros(0, np.int64))
+        if idx.size and (idx.min() < 0 or idx.max() >= n or np.unique(idx).size != idx.size):
+            out.append(Problem(source, key, f"unique indices in [0, {n})", f"range [{idx.min()}, {idx.max()}]"))
+    if ("view_bound_index" in arrays) != ("view_bound_rays" in arrays):
+        out.append(Problem(source, "view_bound_rays", "view_bound_index and view_bound_rays together", "only one of them"))
+    elif "view_bound_rays" in arrays:
+        norms = np.linalg.norm(arrays["view_bound_rays"], axis=-1) if arrays["view_bound_rays"].size else np.ones(1)
+        if not np.all(np.isfinite(norms)) or np.abs(norms - 1).max() > 1e-3:
+            out.append(Problem(source, "view_bound_rays", "unit vectors", "other lengths, NaN or inf"))
     height, width = (int(v) for v in arrays["image_size"])
     if "H" in dims and (dims["H"], dims["W"]) != (height, width):
         out.append(Problem(source, "image_size", f"[{dims['H']}, {dims['W']}] like the per-camera maps", f"[{height}, {width}]"))
@@ -254,6 +267,9 @@ def recon_from_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -
         raise SceneFormatError(problems)
     flows = np.zeros_like(arrays["means"])
     flows[arrays["dynamic_index"]] = arrays["dynamic_flows"]
+    view_rays = np.zeros_like(arrays["means"])
+    if "view_bound_index" in arrays:
+        view_rays[arrays["view_bound_index"]] = arrays["view_bound_rays"]
     t = torch.from_numpy
     gaussians = Gaussians(
         means=t(arrays["means"]),
@@ -264,6 +280,7 @@ def recon_from_arrays(arrays: dict[str, np.ndarray], source: str = "<memory>") -
         flows=t(flows),
         keyframes=t(arrays["keyframes"].astype(np.int64)),
         cameras=t(arrays["cameras"].astype(np.int64)),
+        view_rays=t(view_rays),
     )
     return Reconstruction(
         gaussians=gaussians,

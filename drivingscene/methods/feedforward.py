@@ -13,12 +13,14 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from safetensors.torch import load_file
+from torch import Tensor
 
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.tensors import pair_to_tensors, world_cameras
@@ -58,6 +60,10 @@ class InferenceOptions:
     # Free-space carving: drop Gaussians another image of the pair sees through
     # (gaussians/visibility.py); None: keep every Gaussian.
     carve: CarveConfig | None = None
+    # Gaussians that another image sees through (the same test as ``carve``) are kept but made
+    # view-bound (`Gaussians.view_rays`): drawn near the direction their camera saw them along and
+    # faded away from it, where their wrong depth shows (docs/magnification.md). None: none.
+    view_bound: CarveConfig | None = CarveConfig()
     # False: P's predictions unused, every pixel's Gaussian its default surfel (ablation, bench choices)
     gaussian_head: bool = True
     # D's depth corrected by classical matching between the keyframes (methods/matched_depth.py);
@@ -158,8 +164,8 @@ def read_safetensors(path: Path) -> dict[str, torch.Tensor]:
         raise InputError(f"{path}: expected a valid safetensors file, found {_one_line(e)[:200]}") from None
 
 
-def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
-    """The Gaussians no other image of the pair sees through (`carve`)."""
+def _seen_through(gaussians, batch, depth, sky_pixels, config: CarveConfig) -> Tensor:
+    """``[N]`` bool: the Gaussians some other image of the pair sees through (`carve`)."""
     from drivingscene.geometry.se3 import invert_rigid
 
     num_views = batch.num_views
@@ -175,7 +181,21 @@ def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
         world,
         config,
     )
-    return gaussians.index(keep)
+    return ~keep
+
+
+def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
+    """The Gaussians no other image of the pair sees through (`carve`)."""
+    return gaussians.index(~_seen_through(gaussians, batch, depth, sky_pixels, config))
+
+
+def _view_bound(gaussians, batch, depth, sky_pixels, config: CarveConfig):
+    """``gaussians`` with those some other image sees through made view-bound: their view ray is
+    the unit direction from their source camera's centre to their mean."""
+    bound = _seen_through(gaussians, batch, depth, sky_pixels, config)
+    centres = world_cameras(batch)[..., :3, 3].to(gaussians.means)  # [2, V, 3]
+    rays = F.normalize(gaussians.means - centres[gaussians.keyframes, gaussians.cameras], dim=-1)
+    return replace(gaussians, view_rays=torch.where(bound[:, None], rays, torch.zeros_like(rays)))
 
 
 # The stages of `reconstruct` as its progress callback names them, in order.
@@ -299,6 +319,10 @@ def reconstruct(
         t1 = time.perf_counter()
         gaussians = _carved(gaussians, batch, depth, sky_pixels, options.carve)
         timings["carve_s"] = time.perf_counter() - t1
+    if options.view_bound is not None:
+        t1 = time.perf_counter()
+        gaussians = _view_bound(gaussians, batch, depth, sky_pixels, options.view_bound)
+        timings["view_bound_s"] = time.perf_counter() - t1
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, world_cameras(batch), batch.intrinsics)
     # the background below the horizon, here so that its cost is timed (Reconstruction fits it otherwise)
     ground = fit_ground(

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from drivingscene.errors import InputError
-from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
+from drivingscene.gaussians.core import Gaussians, sh0_to_rgb, view_fade
 from drivingscene.gaussians.ground import Ground
 from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.geometry.se3 import invert_rigid
@@ -69,6 +69,31 @@ def render_gaussians(
         )
     g = gaussians
     opacities = g.opacities * g.time_weights(t, blend)
+    if g.view_bound.any():  # view-bound Gaussians fade with the angle to their view ray, per camera
+        centres = torch.linalg.inv(world_to_cam.double())[:, :3, 3].float()
+        views = raster_kwargs.get("views")
+        if views is not None:  # each Gaussian drawn into one camera: its fade from that camera
+            opacities = opacities * view_fade(g.view_rays, g.means_at(t), centres[views.clamp(min=0)])
+        elif len(world_to_cam) > 1:
+            outs = [
+                render_gaussians(
+                    gaussians,
+                    t,
+                    world_to_cam[b : b + 1],
+                    intrinsics[b : b + 1],
+                    height,
+                    width,
+                    sky_sh=sky_sh,
+                    background=background,
+                    ground=ground,
+                    blend=blend,
+                    **raster_kwargs,
+                )  # fmt: skip
+                for b in range(len(world_to_cam))
+            ]
+            return RenderOutput(*(torch.cat([getattr(o, f) for o in outs]) for f in ("colors", "depths", "alphas")))
+        else:
+            opacities = opacities * view_fade(g.view_rays, g.means_at(t), centres[0])
     degree = g.sh_degree
     # 3DGS colour: max(SH + 0.5, 0), no upper clamp (degree 0 is passed as plain RGB).
     colors = torch.clamp_min(sh0_to_rgb(g.sh[:, 0]), 0.0) if degree == 0 else g.sh

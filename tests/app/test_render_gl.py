@@ -212,3 +212,38 @@ def test_gl_ground_matches_torch(gl_ctx):
     assert lower.any() and upper.any()
     np.testing.assert_allclose(ref_img[lower], np.broadcast_to([0.9, 0.2, 0.1], ref_img[lower].shape), atol=1e-3)
     np.testing.assert_allclose(ref_img[upper], without.colors[0].clamp(0, 1).numpy()[upper], atol=1e-3)
+
+
+def _with_view_rays(gaussians, centre: np.ndarray, degrees: np.ndarray):
+    """``gaussians`` whose view rays are the rays from ``centre`` to them turned by ``degrees`` [N]
+    (NaN: not view-bound) about an axis across the ray."""
+    to_mean = torch.nn.functional.normalize(gaussians.means - torch.from_numpy(centre).float(), dim=-1)
+    across = torch.nn.functional.normalize(torch.cross(to_mean, torch.tensor([0.0, 1.0, 0.0]).expand_as(to_mean), dim=-1), dim=-1)
+    angle = torch.from_numpy(np.nan_to_num(np.radians(degrees))).float()[:, None]
+    rays = torch.cos(angle) * to_mean + torch.sin(angle) * across
+    rays = torch.where(torch.from_numpy(np.isnan(degrees))[:, None], torch.zeros_like(rays), rays)
+    return dataclasses.replace(gaussians, view_rays=rays)
+
+
+@pytest.mark.gl
+def test_gl_view_bound_matches_torch(gl_ctx):
+    """View-bound Gaussians fade with the angle between the view ray and their own, the same in
+    the window as in the CPU renderer: drawn fully within 3 degrees, partly at 12, not at all at 30."""
+    gaussians = random_gaussians(120, sh_degree=0, seed=5)
+    cam = _camera()
+    degrees = np.tile([np.nan, 0.0, 2.0, 12.0, 30.0, 60.0], 20)
+    bound = _with_view_rays(gaussians, cam.centre, degrees)
+    sky = torch.zeros(1, 3)
+    args = (torch.from_numpy(cam.world_to_cam)[None].float(), torch.from_numpy(K)[None].float(), H, W)
+    ref = render_gaussians(bound, 0.0, *args, sky_sh=sky, max_layers=1024, backend="torch").colors[0].clamp(0, 1).numpy()
+    gl = _gl_render(gl_ctx, bound, sky, 0.0, "all", "u16")
+    assert _psnr(gl, ref) >= 35.0
+    # the same picture as the Gaussians left without the faded ones, and not the picture of all of them
+    faded = np.isin(degrees, [30.0, 60.0])
+    kept = torch.from_numpy(~faded & (degrees != 12.0))
+    plain = render_gaussians(gaussians, 0.0, *args, sky_sh=sky, max_layers=1024, backend="torch").colors[0].numpy()
+    assert _psnr(ref, plain.clip(0, 1)) < 40.0
+    partial = render_gaussians(bound.index(~torch.from_numpy(faded)), 0.0, *args, sky_sh=sky, max_layers=1024, backend="torch")
+    assert _psnr(ref, partial.colors[0].clamp(0, 1).numpy()) >= 60.0
+    half = render_gaussians(gaussians.index(kept), 0.0, *args, sky_sh=sky, max_layers=1024, backend="torch")
+    assert _psnr(ref, half.colors[0].clamp(0, 1).numpy()) < 60.0  # the 12-degree ones show, partly

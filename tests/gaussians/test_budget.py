@@ -64,6 +64,20 @@ def test_different_flows_do_not_merge():
     assert len(torch.unique(ids)) == len(moving)
 
 
+def test_view_bound_and_free_gaussians_do_not_merge_and_bound_groups_stay_bound():
+    g = _grid(3)
+    twice = Gaussians.cat([g, g])
+    rays = torch.zeros(len(twice), 3)
+    rays[len(g) :, 2] = 1.0  # the copy is view-bound, seen along +z
+    twice = Gaussians(**{**twice.__dict__, "view_rays": rays})
+    ids = merge_keys(twice, 1.0, 0.1)
+    assert len(torch.unique(ids)) == len(twice)
+    bound = twice.index(twice.view_bound)
+    merged = merge_groups(bound, torch.zeros(len(bound), dtype=torch.long))
+    assert len(merged) == 1 and merged.view_bound.all()
+    torch.testing.assert_close(merged.view_rays[0], torch.tensor([0.0, 0.0, 1.0]))
+
+
 def test_opacity_and_distance_pruning():
     g = random_gaussians(200, seed=3)
     out, report = apply_budget(g, BudgetConfig(min_opacity=0.5, max_distance=6.0, merge_cell=0), torch.zeros(3))

@@ -376,3 +376,59 @@ def test_recon_ground_is_stored_and_fitted_for_files_without_it(tmp_path):
     del arrays["ground_rgb"]  # a file written before the ground existed: fitted on load
     save_npz(tmp_path / "old.npz", arrays)
     torch.testing.assert_close(load_reconstruction(tmp_path / "old.npz").ground_rgb, recon.ground_rgb)
+
+
+def _view_bound(g: Gaussians, every: int = 3) -> Gaussians:
+    """``g`` with every ``every``-th Gaussian view-bound along a random unit ray."""
+    rays = torch.nn.functional.normalize(torch.randn(len(g), 3, generator=torch.Generator().manual_seed(4)), dim=-1)
+    rays[torch.arange(len(g)) % every != 0] = 0
+    return replace(g, view_rays=rays)
+
+
+def test_view_rays_default_to_zero_and_travel_with_the_gaussians():
+    g = random_gaussians(30)
+    assert g.view_rays.shape == (30, 3) and not g.view_bound.any()
+    b = _view_bound(g)
+    assert int(b.view_bound.sum()) == 10
+    torch.testing.assert_close(b.index(torch.arange(0, 30, 3)).view_rays, b.view_rays[::3])
+    assert Gaussians.cat([g, b]).view_bound.sum() == 10
+    # a rigid transform turns the rays with the frame: the angle to each mean's offset is kept
+    a_to_b = torch.eye(4, dtype=torch.float64)
+    a_to_b[:3, :3] = quat_to_matrix(torch.nn.functional.normalize(torch.tensor([0.9, 0.1, -0.3, 0.2]), dim=0)).double()
+    a_to_b[:3, 3] = torch.tensor([1.0, -2.0, 0.5])
+    moved = b.transform(a_to_b)
+    torch.testing.assert_close(moved.view_rays, b.view_rays @ a_to_b[:3, :3].T.float())
+    assert torch.equal(moved.view_bound, b.view_bound)
+    with pytest.raises(InputError, match="view_rays"):
+        replace(g, view_rays=torch.zeros(29, 3))
+
+
+def test_view_fade_is_full_near_the_view_ray_and_zero_far_from_it():
+    from drivingscene.gaussians.core import VIEW_FADE_DEG, view_fade
+
+    centre = torch.zeros(3)
+    means = torch.tensor([[0.0, 0.0, 10.0]]).expand(6, 3)
+    degrees = torch.tensor([0.0, VIEW_FADE_DEG[0], 0.5 * sum(VIEW_FADE_DEG), VIEW_FADE_DEG[1], 45.0, 90.0])
+    rays = torch.stack([torch.sin(torch.deg2rad(degrees)), torch.zeros(6), torch.cos(torch.deg2rad(degrees))], -1)
+    fade = view_fade(rays, means, centre)
+    torch.testing.assert_close(fade[[0, 1]], torch.ones(2), atol=1e-5, rtol=0)
+    assert 0.2 < fade[2] < 0.8
+    torch.testing.assert_close(fade[3:], torch.zeros(3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(view_fade(torch.zeros(6, 3), means, centre), torch.ones(6))  # not view-bound
+
+
+def test_recon_view_rays_round_trip_and_bad_rays_are_named(tmp_path):
+    recon = _recon()
+    recon = recon.with_gaussians(_view_bound(recon.gaussians))
+    arrays = recon_to_arrays(recon)
+    assert arrays["view_bound_index"].size == int(recon.gaussians.view_bound.sum()) > 0
+    back = load_reconstruction(save_reconstruction(recon, tmp_path / "r.npz"))
+    torch.testing.assert_close(back.gaussians.view_rays, recon.gaussians.view_rays, atol=0, rtol=0)
+    assert "view_bound_index" not in recon_to_arrays(_recon())  # none: the keys are left out
+    bad = dict(arrays, view_bound_rays=arrays["view_bound_rays"] * 2)
+    assert any("view_bound_rays: expected unit vectors" in str(p) for p in validate_recon_arrays(bad, "r.npz"))
+    lone = {k: v for k, v in arrays.items() if k != "view_bound_rays"}
+    assert any(
+        "view_bound_rays: expected view_bound_index and view_bound_rays together" in str(p)
+        for p in validate_recon_arrays(lone, "r.npz")
+    )

@@ -94,3 +94,21 @@ def test_eval_frames_render_each_camera_at_its_own_time(synth_pair):
     assert torch.allclose(frames[0, 1], single.colors[0].clamp(0, 1), atol=1e-6)
     same = render_eval_frames(recon, synth_pair)
     assert torch.equal(frames[:, 0], same[:, 0]) and not torch.equal(frames[:, 1], same[:, 1])
+
+
+def test_view_bound_gaussians_are_those_another_image_sees_through(synth_pair, model):
+    """reconstruct keeps the Gaussians free-space carving would drop, made view-bound: exactly the
+    ones carving drops, each with the unit ray from its source camera's centre to its mean."""
+    from drivingscene.gaussians.visibility import CarveConfig
+
+    plain = reconstruct(model, synth_pair, InferenceOptions(view_bound=None))
+    assert not plain.gaussians.view_bound.any()
+    bound = reconstruct(model, synth_pair)
+    carved = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, carve=CarveConfig()))
+    g = bound.gaussians
+    assert len(g) == len(plain.gaussians) and 0 < int(g.view_bound.sum()) == len(g) - len(carved.gaussians)
+    torch.testing.assert_close(g.index(~g.view_bound).means, carved.gaussians.means)
+    cams = torch.from_numpy(bound.ego_to_world[:, None] @ bound.cam_to_ego[None]).float()
+    centres = cams[g.keyframes, g.cameras, :3, 3]
+    expected = torch.nn.functional.normalize(g.means - centres, dim=-1)
+    torch.testing.assert_close(g.view_rays[g.view_bound], expected[g.view_bound], atol=1e-4, rtol=0)

@@ -183,3 +183,28 @@ def test_layers_are_each_masks_gaussians_in_order_with_their_gradients(shuffled)
         sum((i + 1.0) * (p.means**2).sum() for i, p in enumerate(parts)).backward()
         grads.append(means.grad)
     assert torch.equal(grads[0], grads[1])
+
+
+def test_a_view_bound_wall_shows_from_its_own_direction_only():
+    """A view-bound wall in front of another: seen along its view rays it hides the wall behind, from
+    30 degrees off them it is gone; a batch of both cameras renders each as alone, with and without
+    drawing each Gaussian into one camera of the batch (``views``)."""
+    front, back = _wall(5.0, (1.0, 0.0, 0.0), keyframe=0), _wall(8.0, (0.0, 0.0, 1.0), keyframe=0, x_range=(-6.0, 6.0))
+    front = dataclasses.replace(front, view_rays=torch.nn.functional.normalize(front.means, dim=-1))  # seen from the origin
+    both = Gaussians.cat([front, back])
+    turned = torch.eye(4)  # a camera 30 degrees around the y axis through the front wall's centre, looking at it
+    angle = torch.tensor(30.0).deg2rad()
+    rot = torch.tensor([[angle.cos(), 0.0, angle.sin()], [0.0, 1.0, 0.0], [-angle.sin(), 0.0, angle.cos()]])
+    centre = torch.tensor([0.0, 0.0, 5.0]) - rot @ torch.tensor([0.0, 0.0, 5.0])
+    turned[:3, :3], turned[:3, 3] = rot.T, -(rot.T @ centre)
+    cams = torch.cat([EYE, turned[None]])
+    ks = K.expand(2, 3, 3)
+    alone = [render_gaussians(both, 0.0, cams[i : i + 1], K, HEIGHT, WIDTH).colors[0] for i in range(2)]
+    centre_px = alone[0][HEIGHT // 2, WIDTH // 2]
+    assert centre_px[0] > 0.9 and centre_px[2] < 0.1  # along its rays: the red wall in front
+    assert alone[1][HEIGHT // 2, WIDTH // 2, 2] > 0.9  # 30 degrees off: the blue wall behind
+    batch = render_gaussians(both, 0.0, cams, ks, HEIGHT, WIDTH).colors
+    torch.testing.assert_close(batch, torch.stack(alone), atol=1e-5, rtol=0)
+    for i in range(2):
+        one = render_gaussians(both, 0.0, cams, ks, HEIGHT, WIDTH, views=torch.full((len(both),), i)).colors[i]
+        torch.testing.assert_close(one, alone[i], atol=1e-5, rtol=0)
