@@ -68,32 +68,32 @@ def render_gaussians(
             **raster_kwargs,
         )
     g = gaussians
+    bound = bool(g.view_bound.any())  # view-bound Gaussians fade with the angle to their view ray, per camera
+    if bound and len(world_to_cam) > 1 and raster_kwargs.get("views") is None:  # each camera fades them its way
+        outs = [
+            render_gaussians(
+                g,
+                t,
+                world_to_cam[b : b + 1],
+                intrinsics[b : b + 1],
+                height,
+                width,
+                sky_sh=sky_sh,
+                background=background,
+                ground=ground,
+                blend=blend,
+                **raster_kwargs,
+            )
+            for b in range(len(world_to_cam))
+        ]
+        return RenderOutput(*(torch.cat([getattr(o, f) for o in outs]) for f in ("colors", "depths", "alphas")))
     opacities = g.opacities * g.time_weights(t, blend)
-    if g.view_bound.any():  # view-bound Gaussians fade with the angle to their view ray, per camera
-        centres = torch.linalg.inv(world_to_cam.double())[:, :3, 3].float()
+    if bound:  # one camera, or each Gaussian drawn into one camera of the batch (``views``)
+        centres = invert_rigid(world_to_cam.double())[:, :3, 3].float()
         views = raster_kwargs.get("views")
-        if views is not None:  # each Gaussian drawn into one camera: its fade from that camera
-            opacities = opacities * view_fade(g.view_rays, g.means_at(t), centres[views.clamp(min=0)])
-        elif len(world_to_cam) > 1:
-            outs = [
-                render_gaussians(
-                    gaussians,
-                    t,
-                    world_to_cam[b : b + 1],
-                    intrinsics[b : b + 1],
-                    height,
-                    width,
-                    sky_sh=sky_sh,
-                    background=background,
-                    ground=ground,
-                    blend=blend,
-                    **raster_kwargs,
-                )  # fmt: skip
-                for b in range(len(world_to_cam))
-            ]
-            return RenderOutput(*(torch.cat([getattr(o, f) for o in outs]) for f in ("colors", "depths", "alphas")))
-        else:
-            opacities = opacities * view_fade(g.view_rays, g.means_at(t), centres[0])
+        opacities = opacities * view_fade(
+            g.view_rays, g.means_at(t), centres[0] if views is None else centres[views.clamp(min=0)]
+        )
     degree = g.sh_degree
     # 3DGS colour: max(SH + 0.5, 0), no upper clamp (degree 0 is passed as plain RGB).
     colors = torch.clamp_min(sh0_to_rgb(g.sh[:, 0]), 0.0) if degree == 0 else g.sh
