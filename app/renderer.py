@@ -11,7 +11,7 @@ time uploads nothing but the new order. ``present`` draws a target into the wind
 The layered blends ("layers": one layer per keyframe, "cameras": one per keyframe and source camera;
 ``drivingscene.render.scene``) draw each layer's splats over transparent black into a target of its
 own (premultiplied colour), then ``shaders/compose.glsl`` adds the layers with their weights into
-two accumulation targets and resolves them over the sky. The sorter groups the order by layer, so
+four accumulation targets (each keyframe's picture apart) and resolves them over the sky. The sorter groups the order by layer, so
 each layer is one contiguous range of it. With surface averaging (``LayerBlend.surface_tolerance``
 > 0, ``drivingscene.render.composite``) a layer is drawn twice: its front depth per pixel (MIN
 blending), then its splats into three targets, the front surface's sums and what lies behind it
@@ -331,12 +331,11 @@ class SplatRenderer:
         return self._draw(splats, camera, t, opts, target, start, count)
 
     def _layers(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions):
-        """``(name, weight, [(start, end) back to front], keyframe filter)`` of each layer to draw."""
-        from drivingscene.render.scene import layer_time_weight
-
+        """``(name, view weight, [(start, end) back to front], keyframe filter, keyframe)`` of each
+        layer to draw."""
         n = splats.count
         if splats.segments is None:  # an order not grouped by layer: each keyframe over the whole range
-            return [(f"k{k}", layer_time_weight(k, t), [(0, n)], k) for k in (0, 1)]
+            return [(f"k{k}", 1.0, [(0, n)], k, k) for k in (0, 1)]
         by_camera = opts.blend == "cameras" and self.source_axes is not None
         axis = camera.world_to_cam[2, :3]
         groups: dict[tuple[int, int], list] = {}
@@ -345,31 +344,29 @@ class SplatRenderer:
             groups.setdefault(key, []).append((n - b, n - a))  # front-to-back [a, b) -> back to front
         layers = []
         for (k, c), ranges in sorted(groups.items()):
-            weight = layer_time_weight(k, t)
+            weight = 1.0
             if c >= 0 and c < self.source_axes.shape[1]:
-                weight *= opts.layer_blend.view_weight(float(axis @ self.source_axes[k, c]), k, t)
-            layers.append((f"k{k}c{c}", weight, ranges, -1))
+                weight = opts.layer_blend.view_weight(float(axis @ self.source_axes[k, c]), k, t)
+            layers.append((f"k{k}c{c}", weight, ranges, -1, k))
         return layers
 
     def _draw_layers(self, splats, camera, t, opts, target: Target, start: int, count: int) -> None:
         end = start + min(count, splats.count - start)
         layers = self._layers(splats, camera, t, opts)
-        acc = [self.target(target.width, target.height, "f4", name=f"acc{i}@{target.texture.glo}") for i in (0, 1)]
-        if "fbo" not in self._acc or self._acc["key"] != (acc[0].texture.glo, acc[1].texture.glo):
+        acc = [self.target(target.width, target.height, "f4", name=f"acc{i}@{target.texture.glo}") for i in range(4)]
+        key = tuple(a.texture.glo for a in acc)
+        if "fbo" not in self._acc or self._acc["key"] != key:
             if "fbo" in self._acc:
                 self._acc["fbo"].release()
-            self._acc = {
-                "fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]),
-                "key": (acc[0].texture.glo, acc[1].texture.glo),
-            }
+            self._acc = {"fbo": self.ctx.framebuffer(color_attachments=[a.texture for a in acc]), "key": key}
         acc_fbo = self._acc["fbo"]
         if start == 0:
             acc_fbo.clear(0.0, 0.0, 0.0, 0.0)
         tolerance = opts.layer_blend.surface_tolerance
         # in the order of their ranges: a layer's scratch targets are free again once it is added
         layers = sorted(layers, key=lambda layer: min(a for a, _ in layer[2]))
-        contiguous = splats.segments is not None and all(len(ranges) == 1 for _, _, ranges, _ in layers)
-        for name, weight, ranges, keyframe in layers:
+        contiguous = splats.segments is not None and all(len(layer[2]) == 1 for layer in layers)
+        for name, weight, ranges, keyframe, layer_keyframe in layers:
             layer_name = f"layer-{name}@{target.texture.glo}"
             layer = self.target(target.width, target.height, target.dtype, name=layer_name)
             scratch = f"surface@{target.texture.glo}" if contiguous else layer_name
@@ -390,9 +387,9 @@ class SplatRenderer:
                     else:
                         self._draw(splats, camera, t, opts, surface, lo, hi - lo, layer=keyframe, sky=False, surface_pass=2)
             if start < max(b for _, b in ranges) <= end:  # the layer is complete: add it once
-                self._accumulate(layer, acc_fbo, weight, opts.layer_blend.coverage_full, surface)
+                self._accumulate(layer, acc_fbo, weight, layer_keyframe, opts.layer_blend.coverage_full, surface)
         self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
-        self._resolve(acc, target)
+        self._resolve(acc, target, t, opts.layer_blend.far_mix)
 
     def _surface(self, name: str, layer: Target, scratch: str) -> SurfaceLayer:
         """The surface-averaging framebuffer of the layer target ``name`` over the scratch targets
@@ -444,7 +441,13 @@ class SplatRenderer:
         return target
 
     def _accumulate(
-        self, layer: Target, acc_fbo, weight: float, coverage_full: float, surface: SurfaceLayer | None = None
+        self,
+        layer: Target,
+        acc_fbo,
+        weight: float,
+        keyframe: int,
+        coverage_full: float,
+        surface: SurfaceLayer | None = None,
     ) -> None:
         acc_fbo.use()
         self.ctx.viewport = (0, 0, layer.width, layer.height)
@@ -461,12 +464,12 @@ class SplatRenderer:
                 t.texture.use(unit)
             prog["u_front_sum"].value, prog["u_front_stats"].value = 3, 4
         prog["u_pass"].value, prog["u_layer"].value, prog["u_weight"].value = 0, 0, float(weight)
-        prog["u_coverage_full"].value = coverage_full
+        prog["u_keyframe"].value, prog["u_coverage_full"].value = keyframe, coverage_full
         self.compose_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
         self.ctx.blend_equation = self.ctx.FUNC_ADD
         self.ctx.disable(self.ctx.BLEND)
 
-    def _resolve(self, acc: list[Target], target: Target) -> None:
+    def _resolve(self, acc: list[Target], target: Target, t: float, far_mix: float) -> None:
         target.fbo.use()
         self.ctx.viewport = (0, 0, target.width, target.height)
         self.ctx.enable(self.ctx.BLEND)
@@ -476,6 +479,8 @@ class SplatRenderer:
             a.texture.use(unit + 1)
         prog = self.compose_prog
         prog["u_pass"].value, prog["u_acc0"].value, prog["u_acc1"].value = 1, 1, 2
+        prog["u_acc2"].value, prog["u_acc3"].value = 3, 4
+        prog["u_time"].value, prog["u_far_mix"].value = float(t), float(far_mix)
         self.compose_vao.render(mode=self.ctx.TRIANGLES, vertices=3)
         self.ctx.disable(self.ctx.BLEND)
 

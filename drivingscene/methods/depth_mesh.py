@@ -23,11 +23,12 @@ Gaussian keep zero flow. At normalised time t a keyframe-0 vertex sits at ``x + 
 keyframe-1 vertex at ``x + (1 - t) flow`` (`drivingscene.gaussians.timing.time_steps`).
 
 Rendering (moderngl, EGL offscreen, ``shaders/depth_mesh.glsl``): each image's mesh into its own
-layer with its own z-buffer, then the layers blended per pixel with the weights of the Gaussians'
-default "cameras" blend (`drivingscene.render.scene.render_camera_layers`): time weight
-``layer_time_weight(k, t)`` x view weight ``LayerBlend.view_weight`` of the angle between
-the layer's camera axis and the target's x coverage, over the reconstruction's sky. Those constants
-are read when rendering, so a retuned blend applies to the baseline too.
+layer with its own z-buffer, then the layers blended per pixel as the Gaussians' default "cameras" blend does
+(`drivingscene.render.scene.render_camera_layers`): within a keyframe, view weight
+``LayerBlend.view_weight`` of the angle between the layer's camera axis and the target's x
+coverage, and the two keyframes' pictures mixed by time (``render.scene.keyframe_weights``), over
+the reconstruction's sky. Those rules are read when rendering, so a retuned blend applies to the
+baseline too.
 """
 
 from __future__ import annotations
@@ -243,17 +244,15 @@ class DepthMeshRenderer:
         return self._targets[(width, height)][0]
 
     def layer_weights(self, t: float, world_to_cam: np.ndarray, blend=None) -> np.ndarray:
-        """``[L, B]`` blend weight of each layer for each target camera at time t: the "cameras"
-        blend's time weight x view weight (`drivingscene.render.scene.LayerBlend`, default now)."""
+        """``[L, B]`` view weight of each layer for each target camera at time t: the "cameras"
+        blend's (`drivingscene.render.scene.LayerBlend`, default now)."""
         rule = blend or render_scene.LayerBlend()
         axes = render_scene.source_axes(self.recon).double().numpy()  # [2, V, 3]
         target_axes = np.asarray(world_to_cam, np.float64)[:, 2, :3]  # [B, 3] optical axes in the world
         out = np.empty((len(self.layers), len(target_axes)))
         for i, layer in enumerate(self.layers):
             cos = target_axes @ axes[layer.keyframe, layer.camera]
-            out[i] = render_scene.layer_time_weight(layer.keyframe, float(t)) * np.array(
-                [rule.view_weight(float(c), layer.keyframe, t) for c in cos]
-            )
+            out[i] = [rule.view_weight(float(c), layer.keyframe, t) for c in cos]
         return out
 
     def render_layer(
@@ -294,28 +293,35 @@ class DepthMeshRenderer:
         """Every layer rendered into each camera at normalised time t and blended over the sky."""
         w2c = np.asarray(world_to_cam, np.float64).reshape(-1, 4, 4)
         ks = np.asarray(intrinsics, np.float64).reshape(-1, 3, 3)
-        weights = self.layer_weights(t, w2c)
+        rule = render_scene.LayerBlend()
+        weights = self.layer_weights(t, w2c, rule)
         colors = torch.empty(len(w2c), height, width, 3)
         depths = torch.empty(len(w2c), height, width)
         coverage = torch.empty(len(w2c), height, width)
         for b in range(len(w2c)):
-            total = np.zeros((height, width), np.float64)
-            rgb = np.zeros((height, width, 3), np.float64)
-            z = np.zeros((height, width), np.float64)
+            total = np.zeros((2, height, width), np.float64)  # per keyframe
+            rgb = np.zeros((2, height, width, 3), np.float64)
+            z = np.zeros((2, height, width), np.float64)
+            view = np.zeros((2, height, width), np.float64)  # the best view weight that covers
             for i in range(len(self.layers)):
                 if self._gpu[i] is None:
                     continue
+                k = self.layers[i].keyframe
                 layer = self.render_layer(i, t, w2c[b], ks[b], height, width)
-                covered = layer[..., 3] > 0
-                w = weights[i, b] * covered
-                total += w
-                rgb += w[..., None] * layer[..., :3]
-                z += w * layer[..., 3]
-            hit = total > 0
+                w = weights[i, b] * (layer[..., 3] > 0)
+                total[k] += w
+                view[k] = np.maximum(view[k], w)
+                rgb[k] += w[..., None] * layer[..., :3]
+                z[k] += w * layer[..., 3]
+            hit = total > 0  # each keyframe's coverage
             norm = np.where(hit, total, 1.0)
-            colors[b] = torch.from_numpy(rgb / norm[..., None]).float()
-            depths[b] = torch.from_numpy(z / norm).float()
-            coverage[b] = torch.from_numpy(hit).float()
+            mix = np.stack(
+                render_scene.keyframe_weights(tuple(total), tuple(hit.astype(np.float64)), tuple(view), t, rule.far_mix)
+            )
+            mix_norm = np.where(hit.any(0), mix.sum(0), 1.0)
+            colors[b] = torch.from_numpy((mix[..., None] * rgb / norm[..., None]).sum(0) / mix_norm[..., None]).float()
+            depths[b] = torch.from_numpy((mix * z / norm).sum(0) / mix_norm).float()
+            coverage[b] = torch.from_numpy(hit.any(0)).float()
         sky = None if self.recon.sky_sh is None else self.recon.sky_sh.float()  # black without a sky model
         background = render_scene.background_colors(
             torch.from_numpy(w2c), torch.from_numpy(ks), height, width, sky, ground=self.recon.ground

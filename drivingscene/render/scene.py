@@ -117,11 +117,6 @@ def render_gaussians(
     return RenderOutput(colors=out.colors + (1 - out.alphas[..., None]) * sky, depths=out.depths, alphas=out.alphas)
 
 
-# "layers": the weight of the other keyframe's layer at a keyframe itself, so that what the near
-# layer did not see (its holes: alpha < 1) comes from the far one.
-LAYER_FLOOR = 0.05
-
-
 def render_layers(
     gaussians: Gaussians,
     t: float | Tensor,
@@ -137,24 +132,45 @@ def render_layers(
     **kwargs,
 ) -> RenderOutput:
     """Each keyframe's Gaussians rendered on their own at time t (occlusion within a keyframe's set
-    only), the two images blended per pixel with weights ``(1 - t + f) alpha_0`` and
-    ``(t + f) alpha_1`` (f = ``LAYER_FLOOR``): where both layers see a surface they cross-fade in
-    time, where one has a hole the other fills it. Rendering both sets together ("all") lets the
-    nearer of two slightly misplaced copies of a surface win outright, which doubles edges; the
-    blend degrades to a cross-fade instead (docs/results.md measures both). Each layer is rendered
-    over black (premultiplied colour) and the blend goes over the background once, so a layer's
-    partly transparent splats do not bring their own background into the mix (`_compose`)."""
+    only) and the two images blended per pixel (`keyframe_weights`): where both layers see a surface
+    they cross-fade in time, where one has a hole the other fills it. Rendering both sets together
+    ("all") lets the nearer of two slightly misplaced copies of a surface win outright, which
+    doubles edges; the blend degrades to a cross-fade instead (docs/results.md measures both). Each
+    layer is rendered over black (premultiplied colour) and the blend goes over the background
+    once, so a layer's partly transparent splats do not bring their own background into the mix
+    (`_compose`)."""
     t = float(t)
-    sets = [(gaussians.keyframes == k, torch.full((world_to_cam.shape[0],), layer_time_weight(k, t))) for k in (0, 1)]
+    ones = torch.ones(world_to_cam.shape[0])
+    sets = [(gaussians.keyframes == k, ones, k) for k in (0, 1)]
     return _render_sets(
         gaussians, t, world_to_cam, intrinsics, height, width, sets,
         sky_sh=sky_sh, background=background, ground=ground, layer_blend=layer_blend, **kwargs,
     )  # fmt: skip
 
 
-def layer_time_weight(keyframe: int, t: float) -> float:
-    """Weight of a keyframe's layer at normalised time t in the layered blends."""
-    return (1.0 - t if keyframe == 0 else t) + LAYER_FLOOR
+def keyframe_weights(totals: tuple, coverage: tuple, views: tuple, t: float, far_mix: float = 0.0) -> tuple:
+    """The weights ``(W_0, W_1)`` with which the layered blends mix what each keyframe's layers show
+    at normalised time t, from each keyframe's summed view weight x coverage ``T_k``, its coverage
+    ``A_k`` (the largest of its layers') and its best view ``V_k`` (the largest view weight x
+    coverage of its layers); tensors or arrays of any shape. With ``s = |1 - 2t|`` (1 at a
+    keyframe, 0 mid-way), ``tau_0 = 1 - t`` and ``tau_1 = t``:
+
+        W_k = (s A_k + (1 - s) T_k) (1 - (1 - tau_k) A_other + far_mix s (1 - V_other)).
+
+    Where both keyframes cover a pixel they cross-fade in time; where one does not, the other fills
+    it. At a keyframe itself the other keyframe only fills what the keyframe's own images left
+    uncovered (the "over" operator), so that a moving object's background, seen at the other
+    keyframe, does not show through its own picture, however well the other keyframe's cameras
+    look along the view. Near a keyframe the ``far_mix`` term mixes the other keyframe back in as
+    the view turns away from every camera of the near one (``V`` falls): far from the capture
+    poses the two pictures are two estimates of one scene with different errors, and averaging
+    them helps. Mid-way each keyframe counts by ``T_k``, as all layers did in one weighted sum
+    before this rule (docs/magnification.md, *Keyframes*)."""
+    (t0, t1), (a0, a1), (v0, v1), t = totals, coverage, views, float(t)
+    s = abs(1.0 - 2.0 * t)
+    w0 = (s * a0 + (1 - s) * t0) * (1 - t * a1 + far_mix * s * (1 - v1))
+    w1 = (s * a1 + (1 - s) * t1) * (1 - (1 - t) * a0 + far_mix * s * (1 - v0))
+    return w0, w1
 
 
 # "cameras": how fast a layer's weight falls with the angle between its camera's optical axis and
@@ -173,6 +189,10 @@ CAMERA_ANGLE_SCALE_AT_KEYFRAME = 0.1
 # another camera's layer would show through them as a screen-door (docs/magnification.md).
 COVERAGE_FULL = 0.7
 
+# `keyframe_weights`: how much of the other keyframe's picture is mixed in near a keyframe where the
+# view looks along none of its cameras (0: none; chosen on validation pairs, docs/magnification.md).
+FAR_MIX = 1.0
+
 
 @dataclass(frozen=True)
 class LayerBlend:
@@ -182,6 +202,7 @@ class LayerBlend:
     angle_scale: float = CAMERA_ANGLE_SCALE
     angle_scale_at_keyframe: float = CAMERA_ANGLE_SCALE_AT_KEYFRAME
     surface_tolerance: float = SURFACE_TOLERANCE  # each layer's front surface averaged (render.composite); 0: composited
+    far_mix: float = FAR_MIX  # keyframe_weights: the other keyframe mixed in away from a keyframe's cameras
 
     def view_weight(self, cos, keyframe: int, t: float):
         """View weight of a layer of ``keyframe`` at normalised time ``t`` whose camera's optical
@@ -207,12 +228,13 @@ def render_camera_layers(
     **kwargs,
 ) -> RenderOutput:
     """Like ``render_layers`` with one layer per keyframe and input camera: the Gaussians of each
-    input image rendered on their own, blended per pixel with weight time x view x alpha, the view
-    weight `LayerBlend.view_weight` falling with the angle between the optical axes of
-    the layer's camera and of the target. Where a camera's own Gaussians cover a pixel they decide
-    its colour; a neighbour's Gaussians, which on real frames often float in front at a wrong depth,
-    only fill what the nearer cameras did not see. Gaussians of an unknown camera (-1) form one
-    layer per keyframe with view weight 1."""
+    input image rendered on their own; a keyframe's layers blended per pixel with weight view x
+    coverage, the view weight `LayerBlend.view_weight` falling with the angle between the optical
+    axes of the layer's camera and of the target, and the two keyframes' pictures mixed by time
+    (`keyframe_weights`). Where a camera's own Gaussians cover a pixel they decide its colour; a
+    neighbour's Gaussians, which on real frames often float in front at a wrong depth, only fill
+    what the nearer cameras did not see. Gaussians of an unknown camera (-1) form one layer per
+    keyframe with view weight 1."""
     t = float(t)
     rule = layer_blend or LayerBlend()
     target_axes = world_to_cam[:, 2, :3].float()  # camera z axis in world: the third row of R_w2c
@@ -226,7 +248,7 @@ def render_camera_layers(
                 view_weight = torch.ones(len(target_axes))
             else:
                 view_weight = rule.view_weight(target_axes @ source_axes[k, c].to(target_axes), k, t)
-            sets.append(((gaussians.keyframes == k) & (gaussians.cameras == c), layer_time_weight(k, t) * view_weight))
+            sets.append(((gaussians.keyframes == k) & (gaussians.cameras == c), view_weight, k))
     return _render_sets(
         gaussians, t, world_to_cam, intrinsics, height, width, sets,
         sky_sh=sky_sh, background=background, ground=ground, layer_blend=rule, **kwargs,
@@ -240,7 +262,7 @@ def _render_sets(
     intrinsics: Tensor,
     height: int,
     width: int,
-    sets: list[tuple[Tensor, Tensor]],  # (mask [N], weights [B]) per layer
+    sets: list[tuple[Tensor, Tensor, int]],  # (mask [N], view weights [B], keyframe) per layer
     *,
     sky_sh: Tensor | None,
     background: Tensor | None,
@@ -260,11 +282,11 @@ def _render_sets(
     kwargs.setdefault("surface_tolerance", rule.surface_tolerance)
     layers = [
         render_gaussians(part, t, world_to_cam, intrinsics, height, width, background=black, **kwargs)
-        for part in _layer_parts(gaussians, [mask for mask, _ in sets])
+        for part in _layer_parts(gaussians, [mask for mask, _, _ in sets])
     ]
-    weights = torch.stack([w for _, w in sets])
+    weights = torch.stack([w for _, w, _ in sets])
     background = background_colors(world_to_cam, intrinsics, height, width, sky_sh, background, ground)
-    return _compose(layers, weights, background, rule.coverage_full)
+    return _compose(layers, weights, [k for _, _, k in sets], t, background, rule)
 
 
 def _layer_parts(gaussians: Gaussians, masks: list[Tensor]) -> list[Gaussians]:
@@ -279,21 +301,44 @@ def _layer_parts(gaussians: Gaussians, masks: list[Tensor]) -> list[Gaussians]:
 
 
 def _compose(
-    layers: list[RenderOutput], weights: Tensor, background: Tensor, coverage_full: float = COVERAGE_FULL
+    layers: list[RenderOutput],
+    weights: Tensor,  # [L, B] view weights
+    keyframes: list[int],  # [L] each layer's keyframe
+    t: float,
+    background: Tensor,
+    rule: LayerBlend,
 ) -> RenderOutput:
-    """Layers rendered over black (premultiplied colours) blended per pixel: each layer's own colour
-    ``C_l / alpha_l`` and depth weighted by ``weights[l, b] * coverage_l`` with ``coverage_l =
-    min(1, alpha_l / coverage_full)``; the largest coverage over ``background``."""
+    """Layers rendered over black (premultiplied colours) blended per pixel. Within a keyframe, each
+    layer's own colour ``C_l / alpha_l`` and depth weighted by ``weights[l, b] * coverage_l`` with
+    ``coverage_l = min(1, alpha_l / rule.coverage_full)``, the keyframe's coverage ``A_k`` the
+    largest of its layers', its view ``V_k`` the largest ``weights * coverage`` and ``T_k`` their
+    sum; the two keyframes' pictures mixed with `keyframe_weights`; the larger coverage over
+    ``background``."""
+    coverage_full = rule.coverage_full
     w = weights.to(background)[..., None, None]  # [L, B, 1, 1]
     alphas = torch.stack([layer.alphas for layer in layers])  # [L, B, H, W]
     coverage = (alphas / coverage_full).clamp(max=1.0)
-    total = (w * coverage).sum(0)
-    norm = torch.where(total > 1e-12, total, torch.ones_like(total))
     # w * coverage * C / alpha, written so that no division by a vanishing alpha appears
     gain = w / torch.maximum(alphas, torch.full_like(alphas, coverage_full))  # [L, B, H, W]
-    colors = sum(gi[..., None] * layer.colors for gi, layer in zip(gain, layers)) / norm[..., None]
-    depths = sum(wi * ci * layer.depths for wi, ci, layer in zip(w, coverage, layers)) / norm
-    alpha = coverage.amax(0)
+    zero = torch.zeros_like(alphas[0])
+    pictures = []  # (colour, depth, coverage) of each keyframe's layers
+    for k in (0, 1):
+        mine = [i for i, key in enumerate(keyframes) if key == k]
+        if not mine:
+            pictures.append((zero[..., None], zero, zero, zero, zero))
+            continue
+        total = sum(w[i] * coverage[i] for i in mine)
+        norm = torch.where(total > 1e-12, total, torch.ones_like(total))
+        colors = sum(gain[i][..., None] * layers[i].colors for i in mine) / norm[..., None]
+        depths = sum(w[i] * coverage[i] * layers[i].depths for i in mine) / norm
+        pictures.append((colors, depths, total, coverage[mine].amax(0), (w[mine] * coverage[mine]).amax(0)))
+    (c0, d0, t0, a0, v0), (c1, d1, t1, a1, v1) = pictures
+    w0, w1 = keyframe_weights((t0, t1), (a0, a1), (v0, v1), t, rule.far_mix)
+    total = w0 + w1
+    norm = torch.where(total > 1e-12, total, torch.ones_like(total))
+    colors = (w0[..., None] * c0 + w1[..., None] * c1) / norm[..., None]
+    depths = (w0 * d0 + w1 * d1) / norm
+    alpha = torch.maximum(a0, a1)
     return RenderOutput(colors=alpha[..., None] * colors + (1 - alpha[..., None]) * background, depths=depths, alphas=alpha)
 
 

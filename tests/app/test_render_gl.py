@@ -14,7 +14,7 @@ from drivingscene_view.sorter import SortRequest, depth_order, layer_ids, make_s
 from drivingscene_view.splats import SplatArrays
 
 from drivingscene.gaussians.ground import Ground
-from drivingscene.render.scene import render_gaussians
+from drivingscene.render.scene import LayerBlend, render_gaussians
 from tests.app.scenes import random_gaussians
 
 W, H = 96, 64
@@ -27,7 +27,7 @@ def _camera():
     return rig_camera(c2w, K, (H, W))
 
 
-def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, ground=None):
+def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, ground=None, layer_blend=None):
     renderer, gpu = SplatRenderer(ctx), GpuSplats(ctx)
     splats = SplatArrays.from_gaussians(gaussians)
     gpu.set_splats(splats, origin=np.array([0.1, 0.2, 3.0]))
@@ -37,17 +37,16 @@ def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, groun
     cam = _camera()
     req = SortRequest(cam.shifted(gpu.origin).world_to_cam, cam.intrinsics, W, H, t, blend, keys=keys)
     gpu.set_order(depth_order(make_sort_input(splats, gpu.origin), req))
+    opts = RenderOptions(blend=blend) if layer_blend is None else RenderOptions(blend=blend, layer_blend=layer_blend)
     if mode == "depth":
         out = renderer.render(gpu, cam, t, RenderOptions(mode="depth", blend=blend)).read()
     else:
-        out = renderer.render_image(gpu, cam, t, RenderOptions(blend=blend)) / 255.0
+        out = renderer.render_image(gpu, cam, t, opts) / 255.0
         # Drawing the same order in chunks (progressive refinement) gives the same picture.
         target = renderer.target(W, H, name="chunks")
         for start in range(0, gpu.count, 37):
-            renderer.render_range(gpu, cam, t, RenderOptions(blend=blend), target, start, 37)
-        np.testing.assert_allclose(
-            target.read()[..., :3], renderer.render(gpu, cam, t, RenderOptions(blend=blend)).read()[..., :3], atol=1e-3
-        )
+            renderer.render_range(gpu, cam, t, opts, target, start, 37)
+        np.testing.assert_allclose(target.read()[..., :3], renderer.render(gpu, cam, t, opts).read()[..., :3], atol=1e-3)
     renderer.release()
     gpu.release()
     return out
@@ -67,6 +66,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
         (2, 0.6, "nearest", "u16"),
         (0, 0.4, "layers", "u16"),
         (1, 0.3, "cameras", "u16"),
+        (2, 0.0, "cameras", "float"),  # a keyframe: the other one only fills, and mixes in off its cameras' axes
     ],
 )
 def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
@@ -98,6 +98,31 @@ def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
     gl = _gl_render(gl_ctx, gaussians, sky, t, blend, keys, axes=axes)
     assert _psnr(gl, ref) >= 35.0
     assert ref.std() > 0.05  # the scene is not trivially empty
+
+
+@pytest.mark.gl
+def test_gl_mixes_the_keyframes_as_torch(gl_ctx):
+    # at a keyframe, layers whose cameras look away from the view: how much of the other keyframe
+    # mixes in (LayerBlend.far_mix) is the CPU renderer's in the window too
+    gaussians = random_gaussians(300, sh_degree=2, seed=2)
+    gaussians = dataclasses.replace(gaussians, cameras=torch.arange(len(gaussians)) % 4 - 1)
+    rad = np.radians([[0.0, 40.0, 80.0], [10.0, 50.0, 90.0]])
+    axes = np.stack([np.sin(rad), np.zeros_like(rad), np.cos(rad)], -1)
+    sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
+    cam = _camera()
+    rules = [LayerBlend(far_mix=0.0), LayerBlend(far_mix=1.0)]
+    refs = [
+        render_gaussians(
+            gaussians, 0.0, torch.from_numpy(cam.world_to_cam)[None].float(), torch.from_numpy(K)[None].float(), H, W,
+            sky_sh=sky, blend="cameras", source_axes=torch.from_numpy(axes).float(), max_layers=1024, backend="torch",
+            layer_blend=rule,
+        ).colors[0].clamp(0, 1).numpy()
+        for rule in rules
+    ]  # fmt: skip
+    assert _psnr(*refs) < 35.0  # the rule changes the picture
+    for rule, ref, other in zip(rules, refs, refs[::-1]):
+        gl = _gl_render(gl_ctx, gaussians, sky, 0.0, "cameras", "float", axes=axes, layer_blend=rule)
+        assert _psnr(gl, ref) >= 40.0 and _psnr(gl, ref) > _psnr(gl, other) + 5.0
 
 
 @pytest.mark.gl

@@ -155,13 +155,10 @@ def test_layer_weights_are_the_cameras_blend_read_when_rendering(ctx, monkeypatc
         views = np.stack([np.eye(4), turned])
         weights = renderer.layer_weights(0.25, views)
         view_weight = [render_scene.LayerBlend().view_weight(np.cos(yaw), k, 0.25) for k in (0, 1)]
-        times = [render_scene.layer_time_weight(k, 0.25) for k in (0, 1)]
-        expected = np.array([[times[0], times[0] * view_weight[0]], [times[1], times[1] * view_weight[1]]])
+        expected = np.array([[1.0, view_weight[0]], [1.0, view_weight[1]]])
         np.testing.assert_allclose(weights, expected, rtol=1e-5)
         sharp = render_scene.LayerBlend(angle_scale=0.1, angle_scale_at_keyframe=0.1)  # another rule: the baseline follows
-        assert renderer.layer_weights(0.25, views, sharp)[0, 1] == pytest.approx(
-            times[0] * np.exp((np.cos(yaw) - 1) / 0.1), rel=1e-5
-        )
+        assert renderer.layer_weights(0.25, views, sharp)[0, 1] == pytest.approx(np.exp((np.cos(yaw) - 1) / 0.1), rel=1e-5)
         # both keyframes see the same plane: the blend of two identical layers is the texture again
         out = renderer.render(0.25, views[:1], K[None], H, W)
         np.testing.assert_allclose(

@@ -10,7 +10,7 @@ import torch
 
 from drivingscene.errors import InputError
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
-from drivingscene.render.scene import COVERAGE_FULL, LAYER_FLOOR, LayerBlend, render_gaussians
+from drivingscene.render.scene import COVERAGE_FULL, LayerBlend, keyframe_weights, render_gaussians
 
 HEIGHT, WIDTH = 16, 24
 K = torch.tensor([[[20.0, 0.0, (WIDTH - 1) / 2], [0.0, 20.0, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]]])
@@ -47,9 +47,8 @@ def test_where_both_layers_see_a_surface_they_cross_fade_in_time():
     g = Gaussians.cat([_wall(5.0, (1.0, 0.0, 0.0), 0), _wall(5.2, (0.0, 0.0, 1.0), 1)])
     for t in (0.0, 0.3, 1.0):
         out = render_gaussians(g, t, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="layers")
-        w0, w1 = 1 - t + LAYER_FLOOR, t + LAYER_FLOOR
         centre = out.colors[0, HEIGHT // 2, WIDTH // 2]
-        torch.testing.assert_close(centre, torch.tensor([w0, 0.0, w1]) / (w0 + w1), atol=1e-2, rtol=0)
+        torch.testing.assert_close(centre, torch.tensor([1 - t, 0.0, t]), atol=1e-2, rtol=0)
     # rendered together, the nearer copy wins outright whatever the time
     together = render_gaussians(g, 0.9, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="all")
     assert together.colors[0, HEIGHT // 2, WIDTH // 2, 0] > 0.99
@@ -63,7 +62,49 @@ def test_a_hole_in_one_layer_is_filled_by_the_other():
     right = out.colors[0, HEIGHT // 2, WIDTH - 3]
     torch.testing.assert_close(right, torch.tensor([0.0, 1.0, 0.0]), atol=2e-3, rtol=0)
     left = out.colors[0, HEIGHT // 2, 2]
-    assert left[0] > 0.9 and left[1] < 0.1  # at t = 0 keyframe 0 dominates where it sees
+    torch.testing.assert_close(left, torch.tensor([1.0, 0.0, 0.0]), atol=2e-3, rtol=0)  # at t = 0 keyframe 0 alone where it sees
+    # in between, the other keyframe still fills the hole and both cross-fade where both see
+    mid = render_gaussians(g, 0.25, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend="layers")
+    torch.testing.assert_close(mid.colors[0, HEIGHT // 2, WIDTH - 3], torch.tensor([0.0, 1.0, 0.0]), atol=2e-3, rtol=0)
+    torch.testing.assert_close(mid.colors[0, HEIGHT // 2, 2], torch.tensor([0.75, 0.25, 0.0]), atol=1e-2, rtol=0)
+
+
+def test_keyframe_weights_cross_fade_fill_and_give_a_keyframe_its_own_picture():
+    full, half, none = torch.tensor(1.0), torch.tensor(0.5), torch.tensor(0.0)
+
+    def weights(a0, a1, t, totals=None, views=None, far_mix=0.0):
+        # one layer per keyframe looking along the view unless told: T = V = A
+        out = keyframe_weights(totals or (a0, a1), (a0, a1), views or (a0, a1), t, far_mix)
+        return tuple(float(w) for w in out)
+
+    for t in (0.0, 0.3, 0.5, 1.0):
+        w0, w1 = weights(full, full, t)  # both see: a cross-fade in time
+        assert w0 / (w0 + w1) == pytest.approx(1 - t)
+        w0, w1 = weights(none, half, t)  # one sees: it alone
+        assert w0 == 0.0 and w1 > 0.0
+    # at a keyframe the other keyframe fills only what it left open ("over"), however many of the
+    # other keyframe's layers look along the view (T)
+    assert weights(half, full, 0.0) == pytest.approx((0.5, 0.5))
+    assert weights(full, half, 0.0, totals=(full, torch.tensor(3.0))) == pytest.approx((1.0, 0.0))
+    assert weights(half, full, 1.0) == pytest.approx((0.0, 1.0))
+    # mid-way a keyframe counts by its layers' summed view weight x coverage
+    assert weights(full, full, 0.5, totals=(full, torch.tensor(3.0))) == pytest.approx((0.5, 1.5))
+    # far_mix: nothing where the view looks along a keyframe's camera, the other keyframe mixed in
+    # as the view turns away from every camera of that keyframe, near a keyframe only
+    away = (torch.tensor(0.1), full)
+    assert weights(full, full, 0.0, far_mix=0.4) == pytest.approx((1.0, 0.0))
+    assert weights(full, full, 0.0, views=away, far_mix=0.4) == pytest.approx((1.0, 0.4 * 0.9))
+    assert weights(full, full, 0.25, views=away, far_mix=0.4) == pytest.approx((0.75, 0.25 + 0.2 * 0.9))
+    assert weights(full, full, 0.5, views=away, far_mix=0.4) == pytest.approx((0.5, 0.5))
+
+
+def test_at_a_keyframe_the_other_keyframes_picture_does_not_show_through():
+    # a moving object: keyframe 0 saw it (red) where keyframe 1, after it left, saw the wall behind
+    # (blue); at t = 0 the picture is keyframe 0's, with no trace of what keyframe 1 saw there
+    g = Gaussians.cat([_wall(5.0, (1.0, 0.0, 0.0), 0, camera=0), _wall(9.0, (0.0, 0.0, 1.0), 1, camera=0)])
+    for blend in ("layers", "cameras"):
+        out = render_gaussians(g, 0.0, EYE, K, HEIGHT, WIDTH, background=torch.zeros(3), blend=blend, source_axes=_axes(0.0))
+        assert float(out.colors[0, HEIGHT // 2, WIDTH // 2, 2]) < 1e-4
 
 
 @pytest.mark.parametrize("blend", ["layers", "cameras"])
