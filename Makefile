@@ -84,6 +84,8 @@ benchmark: setup
 views: setup
 	$(VENV)/bin/drivingscene bench magnify --force --count 4 --scenes $(REAL_OUT)/ddad02_0-2.npz \
 		--out docs/magnification-bench.md --json docs/magnification-bench.json
+	$(VENV)/bin/drivingscene bench magnify --force --default-only --count 4 --scenes $(REAL_OUT)/ddad02_0-2.npz \
+		--out docs/magnification-default.md --json docs/magnification-default.json
 	$(VENV)/bin/drivingscene bench views --force --count 4 --out docs/views
 	$(VENV)/bin/drivingscene bench views --force --count 1 --scenes $(REAL_OUT)/ddad02_0-2.npz --out $(OUT)/views-real
 

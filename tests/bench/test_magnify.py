@@ -17,12 +17,23 @@ def test_the_default_closes_magnified_views_the_old_renderer_left_open(synth_pai
     before = score_pair(model, synth_pair_96, VARIANTS[0])
     after = score_pair(model, synth_pair_96, DEFAULT)
     for scores in (before, after):
-        assert {"input_views", "in_between", "x1_vs_bicubic", "x4_vs_bicubic", "x4_holes", "x4_raw_holes"} <= set(scores)
+        assert {
+            "input_views",
+            "in_between",
+            "x1_vs_bicubic",
+            "x4_vs_bicubic",
+            "x4_holes",
+            "x4_raw_holes",
+            "x2_down_vs_input",
+        } <= set(scores)
         assert all(math.isfinite(v) for v in scores.values())
     assert before["x4_holes"] > 0.2 and after["x4_holes"] < 0.01  # the screen-door, and none
     assert after["x4_vs_bicubic"] > before["x4_vs_bicubic"] + 5.0
     assert after["input_views"] > before["input_views"] + 2.0  # the colour solve
     assert after["x1_vs_bicubic"] - after["x4_vs_bicubic"] < before["x1_vs_bicubic"] - before["x4_vs_bicubic"]
+    # averaged back to the input's size, the default's 4x view keeps what its 1x view has; the old one lost it
+    assert before["x1_vs_bicubic"] - before["x4_down_vs_input"] > 5.0
+    assert abs(after["x1_vs_bicubic"] - after["x4_down_vs_input"]) < 1.5
 
 
 def test_gaussian_interpolation_samples_the_image_between_its_pixels():
