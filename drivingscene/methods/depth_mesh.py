@@ -26,7 +26,7 @@ Rendering (moderngl, EGL offscreen, ``shaders/depth_mesh.glsl``): each image's m
 layer with its own z-buffer, then the layers blended per pixel as the Gaussians' default "cameras" blend does
 (`drivingscene.render.scene.render_camera_layers`): within a keyframe, view weight
 ``LayerBlend.view_weight`` of the angle between the layer's camera axis and the target's x
-coverage, and the two keyframes' pictures mixed by time (``render.scene.keyframe_weights``), over
+coverage, and the two keyframes' pictures mixed by time (``render.scene.KeyframeMix``), over
 the reconstruction's sky. Those rules are read when rendering, so a retuned blend applies to the
 baseline too.
 """
@@ -299,29 +299,15 @@ class DepthMeshRenderer:
         depths = torch.empty(len(w2c), height, width)
         coverage = torch.empty(len(w2c), height, width)
         for b in range(len(w2c)):
-            total = np.zeros((2, height, width), np.float64)  # per keyframe
-            rgb = np.zeros((2, height, width, 3), np.float64)
-            z = np.zeros((2, height, width), np.float64)
-            view = np.zeros((2, height, width), np.float64)  # the best view weight that covers
+            mix = render_scene.KeyframeMix()
             for i in range(len(self.layers)):
                 if self._gpu[i] is None:
                     continue
-                k = self.layers[i].keyframe
-                layer = self.render_layer(i, t, w2c[b], ks[b], height, width)
-                w = weights[i, b] * (layer[..., 3] > 0)
-                total[k] += w
-                view[k] = np.maximum(view[k], w)
-                rgb[k] += w[..., None] * layer[..., :3]
-                z[k] += w * layer[..., 3]
-            hit = total > 0  # each keyframe's coverage
-            norm = np.where(hit, total, 1.0)
-            mix = np.stack(
-                render_scene.keyframe_weights(tuple(total), tuple(hit.astype(np.float64)), tuple(view), t, rule.far_mix)
-            )
-            mix_norm = np.where(hit.any(0), mix.sum(0), 1.0)
-            colors[b] = torch.from_numpy((mix[..., None] * rgb / norm[..., None]).sum(0) / mix_norm[..., None]).float()
-            depths[b] = torch.from_numpy((mix * z / norm).sum(0) / mix_norm).float()
-            coverage[b] = torch.from_numpy(hit.any(0)).float()
+                layer = torch.from_numpy(self.render_layer(i, t, w2c[b], ks[b], height, width)).double()
+                hit = (layer[..., 3] > 0).double()  # a mesh covers a pixel or it does not
+                mix.add(self.layers[i].keyframe, float(weights[i, b]), hit, layer[..., :3] * hit[..., None], layer[..., 3])
+            rgb, z, hit = mix.resolve(t, rule.far_mix, like=torch.zeros(height, width, dtype=torch.float64))
+            colors[b], depths[b], coverage[b] = rgb.float(), z.float(), hit.float()
         sky = None if self.recon.sky_sh is None else self.recon.sky_sh.float()  # black without a sky model
         background = render_scene.background_colors(
             torch.from_numpy(w2c), torch.from_numpy(ks), height, width, sky, ground=self.recon.ground

@@ -308,38 +308,62 @@ def _compose(
     background: Tensor,
     rule: LayerBlend,
 ) -> RenderOutput:
-    """Layers rendered over black (premultiplied colours) blended per pixel. Within a keyframe, each
+    """Layers rendered over black (premultiplied colours) blended per pixel by `KeyframeMix`: each
     layer's own colour ``C_l / alpha_l`` and depth weighted by ``weights[l, b] * coverage_l`` with
-    ``coverage_l = min(1, alpha_l / rule.coverage_full)``, the keyframe's coverage ``A_k`` the
-    largest of its layers', its view ``V_k`` the largest ``weights * coverage`` and ``T_k`` their
-    sum; the two keyframes' pictures mixed with `keyframe_weights`; the larger coverage over
-    ``background``."""
-    coverage_full = rule.coverage_full
+    ``coverage_l = min(1, alpha_l / rule.coverage_full)``; the larger coverage over ``background``."""
+    mix = KeyframeMix()
     w = weights.to(background)[..., None, None]  # [L, B, 1, 1]
-    alphas = torch.stack([layer.alphas for layer in layers])  # [L, B, H, W]
-    coverage = (alphas / coverage_full).clamp(max=1.0)
-    # w * coverage * C / alpha, written so that no division by a vanishing alpha appears
-    gain = w / torch.maximum(alphas, torch.full_like(alphas, coverage_full))  # [L, B, H, W]
-    zero = torch.zeros_like(alphas[0])
-    pictures = []  # (colour, depth, coverage) of each keyframe's layers
-    for k in (0, 1):
-        mine = [i for i, key in enumerate(keyframes) if key == k]
-        if not mine:
-            pictures.append((zero[..., None], zero, zero, zero, zero))
-            continue
-        total = sum(w[i] * coverage[i] for i in mine)
-        norm = torch.where(total > 1e-12, total, torch.ones_like(total))
-        colors = sum(gain[i][..., None] * layers[i].colors for i in mine) / norm[..., None]
-        depths = sum(w[i] * coverage[i] * layers[i].depths for i in mine) / norm
-        pictures.append((colors, depths, total, coverage[mine].amax(0), (w[mine] * coverage[mine]).amax(0)))
-    (c0, d0, t0, a0, v0), (c1, d1, t1, a1, v1) = pictures
-    w0, w1 = keyframe_weights((t0, t1), (a0, a1), (v0, v1), t, rule.far_mix)
-    total = w0 + w1
-    norm = torch.where(total > 1e-12, total, torch.ones_like(total))
-    colors = (w0[..., None] * c0 + w1[..., None] * c1) / norm[..., None]
-    depths = (w0 * d0 + w1 * d1) / norm
-    alpha = torch.maximum(a0, a1)
+    for layer, weight, keyframe in zip(layers, w, keyframes):
+        coverage = (layer.alphas / rule.coverage_full).clamp(max=1.0)
+        # coverage * C / alpha, written so that no division by a vanishing alpha appears
+        covered = layer.colors / torch.maximum(layer.alphas, torch.full_like(layer.alphas, rule.coverage_full))[..., None]
+        mix.add(keyframe, weight, coverage, covered, layer.depths)
+    colors, depths, alpha = mix.resolve(t, rule.far_mix, like=background[..., 0])
     return RenderOutput(colors=alpha[..., None] * colors + (1 - alpha[..., None]) * background, depths=depths, alphas=alpha)
+
+
+class KeyframeMix:
+    """The layered blends' per-pixel mix, one layer at a time (the Gaussians' layers and the depth-mesh
+    baseline's alike): within a keyframe each layer's own colour and depth weighted by its view
+    weight x coverage, the keyframe's coverage ``A_k`` the largest of its layers', its view ``V_k``
+    the largest view weight x coverage and ``T_k`` their sum; the two keyframes' pictures mixed with
+    `keyframe_weights` (docs/magnification.md, *Keyframes*). Tensors of one shape ``[...]``."""
+
+    def __init__(self):
+        self._sums: list[list[Tensor] | None] = [None, None]  # per keyframe: T, colour, depth sums, A, V
+
+    def add(self, keyframe: int, weight, coverage: Tensor, covered: Tensor, depth: Tensor) -> None:
+        """One layer of ``keyframe``: its view ``weight`` (a float or a tensor broadcasting to
+        ``coverage``), ``coverage`` in [0, 1], its own colour times the coverage ``covered``
+        ``[..., 3]`` and its ``depth``."""
+        wc = weight * coverage
+        terms = [wc, weight[..., None] * covered if torch.is_tensor(weight) else weight * covered, wc * depth]
+        sums = self._sums[keyframe]
+        if sums is None:
+            self._sums[keyframe] = [*terms, coverage, wc]
+            return
+        for i, term in enumerate(terms):
+            sums[i] = sums[i] + term
+        sums[3], sums[4] = torch.maximum(sums[3], coverage), torch.maximum(sums[4], wc)
+
+    def resolve(self, t: float, far_mix: float, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Colour ``[..., 3]``, depth and coverage (the larger keyframe's) at normalised time t;
+        ``like``: a tensor of the pixels' shape, for a keyframe without layers."""
+        pictures = []
+        for sums in self._sums:
+            if sums is None:
+                zero = torch.zeros_like(like)
+                pictures.append((zero[..., None], zero, zero, zero, zero))
+                continue
+            total, colors, depths, coverage, view = sums
+            norm = torch.where(total > 1e-12, total, torch.ones_like(total))
+            pictures.append((colors / norm[..., None], depths / norm, total, coverage, view))
+        (c0, d0, t0, a0, v0), (c1, d1, t1, a1, v1) = pictures
+        w0, w1 = keyframe_weights((t0, t1), (a0, a1), (v0, v1), t, far_mix)
+        total = w0 + w1
+        norm = torch.where(total > 1e-12, total, torch.ones_like(total))
+        colors = (w0[..., None] * c0 + w1[..., None] * c1) / norm[..., None]
+        return colors, (w0 * d0 + w1 * d1) / norm, torch.maximum(a0, a1)
 
 
 def background_colors(world_to_cam, intrinsics, height, width, sky_sh, background=None, ground=None) -> Tensor:
