@@ -252,7 +252,10 @@ class Viewer:
         if self.doc is None:
             return
         self.camera.unsnap(self.doc.recon, self.view.t)
-        pts = self.doc.splats.means_at(self.view.t)[~self.doc.hidden]
+        # view-bound splats (the far layer, and those another image saw through) are left out: they
+        # are drawn near their cameras' rays only, and the far layer lies hundreds of metres out
+        keep = ~self.doc.hidden & ~(np.abs(self.doc.splats.view_rays).max(axis=1) > 0)
+        pts = self.doc.splats.means_at(self.view.t)[keep if keep.any() else ~self.doc.hidden]
         frame = self.camera.frame_to_world(self.doc.recon, self.view.t)
         if frame is not None:
             pts = pts @ invert_rigid(frame)[:3, :3].T + invert_rigid(frame)[:3, 3]

@@ -10,7 +10,9 @@ against the input upsampled bicubically (real, and procedural too), with the sha
 pixels whose coverage is below 0.95) and that of the image's own layer alone (its raw accumulated
 alpha, before the blend's coverage rule). The first row is the renderer as it was (3DGS footprints
 and low-pass); the row marked default is what the model, the viewer and every benchmark use. Rows
-up to the default add one change each; the rows after it change one thing of the default.
+up to the default add one change each; the rows after it change one thing of the default. Every
+row but the last draws the far layer (`InferenceOptions.far_layer`, added after these rows were
+chosen); the last is the default without it.
 
 Beside the variants, a reference that knows no geometry: each input image interpolated by
 normalised Gaussians of the splats' smallest size (`gaussian_interpolation`), its samples
@@ -35,6 +37,7 @@ import torch
 from drivingscene.arguments import positive_int
 from drivingscene.data.atomic import atomic_write_text
 from drivingscene.gaussians.assembly import MAX_FOOTPRINT, NO_FOOTPRINT_RULE, FootprintRule
+from drivingscene.methods.feedforward import FAR_LAYER
 from drivingscene.render.color_solve import ITERATIONS
 from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.project import EPS2D, EPS2D_3DGS
@@ -53,6 +56,7 @@ class Variant:
     eps2d: float = EPS2D
     blend: LayerBlend = LayerBlend()
     note: str = ""
+    far_layer: float = FAR_LAYER  # InferenceOptions.far_layer
 
 
 BEFORE_CAP = FootprintRule(max_footprint=1.0)  # the cap before 2026-11-28 (two solve iterations)
@@ -82,6 +86,7 @@ VARIANTS = (
     Variant("sharp view weights at all times (0.1)", blend=LayerBlend(angle_scale=0.1, angle_scale_at_keyframe=0.1)),
     Variant("one iteration of the colour solve", fit_colors=1),
     Variant("eight iterations of the colour solve", fit_colors=8),
+    Variant("no far layer (beyond the sky distance: the sky model)", far_layer=0.0),
 )
 DEFAULT = VARIANTS[8]
 QUICK = (VARIANTS[0], DEFAULT)
@@ -167,7 +172,10 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
     from drivingscene.render.scene import render_eval_frames, render_gaussians, render_input_views, source_axes
 
     opts = InferenceOptions(
-        fit_colors=variant.fit_colors, footprints=variant.footprints, surface_tolerance=variant.blend.surface_tolerance
+        fit_colors=variant.fit_colors,
+        footprints=variant.footprints,
+        surface_tolerance=variant.blend.surface_tolerance,
+        far_layer=variant.far_layer,
     )
     times = []
     for _ in range(2):  # the second run is timed warm (kernels built, caches filled)

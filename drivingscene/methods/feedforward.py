@@ -32,7 +32,15 @@ from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
 from drivingscene.methods.memory import check_reconstruct_memory
-from drivingscene.models.lift import LiftConfig, MotionSearchConfig, explain_by_parallax, lift_scene_flow, search_motion, sky_mask
+from drivingscene.models.lift import (
+    LiftConfig,
+    MotionSearchConfig,
+    explain_by_parallax,
+    lift_scene_flow,
+    search_motion,
+    sky_distance,
+    sky_mask,
+)
 from drivingscene.models.model import DrivingSceneModel, ModelConfig
 from drivingscene.models.pipeline import assemble, predict_flow, predict_static, with_depth, without_gaussian_head
 from drivingscene.precision import resolve_amp
@@ -42,6 +50,11 @@ from drivingscene.render.sky import fit_sky_from_pixels
 from drivingscene.resources import asset_path
 
 DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
+
+
+# `InferenceOptions.far_layer`: the far layer's depth cap, in sky distances (1.5, 10 and 100 drew the
+# same pictures on the test pairs measured; docs/magnification.md).
+FAR_LAYER = 10.0
 
 
 @dataclass(frozen=True)
@@ -77,6 +90,10 @@ class InferenceOptions:
     surface_tolerance: float = SURFACE_TOLERANCE
     # The footprint rule on P's scales (gaussians/assembly.py); NO_FOOTPRINT_RULE: as 3DGS (ablation).
     footprints: FootprintRule = FootprintRule()
+    # The pixels beyond the sky distance (far content and the sky itself) as Gaussians at their depth,
+    # at most this many (> 1) times the sky distance away, static and view-bound
+    # (docs/magnification.md, *Far layer*); 0: none, the sky model alone draws them.
+    far_layer: float = FAR_LAYER
 
 
 def resolve_device(name: str) -> torch.device:
@@ -184,11 +201,6 @@ def _seen_through(gaussians, batch, depth, sky_pixels, config: CarveConfig) -> T
     return ~keep
 
 
-def _carved(gaussians, batch, depth, sky_pixels, config: CarveConfig):
-    """The Gaussians no other image of the pair sees through (`carve`)."""
-    return gaussians.index(~_seen_through(gaussians, batch, depth, sky_pixels, config))
-
-
 def _view_bound(gaussians, batch, depth, sky_pixels, config: CarveConfig):
     """``gaussians`` with those some other image sees through made view-bound: their view ray is
     the unit direction from their source camera's centre to their mean."""
@@ -196,6 +208,13 @@ def _view_bound(gaussians, batch, depth, sky_pixels, config: CarveConfig):
     centres = world_cameras(batch)[..., :3, 3].to(gaussians.means)  # [2, V, 3]
     rays = F.normalize(gaussians.means - centres[gaussians.keyframes, gaussians.cameras], dim=-1)
     return replace(gaussians, view_rays=torch.where(bound[:, None], rays, torch.zeros_like(rays)))
+
+
+def _far_bound(gaussians, batch, far: Tensor):
+    """``gaussians`` with the far layer's (``far`` ``[N]``) view-bound along their camera's ray."""
+    centres = world_cameras(batch)[..., :3, 3].to(gaussians.means)  # [2, V, 3]
+    rays = F.normalize(gaussians.means - centres[gaussians.keyframes, gaussians.cameras], dim=-1)
+    return replace(gaussians, view_rays=torch.where(far[:, None], rays, gaussians.view_rays))
 
 
 # The stages of `reconstruct` as its progress callback names them, in order.
@@ -311,18 +330,30 @@ def reconstruct(
     timings["flow_s"] = time.perf_counter() - t0
     report("assembly")
     t0 = time.perf_counter()
+    layer_static, layer_sky, layer_flow = static, sky, scene_flow
+    if options.far_layer > 0:  # the pixels beyond the sky distance make static Gaussians there too
+        distance = sky_distance(batch.intrinsics, depth.shape[-1], model.config.depth.ref_focal, options.lift)
+        cap = options.far_layer * distance.to(depth)[:, None, None]
+        layer_static = with_depth(static, torch.where(sky_pixels, torch.minimum(depth, cap), depth))
+        layer_sky = sky & ~sky_pixels
+        if scene_flow is not None:
+            layer_flow = torch.where(sky_pixels[..., None], torch.zeros_like(scene_flow), scene_flow)
     gaussians = assemble(
-        static, batch, sky, scene_flow, local_to_world=batch.local_to_world, fit_colors=options.fit_colors,
+        layer_static, batch, layer_sky, layer_flow, local_to_world=batch.local_to_world, fit_colors=options.fit_colors,
         footprints=options.footprints, surface_tolerance=options.surface_tolerance,
     )  # fmt: skip
+    far = sky_pixels[~layer_sky]  # [N]: the far layer's Gaussians (pixel order, as assembled)
     if options.carve is not None:
         t1 = time.perf_counter()
-        gaussians = _carved(gaussians, batch, depth, sky_pixels, options.carve)
+        keep = ~_seen_through(gaussians, batch, depth, sky_pixels, options.carve)
+        gaussians, far = gaussians.index(keep), far[keep]
         timings["carve_s"] = time.perf_counter() - t1
     if options.view_bound is not None:
         t1 = time.perf_counter()
         gaussians = _view_bound(gaussians, batch, depth, sky_pixels, options.view_bound)
         timings["view_bound_s"] = time.perf_counter() - t1
+    if far.any():
+        gaussians = _far_bound(gaussians, batch, far)
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, world_cameras(batch), batch.intrinsics)
     # the background below the horizon, here so that its cost is timed (Reconstruction fits it otherwise)
     ground = fit_ground(

@@ -303,11 +303,15 @@ class MotionSearchConfig:
         return (1.0 + torch.cat([-below, above]) * self.scale_step).float()
 
 
+def sky_distance(intrinsics: Tensor, width: int, ref_focal: float, config: LiftConfig) -> Tensor:
+    """``[V]`` metres: the depth beyond which a camera's pixels are treated as sky (``config.sky_depth``
+    at the reference focal length, in proportion to each camera's focal length over its width)."""
+    return config.sky_depth * (intrinsics[:, 0, 0] / width) / ref_focal
+
+
 def sky_mask(depth: Tensor, intrinsics: Tensor, ref_focal: float, config: LiftConfig) -> Tensor:
     """``[..., V, H, W]`` bool: pixels treated as sky, for depth ``[..., V, H, W]``."""
-    focal = intrinsics[:, 0, 0] / depth.shape[-1]
-    threshold = config.sky_depth * focal / ref_focal  # [V]
-    return depth > threshold[:, None, None]
+    return depth > sky_distance(intrinsics, depth.shape[-1], ref_focal, config)[:, None, None]
 
 
 def search_motion(

@@ -42,7 +42,9 @@ def test_residual_is_zero_where_nothing_moves(recon_and_pair):
 def test_residual_is_the_applied_motion(recon_and_pair):
     """Non-zero residual only on the pixels whose Gaussian moves, and every moving one has a flow."""
     recon, _ = recon_and_pair
-    seen = recon.depth > 0
+    # one Gaussian per pixel that sees the world: with the far layer, those beyond the sky distance too
+    seen = np.broadcast_to(True if recon.valid_mask is None else recon.valid_mask, recon.depth.shape)
+    assert len(recon.gaussians) == int(seen.sum())
     moving = np.zeros(seen.size, bool)
     moving[np.flatnonzero(seen.reshape(-1))[recon.gaussians.dynamic.numpy()]] = True  # row-major, keyframe-major
     assert np.array_equal(recon.moving, moving.reshape(seen.shape))

@@ -15,7 +15,7 @@ from drivingscene.gaussians.timing import DEFAULT_BLEND
 from drivingscene.geometry.se3 import invert_rigid
 from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
 from drivingscene.methods.oracle import oracle_reconstruction
-from drivingscene.render.scene import render_eval_frames, render_gaussians, source_axes
+from drivingscene.render.scene import render_eval_frames, render_gaussians, render_input_views, source_axes
 
 
 def _bottom_mask(pair, rows: int) -> np.ndarray:
@@ -101,10 +101,10 @@ def test_view_bound_gaussians_are_those_another_image_sees_through(synth_pair, m
     ones carving drops, each with the unit ray from its source camera's centre to its mean."""
     from drivingscene.gaussians.visibility import CarveConfig
 
-    plain = reconstruct(model, synth_pair, InferenceOptions(view_bound=None))
+    plain = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, far_layer=0))  # no far layer: none bound
     assert not plain.gaussians.view_bound.any()
-    bound = reconstruct(model, synth_pair)
-    carved = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, carve=CarveConfig()))
+    bound = reconstruct(model, synth_pair, InferenceOptions(far_layer=0))
+    carved = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, carve=CarveConfig(), far_layer=0))
     g = bound.gaussians
     assert len(g) == len(plain.gaussians) and 0 < int(g.view_bound.sum()) == len(g) - len(carved.gaussians)
     torch.testing.assert_close(g.index(~g.view_bound).means, carved.gaussians.means)
@@ -112,3 +112,33 @@ def test_view_bound_gaussians_are_those_another_image_sees_through(synth_pair, m
     centres = cams[g.keyframes, g.cameras, :3, 3]
     expected = torch.nn.functional.normalize(g.means - centres, dim=-1)
     torch.testing.assert_close(g.view_rays[g.view_bound], expected[g.view_bound], atol=1e-4, rtol=0)
+
+
+def test_the_far_layer_draws_what_lies_beyond_the_sky_distance(synth_pair, model):
+    """With the far layer every world pixel makes a Gaussian: those beyond the sky distance (here
+    made short, so that a good share of the pair is "far") static, view-bound along their camera's
+    ray and at most ``far_layer`` times the sky distance away; the input views re-render those
+    pixels far better than the sky model alone draws them, and nothing else changes."""
+    lift = replace(InferenceOptions().lift, sky_depth=12.0)
+    plain = reconstruct(model, synth_pair, InferenceOptions(lift=lift, far_layer=0))
+    recon = reconstruct(model, synth_pair, InferenceOptions(lift=lift, far_layer=3.0))
+    beyond = plain.depth == 0  # [2, V, H, W]: what the sky model alone drew
+    assert 0.05 < beyond.mean() < 0.9
+    g, before = recon.gaussians, plain.gaussians
+    assert len(g) == beyond.size  # one Gaussian per pixel of either keyframe
+    cams = torch.from_numpy(recon.ego_to_world[:, None] @ recon.cam_to_ego[None]).float()[g.keyframes, g.cameras]
+    z = ((g.means - cams[:, :3, 3]) * cams[:, :3, 2]).sum(-1)
+    focal = torch.from_numpy(recon.intrinsics[:, 0, 0]).float()[g.cameras] / synth_pair.image_size[1]
+    threshold = 12.0 * focal / model.config.depth.ref_focal
+    far = torch.from_numpy(beyond).flatten()  # the Gaussians are in pixel order, keyframe by keyframe
+    assert len(g) - len(before) == int(far.sum())
+    assert bool((z[far] > 0.999 * threshold[far]).all() and (z[far] < 3.001 * threshold[far]).all())
+    assert bool(g.view_bound[far].all()) and float(g.flows[far].abs().max()) == 0.0
+    torch.testing.assert_close(g.index(~far).means, before.means)  # the rest is where it was
+    truth = torch.from_numpy(synth_pair.images).float() / 255
+
+    def psnr_beyond(r) -> float:
+        views = render_input_views(r, synth_pair)
+        return float(-10 * torch.log10(((views - truth) ** 2).mean(-1)[torch.from_numpy(beyond)].mean()))
+
+    assert psnr_beyond(recon) > psnr_beyond(plain) + 3.0
