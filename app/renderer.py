@@ -269,6 +269,7 @@ class SplatRenderer:
         self.sky = np.zeros((1, 3), np.float32)
         self.ground: tuple[np.ndarray, np.ndarray] | None = None  # world plane [4] (n, d), rgb [3]
         self.source_axes: np.ndarray | None = None  # [2, V, 3] input cameras' optical axes ("cameras")
+        self.source_centres: np.ndarray | None = None  # [2, V, 3] their centres (world, as the splats)
 
     def _quad_vao(self, count: int):
         """Index buffer ``4 i + (0, 1, 2, 2, 1, 3)``: two triangles per splat sharing 2 vertices, so the
@@ -295,10 +296,12 @@ class SplatRenderer:
         horizon with the sky (`drivingscene.render.sky.with_ground`); None: the sky alone."""
         self.ground = None if ground is None else (ground.plane.double().numpy(), ground.rgb.float().numpy())
 
-    def set_cameras(self, source_axes: np.ndarray | None) -> None:
+    def set_cameras(self, source_axes: np.ndarray | None, source_centres: np.ndarray | None = None) -> None:
         """World optical axes ``[2, V, 3]`` of the input cameras (origin-independent), for the
-        "cameras" blend; None draws it as "layers"."""
+        "cameras" blend, and their centres ``[2, V, 3]`` (the splats' world frame; None: view weights
+        by time alone, `LayerBlend.view_weight`); no axes draws it as "layers"."""
         self.source_axes = None if source_axes is None else np.asarray(source_axes, np.float64)
+        self.source_centres = None if source_centres is None else np.asarray(source_centres, np.float64)
 
     # --- drawing ----------------------------------------------------------------------------
     def target(self, width: int, height: int, dtype: str | None = None, name: str = "view") -> Target:
@@ -338,6 +341,8 @@ class SplatRenderer:
             return [(f"k{k}", 1.0, [(0, n)], k, k) for k in (0, 1)]
         by_camera = opts.blend == "cameras" and self.source_axes is not None
         axis = camera.world_to_cam[2, :3]
+        w2c = np.asarray(camera.world_to_cam, np.float64)
+        centre = -w2c[:3, :3].T @ w2c[:3, 3]
         groups: dict[tuple[int, int], list] = {}
         for k, c, a, b in splats.segments:
             key = (k, c if by_camera else -1)
@@ -346,7 +351,10 @@ class SplatRenderer:
         for (k, c), ranges in sorted(groups.items()):
             weight = 1.0
             if c >= 0 and c < self.source_axes.shape[1]:
-                weight = opts.layer_blend.view_weight(float(axis @ self.source_axes[k, c]), k, t)
+                distance = None  # to the nearest camera of the layer's keyframe
+                if self.source_centres is not None:
+                    distance = float(np.linalg.norm(centre - self.source_centres[k], axis=-1).min())
+                weight = opts.layer_blend.view_weight(float(axis @ self.source_axes[k, c]), k, t, distance)
             layers.append((f"k{k}c{c}", weight, ranges, -1, k))
         return layers
 

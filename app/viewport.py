@@ -25,7 +25,7 @@ from drivingscene_view.splats import SplatArrays
 from drivingscene_view.state import SceneDoc
 
 from drivingscene.gaussians.timing import LAYERED_BLENDS
-from drivingscene.render.scene import source_axes
+from drivingscene.render.scene import source_axes, source_centres
 
 SCALES = (1.0, 0.85, 0.7, 0.6, 0.5, 0.42, 0.35, 0.3)
 
@@ -142,7 +142,7 @@ class Viewport:
             self.ladder.set_levels(0)
             self.renderer.set_sky(None if doc.recon.sky_sh is None else doc.recon.sky_sh.cpu().numpy())
             self.renderer.set_ground(doc.recon.ground)
-            self.renderer.set_cameras(source_axes(doc.recon).numpy())
+            self.renderer.set_cameras(source_axes(doc.recon).numpy(), source_centres(doc.recon).numpy())
             self._start_lod(doc)
         if new_doc or v["geometry"] != self._versions["geometry"]:
             self.full.upload(doc.splats, doc.origin, self._flags(doc))

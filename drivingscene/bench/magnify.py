@@ -169,7 +169,13 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
 
     from drivingscene.bench.views_scoring import area_down
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
-    from drivingscene.render.scene import render_eval_frames, render_gaussians, render_input_views, source_axes
+    from drivingscene.render.scene import (
+        render_eval_frames,
+        render_gaussians,
+        render_input_views,
+        source_axes,
+        source_centres,
+    )
 
     opts = InferenceOptions(
         fit_colors=variant.fit_colors,
@@ -218,7 +224,8 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
             )
             res = render_gaussians(
                 g, 0.0, w2c[v : v + 1], kk[v : v + 1], height * k, width * k,
-                sky_sh=recon.sky_sh, ground=recon.ground, blend="cameras", source_axes=axes, **raster,
+                sky_sh=recon.sky_sh, ground=recon.ground, blend="cameras", source_axes=axes,
+                source_centres=source_centres(recon), **raster,
             )  # fmt: skip
             image = res.colors[0].clamp(0, 1)
             if ("bicubic", k, v) not in references:

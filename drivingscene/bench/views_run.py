@@ -76,7 +76,7 @@ def gaussian_method(recon) -> Method:
     from drivingscene.render import scene as render_scene
 
     gaussians = recon.visible()
-    axes = render_scene.source_axes(recon)
+    axes, centres = render_scene.source_axes(recon), render_scene.source_centres(recon)
 
     def render(vp: Viewpoints) -> tuple[Tensor, Tensor]:
         height, width = vp.size
@@ -97,6 +97,7 @@ def gaussian_method(recon) -> Method:
                     ground=recon.ground,
                     blend="cameras",
                     source_axes=axes,
+                    source_centres=centres,
                 )
                 colors.append(out.colors.clamp(0, 1))
                 alphas.append(out.alphas)

@@ -32,6 +32,7 @@ def render_gaussians(
     ground: Ground | None = None,  # the road plane below the horizon (with a sky model only)
     blend: str = "all",  # how both keyframes' Gaussians combine at t (Gaussians.time_weights, "layers", "cameras")
     source_axes: Tensor | None = None,  # [2, V, 3] world optical axes of the input cameras ("cameras")
+    source_centres: Tensor | None = None,  # [2, V, 3] their centres ("cameras"; None: view weights by time alone)
     layer_blend: LayerBlend | None = None,  # the layered blends' rule (default LayerBlend())
     **raster_kwargs,
 ) -> RenderOutput:
@@ -47,6 +48,7 @@ def render_gaussians(
             height,
             width,
             source_axes,
+            source_centres=source_centres,
             sky_sh=sky_sh,
             background=background,
             ground=ground,
@@ -181,6 +183,11 @@ def keyframe_weights(totals: tuple, coverage: tuple, views: tuple, t: float, far
 # neighbour's, on real frames often at a slightly wrong depth, only blurs it (docs/magnification.md).
 CAMERA_ANGLE_SCALE = 0.5
 CAMERA_ANGLE_SCALE_AT_KEYFRAME = 0.1
+# Not the time alone: a view within POSE_SCALE metres of where a camera of a layer's keyframe stood
+# weighs that keyframe's layers nearly as sharply as at the keyframe (a still ego's in-between frame
+# stands exactly where its cameras stood); farther, mid-way, the scale is CAMERA_ANGLE_SCALE
+# (`LayerBlend.view_weight`, docs/magnification.md).
+POSE_SCALE = 0.25
 
 
 # A layer's coverage counts as full from this accumulated alpha on. Inside the part of the world
@@ -203,11 +210,19 @@ class LayerBlend:
     angle_scale_at_keyframe: float = CAMERA_ANGLE_SCALE_AT_KEYFRAME
     surface_tolerance: float = SURFACE_TOLERANCE  # each layer's front surface averaged (render.composite); 0: composited
     far_mix: float = FAR_MIX  # keyframe_weights: the other keyframe mixed in away from a keyframe's cameras
+    pose_scale: float = POSE_SCALE  # metres; 0: the scale follows the time alone
 
-    def view_weight(self, cos, keyframe: int, t: float):
+    def view_weight(self, cos, keyframe: int, t: float, distance=None):
         """View weight of a layer of ``keyframe`` at normalised time ``t`` whose camera's optical
-        axis makes ``cos`` (a float or tensor) with the target's: ``exp((cos - 1) / scale)``."""
+        axis makes ``cos`` (a float or tensor) with the target's: ``exp((cos - 1) / scale)``, the
+        scale rising from ``angle_scale_at_keyframe`` to ``angle_scale`` with the time away from the
+        keyframe, but no further than ``distance / pose_scale`` (``distance``, like ``cos``: metres
+        from the target's centre to the nearest camera of the layer's keyframe, where that camera's
+        own layer is its input re-rendered and its neighbours' only blur it; None: time alone)."""
         near = min(1.0, 2.0 * abs(float(t) - keyframe))
+        if distance is not None and self.pose_scale > 0:
+            by_pose = distance / self.pose_scale
+            near = by_pose.clamp(max=near) if torch.is_tensor(by_pose) else min(near, by_pose)
         scale = self.angle_scale_at_keyframe + (self.angle_scale - self.angle_scale_at_keyframe) * near
         return torch.exp((cos - 1.0) / scale) if torch.is_tensor(cos) else math.exp((cos - 1.0) / scale)
 
@@ -221,6 +236,7 @@ def render_camera_layers(
     width: int,
     source_axes: Tensor,  # [2, V, 3]
     *,
+    source_centres: Tensor | None = None,  # [2, V, 3]
     sky_sh: Tensor | None = None,
     background: Tensor | None = None,
     ground: Ground | None = None,
@@ -238,6 +254,7 @@ def render_camera_layers(
     t = float(t)
     rule = layer_blend or LayerBlend()
     target_axes = world_to_cam[:, 2, :3].float()  # camera z axis in world: the third row of R_w2c
+    target_centres = invert_rigid(world_to_cam.double())[:, :3, 3]
     num_cameras = source_axes.shape[1]
     sets = []
     for k in (0, 1):
@@ -247,7 +264,10 @@ def render_camera_layers(
             if c < 0:
                 view_weight = torch.ones(len(target_axes))
             else:
-                view_weight = rule.view_weight(target_axes @ source_axes[k, c].to(target_axes), k, t)
+                distance = None
+                if source_centres is not None:  # to the nearest camera of the layer's keyframe
+                    distance = torch.cdist(target_centres, source_centres[k].to(target_centres)).amin(-1).float()
+                view_weight = rule.view_weight(target_axes @ source_axes[k, c].to(target_axes), k, t, distance)
             sets.append(((gaussians.keyframes == k) & (gaussians.cameras == c), view_weight, k))
     return _render_sets(
         gaussians, t, world_to_cam, intrinsics, height, width, sets,
@@ -383,6 +403,13 @@ def source_axes(recon) -> Tensor:
     return rot[..., 2].float()
 
 
+def source_centres(recon) -> Tensor:
+    """``[2, V, 3]`` world centres (float64) of a reconstruction's input cameras at their keyframes
+    (the rig's poses at the keyframe times, as `source_axes`)."""
+    cams = torch.from_numpy(recon.ego_to_world[:, None]) @ torch.from_numpy(recon.cam_to_ego[None]).double()
+    return cams[..., :3, 3]
+
+
 def render_eval_frames(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs) -> Tensor:
     """Renders ``[M, V, H, W, 3]`` of a reconstruction at the scene's intermediate frames, each
     camera at the exact ego pose and time recorded for its image (not interpolated)."""
@@ -412,6 +439,7 @@ def render_eval_frames(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
                 ground=recon.ground,
                 blend=blend,
                 source_axes=source_axes(recon),
+                source_centres=source_centres(recon),
                 **raster_kwargs,
             )
             colors[views] = out.colors.clamp(0, 1)
@@ -447,6 +475,7 @@ def render_input_views(recon, pair, blend: str = DEFAULT_BLEND, **raster_kwargs)
                 ground=recon.ground,
                 blend=blend,
                 source_axes=source_axes(recon),
+                source_centres=source_centres(recon),
                 **raster_kwargs,
             )
             frames[key, views] = out.colors.clamp(0, 1)

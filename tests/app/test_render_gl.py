@@ -27,13 +27,13 @@ def _camera():
     return rig_camera(c2w, K, (H, W))
 
 
-def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, ground=None, layer_blend=None):
+def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, ground=None, layer_blend=None, centres=None):
     renderer, gpu = SplatRenderer(ctx), GpuSplats(ctx)
     splats = SplatArrays.from_gaussians(gaussians)
     gpu.set_splats(splats, origin=np.array([0.1, 0.2, 3.0]))
     renderer.set_sky(sky.numpy())
     renderer.set_ground(ground)
-    renderer.set_cameras(axes)
+    renderer.set_cameras(axes, centres)
     cam = _camera()
     req = SortRequest(cam.shifted(gpu.origin).world_to_cam, cam.intrinsics, W, H, t, blend, keys=keys)
     gpu.set_order(depth_order(make_sort_input(splats, gpu.origin), req))
@@ -122,6 +122,32 @@ def test_gl_mixes_the_keyframes_as_torch(gl_ctx):
     assert _psnr(*refs) < 35.0  # the rule changes the picture
     for rule, ref, other in zip(rules, refs, refs[::-1]):
         gl = _gl_render(gl_ctx, gaussians, sky, 0.0, "cameras", "float", axes=axes, layer_blend=rule)
+        assert _psnr(gl, ref) >= 40.0 and _psnr(gl, ref) > _psnr(gl, other) + 5.0
+
+
+@pytest.mark.gl
+def test_gl_sharpens_near_a_source_camera_as_torch(gl_ctx):
+    # mid-way, a view standing where the layers' cameras stood (a still ego) weighs them as sharply
+    # as at their keyframe (LayerBlend.pose_scale); the window draws what the CPU renderer does
+    gaussians = random_gaussians(300, sh_degree=2, seed=3)
+    gaussians = dataclasses.replace(gaussians, cameras=torch.arange(len(gaussians)) % 4 - 1)
+    rad = np.radians([[0.0, 40.0, 80.0], [10.0, 50.0, 90.0]])
+    axes = np.stack([np.sin(rad), np.zeros_like(rad), np.cos(rad)], -1)
+    sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
+    cam = _camera()
+    here = np.broadcast_to(np.linalg.inv(cam.world_to_cam)[:3, 3], (2, 3, 3)).copy()
+    cases = [here, here + np.array([0.0, 5.0, 0.0])]  # at the view's centre, and 5 m away (time alone)
+    refs = [
+        render_gaussians(
+            gaussians, 0.5, torch.from_numpy(cam.world_to_cam)[None].float(), torch.from_numpy(K)[None].float(), H, W,
+            sky_sh=sky, blend="cameras", source_axes=torch.from_numpy(axes).float(), source_centres=torch.from_numpy(centres),
+            max_layers=1024, backend="torch",
+        ).colors[0].clamp(0, 1).numpy()
+        for centres in cases
+    ]  # fmt: skip
+    assert _psnr(*refs) < 35.0  # the centres change the picture
+    for centres, ref, other in zip(cases, refs, refs[::-1]):
+        gl = _gl_render(gl_ctx, gaussians, sky, 0.5, "cameras", "float", axes=axes, centres=centres)
         assert _psnr(gl, ref) >= 40.0 and _psnr(gl, ref) > _psnr(gl, other) + 5.0
 
 

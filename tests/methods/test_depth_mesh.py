@@ -154,7 +154,9 @@ def test_layer_weights_are_the_cameras_blend_read_when_rendering(ctx, monkeypatc
         turned[:3, :3] = np.array([[np.cos(yaw), 0, -np.sin(yaw)], [0, 1, 0], [np.sin(yaw), 0, np.cos(yaw)]])
         views = np.stack([np.eye(4), turned])
         weights = renderer.layer_weights(0.25, views)
-        view_weight = [render_scene.LayerBlend().view_weight(np.cos(yaw), k, 0.25) for k in (0, 1)]
+        # both views stand at the centre of the camera of each keyframe (LayerBlend.pose_scale)
+        distance = [float(np.linalg.norm(render_scene.source_centres(recon)[k].numpy(), axis=-1).min()) for k in (0, 1)]
+        view_weight = [render_scene.LayerBlend().view_weight(np.cos(yaw), k, 0.25, distance[k]) for k in (0, 1)]
         expected = np.array([[1.0, view_weight[0]], [1.0, view_weight[1]]])
         np.testing.assert_allclose(weights, expected, rtol=1e-5)
         sharp = render_scene.LayerBlend(angle_scale=0.1, angle_scale_at_keyframe=0.1)  # another rule: the baseline follows

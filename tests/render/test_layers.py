@@ -249,3 +249,20 @@ def test_a_view_bound_wall_shows_from_its_own_direction_only():
     for i in range(2):
         one = render_gaussians(both, 0.0, cams, ks, HEIGHT, WIDTH, views=torch.full((len(both),), i)).colors[i]
         torch.testing.assert_close(one, alone[i], atol=1e-5, rtol=0)
+
+
+def test_a_view_where_the_layers_camera_stood_is_weighed_as_at_its_keyframe():
+    """`LayerBlend.view_weight`: mid-way, the scale follows the distance to the layer's camera too:
+    at its centre as sharp as at the keyframe (a still ego), from ``pose_scale`` metres on by time
+    alone; tensors of distances per target camera."""
+    rule = LayerBlend()
+    cos = torch.tensor([0.9, 0.9, 0.9])
+    at_keyframe = rule.view_weight(cos, 0, 0.0)
+    by_time = rule.view_weight(cos, 0, 0.5)
+    assert float(by_time[0]) > 2 * float(at_keyframe[0])  # mid-way the neighbours weigh in
+    got = rule.view_weight(cos, 0, 0.5, torch.tensor([0.0, 0.5 * rule.pose_scale, 3.0 * rule.pose_scale]))
+    torch.testing.assert_close(got[0], at_keyframe[0])
+    assert float(at_keyframe[1]) < float(got[1]) < float(by_time[1])
+    torch.testing.assert_close(got[2], by_time[2])
+    assert rule.view_weight(0.9, 0, 0.5, 0.0) == pytest.approx(float(at_keyframe[0]))
+    assert LayerBlend(pose_scale=0.0).view_weight(0.9, 0, 0.5, 0.0) == pytest.approx(float(by_time[0]))
