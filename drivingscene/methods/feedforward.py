@@ -201,20 +201,13 @@ def _seen_through(gaussians, batch, depth, sky_pixels, config: CarveConfig) -> T
     return ~keep
 
 
-def _view_bound(gaussians, batch, depth, sky_pixels, config: CarveConfig):
-    """``gaussians`` with those some other image sees through made view-bound: their view ray is
-    the unit direction from their source camera's centre to their mean."""
-    bound = _seen_through(gaussians, batch, depth, sky_pixels, config)
+def _view_bound(gaussians, batch, bound: Tensor):
+    """``gaussians`` with those of ``bound`` ``[N]`` made view-bound (some other image sees through
+    them, or the far layer's): their view ray is the unit direction from their source camera's
+    centre to their mean."""
     centres = world_cameras(batch)[..., :3, 3].to(gaussians.means)  # [2, V, 3]
     rays = F.normalize(gaussians.means - centres[gaussians.keyframes, gaussians.cameras], dim=-1)
     return replace(gaussians, view_rays=torch.where(bound[:, None], rays, torch.zeros_like(rays)))
-
-
-def _far_bound(gaussians, batch, far: Tensor):
-    """``gaussians`` with the far layer's (``far`` ``[N]``) view-bound along their camera's ray."""
-    centres = world_cameras(batch)[..., :3, 3].to(gaussians.means)  # [2, V, 3]
-    rays = F.normalize(gaussians.means - centres[gaussians.keyframes, gaussians.cameras], dim=-1)
-    return replace(gaussians, view_rays=torch.where(far[:, None], rays, gaussians.view_rays))
 
 
 # The stages of `reconstruct` as its progress callback names them, in order.
@@ -348,12 +341,13 @@ def reconstruct(
         keep = ~_seen_through(gaussians, batch, depth, sky_pixels, options.carve)
         gaussians, far = gaussians.index(keep), far[keep]
         timings["carve_s"] = time.perf_counter() - t1
+    bound = far
     if options.view_bound is not None:
         t1 = time.perf_counter()
-        gaussians = _view_bound(gaussians, batch, depth, sky_pixels, options.view_bound)
+        bound = bound | _seen_through(gaussians, batch, depth, sky_pixels, options.view_bound)
         timings["view_bound_s"] = time.perf_counter() - t1
-    if far.any():
-        gaussians = _far_bound(gaussians, batch, far)
+    if bound.any():
+        gaussians = _view_bound(gaussians, batch, bound)
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, world_cameras(batch), batch.intrinsics)
     # the background below the horizon, here so that its cost is timed (Reconstruction fits it otherwise)
     ground = fit_ground(
