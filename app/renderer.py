@@ -37,7 +37,7 @@ from drivingscene.gaussians.ground import Ground
 from drivingscene.gaussians.timing import DEFAULT_BLEND, LAYERED_BLENDS, shader_blend_code, shader_blend_defines
 from drivingscene.gl import load_program
 from drivingscene.render.project import EPS2D
-from drivingscene.render.scene import LayerBlend
+from drivingscene.render.scene import LayerBlend, keyframe_distances
 from drivingscene.render.sky import HORIZON_BAND
 
 TEX_W = 4096
@@ -341,8 +341,9 @@ class SplatRenderer:
             return [(f"k{k}", 1.0, [(0, n)], k, k) for k in (0, 1)]
         by_camera = opts.blend == "cameras" and self.source_axes is not None
         axis = camera.world_to_cam[2, :3]
-        w2c = np.asarray(camera.world_to_cam, np.float64)
-        centre = -w2c[:3, :3].T @ w2c[:3, 3]
+        distances = None  # [2]: to the nearest camera of each keyframe (LayerBlend.view_weight)
+        if self.source_centres is not None:
+            distances = keyframe_distances(np.asarray(camera.world_to_cam, np.float64)[None], self.source_centres)[:, 0]
         groups: dict[tuple[int, int], list] = {}
         for k, c, a, b in splats.segments:
             key = (k, c if by_camera else -1)
@@ -351,9 +352,7 @@ class SplatRenderer:
         for (k, c), ranges in sorted(groups.items()):
             weight = 1.0
             if c >= 0 and c < self.source_axes.shape[1]:
-                distance = None  # to the nearest camera of the layer's keyframe
-                if self.source_centres is not None:
-                    distance = float(np.linalg.norm(centre - self.source_centres[k], axis=-1).min())
+                distance = None if distances is None else float(distances[k])
                 weight = opts.layer_blend.view_weight(float(axis @ self.source_axes[k, c]), k, t, distance)
             layers.append((f"k{k}c{c}", weight, ranges, -1, k))
         return layers

@@ -248,15 +248,13 @@ class DepthMeshRenderer:
         blend's (`drivingscene.render.scene.LayerBlend`, default now)."""
         rule = blend or render_scene.LayerBlend()
         axes = render_scene.source_axes(self.recon).double().numpy()  # [2, V, 3]
-        centres = render_scene.source_centres(self.recon).numpy()  # [2, V, 3]
         w2c = np.asarray(world_to_cam, np.float64)
+        distances = render_scene.keyframe_distances(w2c, render_scene.source_centres(self.recon)).numpy()  # [2, B]
         target_axes = w2c[:, 2, :3]  # [B, 3] optical axes in the world
-        target_centres = -np.einsum("bji,bj->bi", w2c[:, :3, :3], w2c[:, :3, 3])  # -R^T t
         out = np.empty((len(self.layers), len(target_axes)))
         for i, layer in enumerate(self.layers):
             cos = target_axes @ axes[layer.keyframe, layer.camera]
-            # to the nearest camera of the layer's keyframe (LayerBlend.view_weight)
-            distance = np.linalg.norm(target_centres[:, None] - centres[layer.keyframe][None], axis=-1).min(-1)
+            distance = distances[layer.keyframe]
             out[i] = [rule.view_weight(float(c), layer.keyframe, t, float(d)) for c, d in zip(cos, distance)]
         return out
 

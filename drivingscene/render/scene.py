@@ -254,7 +254,7 @@ def render_camera_layers(
     t = float(t)
     rule = layer_blend or LayerBlend()
     target_axes = world_to_cam[:, 2, :3].float()  # camera z axis in world: the third row of R_w2c
-    target_centres = invert_rigid(world_to_cam.double())[:, :3, 3]
+    distances = None if source_centres is None else keyframe_distances(world_to_cam, source_centres)  # [2, B]
     num_cameras = source_axes.shape[1]
     sets = []
     for k in (0, 1):
@@ -264,9 +264,7 @@ def render_camera_layers(
             if c < 0:
                 view_weight = torch.ones(len(target_axes))
             else:
-                distance = None
-                if source_centres is not None:  # to the nearest camera of the layer's keyframe
-                    distance = torch.cdist(target_centres, source_centres[k].to(target_centres)).amin(-1).float()
+                distance = None if distances is None else distances[k]
                 view_weight = rule.view_weight(target_axes @ source_axes[k, c].to(target_axes), k, t, distance)
             sets.append(((gaussians.keyframes == k) & (gaussians.cameras == c), view_weight, k))
     return _render_sets(
@@ -401,6 +399,14 @@ def source_axes(recon) -> Tensor:
     """``[2, V, 3]`` world optical axes of a reconstruction's input cameras."""
     rot = torch.from_numpy(recon.ego_to_world[:, None, :3, :3]) @ torch.from_numpy(recon.cam_to_ego[None, :, :3, :3]).double()
     return rot[..., 2].float()
+
+
+def keyframe_distances(world_to_cam, source_centres) -> Tensor:
+    """``[2, B]`` metres from each target camera's centre (``world_to_cam`` ``[B, 4, 4]``) to the
+    nearest input camera of each keyframe (``source_centres`` ``[2, V, 3]``; tensors or arrays):
+    the distance `LayerBlend.view_weight` takes."""
+    centres = invert_rigid(torch.as_tensor(world_to_cam).double())[:, :3, 3]  # [B, 3]
+    return torch.cdist(torch.as_tensor(source_centres).double(), centres[None].expand(2, -1, -1)).amin(1).float()
 
 
 def source_centres(recon) -> Tensor:
