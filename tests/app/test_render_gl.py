@@ -52,6 +52,16 @@ def _gl_render(ctx, gaussians, sky, t, blend, keys, mode="rgb", axes=None, groun
     return out
 
 
+def _three_cameras(gaussians):
+    """``gaussians`` split among three source cameras, the third with unknown (-1) splats as well,
+    with their axes ``[2, 3, 3]`` (0, 40 and 80 degrees off the view, 10 degrees more at keyframe 1)
+    and a sky."""
+    gaussians = dataclasses.replace(gaussians, cameras=torch.arange(len(gaussians)) % 4 - 1)
+    rad = np.radians([[0.0, 40.0, 80.0], [10.0, 50.0, 90.0]])
+    axes = np.stack([np.sin(rad), np.zeros_like(rad), np.cos(rad)], -1)
+    return gaussians, axes, torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
+
+
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 10 * math.log10(1.0 / max(float(((a - b) ** 2).mean()), 1e-12))
 
@@ -71,11 +81,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 )
 def test_gl_matches_torch_rasterizer(gl_ctx, sh_degree, t, blend, keys):
     gaussians = random_gaussians(300, sh_degree=sh_degree, seed=sh_degree)
-    # three source cameras, the third with unknown (-1) splats as well; axes 0, 40 and 80 degrees off
-    gaussians = dataclasses.replace(gaussians, cameras=torch.arange(len(gaussians)) % 4 - 1)
-    rad = np.radians([[0.0, 40.0, 80.0], [10.0, 50.0, 90.0]])
-    axes = np.stack([np.sin(rad), np.zeros_like(rad), np.cos(rad)], -1)
-    sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
+    gaussians, axes, sky = _three_cameras(gaussians)
     cam = _camera()
     ref = (
         render_gaussians(
@@ -105,10 +111,7 @@ def test_gl_mixes_the_keyframes_as_torch(gl_ctx):
     # at a keyframe, layers whose cameras look away from the view: how much of the other keyframe
     # mixes in (LayerBlend.far_mix) is the CPU renderer's in the window too
     gaussians = random_gaussians(300, sh_degree=2, seed=2)
-    gaussians = dataclasses.replace(gaussians, cameras=torch.arange(len(gaussians)) % 4 - 1)
-    rad = np.radians([[0.0, 40.0, 80.0], [10.0, 50.0, 90.0]])
-    axes = np.stack([np.sin(rad), np.zeros_like(rad), np.cos(rad)], -1)
-    sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
+    gaussians, axes, sky = _three_cameras(gaussians)
     cam = _camera()
     rules = [LayerBlend(far_mix=0.0), LayerBlend(far_mix=1.0)]
     refs = [
@@ -130,10 +133,7 @@ def test_gl_sharpens_near_a_source_camera_as_torch(gl_ctx):
     # mid-way, a view standing where the layers' cameras stood (a still ego) weighs them as sharply
     # as at their keyframe (LayerBlend.pose_scale); the window draws what the CPU renderer does
     gaussians = random_gaussians(300, sh_degree=2, seed=3)
-    gaussians = dataclasses.replace(gaussians, cameras=torch.arange(len(gaussians)) % 4 - 1)
-    rad = np.radians([[0.0, 40.0, 80.0], [10.0, 50.0, 90.0]])
-    axes = np.stack([np.sin(rad), np.zeros_like(rad), np.cos(rad)], -1)
-    sky = torch.randn(9, 3, generator=torch.Generator().manual_seed(1)) * 0.3
+    gaussians, axes, sky = _three_cameras(gaussians)
     cam = _camera()
     here = np.broadcast_to(np.linalg.inv(cam.world_to_cam)[:3, 3], (2, 3, 3)).copy()
     cases = [here, here + np.array([0.0, 5.0, 0.0])]  # at the view's centre, and 5 m away (time alone)
