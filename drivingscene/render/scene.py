@@ -404,9 +404,12 @@ def source_axes(recon) -> Tensor:
 def keyframe_distances(world_to_cam, source_centres) -> Tensor:
     """``[2, B]`` metres from each target camera's centre (``world_to_cam`` ``[B, 4, 4]``) to the
     nearest input camera of each keyframe (``source_centres`` ``[2, V, 3]``; tensors or arrays):
-    the distance `LayerBlend.view_weight` takes."""
+    the distance `LayerBlend.view_weight` takes (infinite without cameras)."""
     centres = invert_rigid(torch.as_tensor(world_to_cam).double())[:, :3, 3]  # [B, 3]
-    return torch.cdist(torch.as_tensor(source_centres).double(), centres[None].expand(2, -1, -1)).amin(1).float()
+    sources = torch.as_tensor(source_centres).double()
+    if sources.shape[1] == 0:  # no input camera: infinitely far, the scale follows the time alone
+        return torch.full((2, len(centres)), math.inf)
+    return torch.cdist(sources, centres[None].expand(2, -1, -1)).amin(1).float()
 
 
 def source_centres(recon) -> Tensor:
