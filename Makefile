@@ -90,13 +90,21 @@ views: setup
 	$(VENV)/bin/drivingscene bench views --force --count 1 --scenes $(REAL_OUT)/ddad02_0-2.npz --out $(OUT)/views-real
 
 # A stopped ego (docs/still-ego.md): procedural test pairs at ego speed 0, with the usual moving
-# objects and with none, scored like the real pairs; with nothing moving, blending the keyframes is
-# exact, and the in-between frame should be no worse than it minus 1 dB.
+# objects and with none, scored like the real pairs, the in-between frame against blending the
+# keyframes (issue 45: no worse than it minus 1 dB). The images carry a camera's sensor noise
+# (STILL_NOISE, about 2.5 grey levels): without any, a blend where nothing moved is bit-exact. One
+# pair where nothing moves at half that noise and one without noise show where the floor stops holding.
 STILL_OUT ?= data
+STILL_NOISE := 0.01
 STILL_NAMES := $(foreach s,200000 200001 200002 200003,"still ego, moving objects $(s)") \
-	$(foreach s,200000 200001 200002 200003,"still ego, nothing moves $(s)")
+	$(foreach s,200000 200001 200002 200003,"still ego, nothing moves $(s)") \
+	"still ego, nothing moves 200000, noise 0.005" "still ego, nothing moves 200000, no noise"
+STILL_SYNTH := $(VENV)/bin/drivingscene synth --split test --ego-speed 0 --force --no-progress
 still-ego: setup
-	$(VENV)/bin/drivingscene synth --split test --count 4 --ego-speed 0 -o $(STILL_OUT)/test176_still --force --no-progress
-	$(VENV)/bin/drivingscene synth --split test --count 4 --ego-speed 0 --num-moving 0 -o $(STILL_OUT)/test176_still0 --force --no-progress
-	$(VENV)/bin/drivingscene bench real --force $(STILL_OUT)/test176_still/pair_*.npz $(STILL_OUT)/test176_still0/pair_*.npz \
+	$(STILL_SYNTH) --count 4 --noise-std $(STILL_NOISE) -o $(STILL_OUT)/still176/moving
+	$(STILL_SYNTH) --count 4 --noise-std $(STILL_NOISE) --num-moving 0 -o $(STILL_OUT)/still176/static
+	$(STILL_SYNTH) --count 1 --noise-std 0.005 --num-moving 0 -o $(STILL_OUT)/still176/static_noise_half
+	$(STILL_SYNTH) --count 1 --num-moving 0 -o $(STILL_OUT)/still176/static_no_noise
+	$(VENV)/bin/drivingscene bench real --force $(STILL_OUT)/still176/moving/pair_*.npz $(STILL_OUT)/still176/static/pair_*.npz \
+		$(STILL_OUT)/still176/static_noise_half/pair_200000.npz $(STILL_OUT)/still176/static_no_noise/pair_200000.npz \
 		--names $(STILL_NAMES) --title "DrivingScene with the ego standing still (procedural pairs)" --notes docs/still-ego-notes.md --out docs/still-ego.md --json docs/still-ego.json
