@@ -62,7 +62,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="file name prefix of the previews: NAME_contact_sheet.png (default synth)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--force", action="store_true", help="overwrite file.npz (--seed) if it exists")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="overwrite file.npz (--seed) if it exists; with --split, make the pairs asked for anew, also in a "
+        "folder made with other flags when they cover every pair it holds",
+    )
     p.set_defaults(func=run)
 
 
@@ -169,7 +174,9 @@ def _run_dataset(args: argparse.Namespace, config) -> int:
         renderer = renderer or SynthRenderer()  # one GL context and program set for every pair
         return generate_pair(config, seed, renderer)
 
-    written, skipped = write_dataset(args.out, args.split, seeds, config, generate, progress=not args.no_progress)
+    written, skipped = write_dataset(
+        args.out, args.split, seeds, config, generate, progress=not args.no_progress, force=args.force
+    )
     print(
         f"{args.out}: {written} pair(s) written, {skipped} already present, split {args.split} seeds "
         f"[{seeds.start}, {seeds.stop})"

@@ -1,7 +1,8 @@
 """Writing datasets of generated pairs: ``DIR/pair_<seed>.npz`` plus ``DIR/manifest.json``.
 
 Every file is written atomically, so a file that exists is complete; resuming an interrupted run
-skips them. A folder whose manifest has a different split or config is refused.
+skips them. A folder whose manifest has a different split or config is refused, unless ``force``
+regenerates every pair it records.
 """
 
 from __future__ import annotations
@@ -41,30 +42,29 @@ def _manifest(split: str, seeds: list[int], config: SynthConfig) -> dict:
     }
 
 
-def _check_existing(folder: Path, split: str, config: SynthConfig) -> list[int]:
-    """Seeds already recorded in ``folder``'s manifest; raise if it was made differently."""
+def _check_existing(folder: Path, split: str, config: SynthConfig) -> tuple[list[int], str | None]:
+    """Seeds already recorded in ``folder``'s manifest, and how the folder was made differently
+    (a one-line reason) or None."""
     path = folder / MANIFEST
     if not path.exists():
-        return []
+        return [], None
     try:
         old = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise InputError(f"{path}: expected a dataset manifest (JSON), could not read it: {e}") from None
     if old.get("format") != DATASET_FORMAT:
         raise InputError(f"{path}: expected a {DATASET_FORMAT} manifest, found format {old.get('format')!r}")
+    seeds = [int(s) for s in old.get("seeds", [])]
     if old.get("split") != split:
-        raise InputError(f"--out: {folder} holds split {old.get('split')!r}, not {split!r}; use another folder")
+        return seeds, f"holds split {old.get('split')!r}, not {split!r}"
     new = config.to_dict()
     # knobs added since the folder was written had their default value then
     recorded = {**SynthConfig().to_dict(), **old.get("config", {})}
     diff = [k for k in sorted(set(new) | set(recorded)) if recorded.get(k) != new.get(k)]
     if diff:
         k = diff[0]
-        raise InputError(
-            f"--out: {folder} was generated with a different config ({k}={recorded.get(k)!r} there, "
-            f"{new.get(k)!r} now); use another folder or the same flags"
-        )
-    return [int(s) for s in old.get("seeds", [])]
+        return seeds, f"was generated with a different config ({k}={recorded.get(k)!r} there, {new.get(k)!r} now)"
+    return seeds, None
 
 
 def _remove_stale_temporaries(folder: Path) -> None:
@@ -80,10 +80,14 @@ def write_dataset(
     config: SynthConfig,
     generate: Callable[[int], object],
     progress: bool = True,
+    force: bool = False,
 ) -> tuple[int, int]:
     """Generate every seed of ``seeds`` into ``folder`` (skipping files that exist).
 
-    ``generate(seed)`` returns a ``FramePair``. Returns (pairs written, pairs skipped).
+    ``generate(seed)`` returns a ``FramePair``. ``force``: regenerate the pairs that exist too, and
+    accept a folder made with another split or config when every pair it records is among
+    ``seeds`` (all of them are then made anew; otherwise the folder is refused, as without it).
+    Returns (pairs written, pairs skipped).
     """
     from tqdm import tqdm
 
@@ -91,7 +95,17 @@ def write_dataset(
     if folder.exists() and not folder.is_dir():
         raise InputError(f"--out: expected a folder for a dataset, found a file {folder}")
     seeds = list(seeds)
-    recorded = _check_existing(folder, split, config)
+    recorded, different = _check_existing(folder, split, config)
+    if different is not None:
+        kept = sorted(set(recorded) - set(seeds))
+        if not force:
+            raise InputError(f"--out: {folder} {different}; use another folder, the same flags or --force")
+        if kept:
+            raise InputError(
+                f"--out: {folder} {different}, and --force would leave {len(kept)} of its pairs (seed {kept[0]}"
+                f"{', ...' if len(kept) > 1 else ''}) made the old way; use another folder or --count/--start covering them"
+            )
+        recorded = []
     folder.mkdir(parents=True, exist_ok=True)
     _remove_stale_temporaries(folder)
     manifest = _manifest(split, sorted(set(recorded) | set(seeds)), config)
@@ -100,7 +114,7 @@ def write_dataset(
     bar = tqdm(seeds, desc=f"synth {split}", unit="pair", disable=not progress)
     for seed in bar:
         path = pair_path(folder, seed)
-        if path.exists():
+        if path.exists() and not force:
             skipped += 1
             continue
         save_frame_pair(generate(seed), path)

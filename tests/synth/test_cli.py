@@ -122,6 +122,30 @@ def test_dataset_refuses_a_folder_made_with_other_flags(tmp_path, capsys):
     assert main(["synth", "--split", "test", "--count", "2", "--out", str(out), *TINY, "--preset", "noisy"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("drivingscene synth: error: --out:") and "noise_std" in err and "\n" not in err
+    assert "--force" in err
+
+
+def test_dataset_force_makes_the_pairs_anew(tmp_path, capsys):
+    out = tmp_path / "ds"
+    base = ["synth", "--split", "test", "--out", str(out), *TINY, "--no-progress"]
+    assert main([*base, "--count", "2"]) == 0
+    first = (out / "pair_200000.npz").read_bytes()
+    capsys.readouterr()
+    # the same flags: made again, byte for byte the same (the generator is deterministic)
+    assert main([*base, "--count", "1", "--force"]) == 0
+    assert "1 pair(s) written, 0 already present" in capsys.readouterr().out
+    assert (out / "pair_200000.npz").read_bytes() == first
+    # other flags, leaving one of the folder's two pairs made the old way: refused, nothing touched
+    assert main([*base, "--count", "1", "--preset", "noisy", "--force"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("drivingscene synth: error: --out:") and "200001" in err and "\n" not in err
+    assert json.loads((out / "manifest.json").read_text())["config"]["noise_std"] == 0.0
+    # other flags covering every pair: all made anew, the manifest says how
+    assert main([*base, "--count", "2", "--preset", "noisy", "--force"]) == 0
+    assert "2 pair(s) written, 0 already present" in capsys.readouterr().out
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config"]["noise_std"] == 0.03 and manifest["seeds"] == [200000, 200001]
+    assert (out / "pair_200000.npz").read_bytes() != first
 
 
 @pytest.mark.parametrize(
