@@ -22,7 +22,7 @@ from torch import Tensor
 from drivingscene import kernels
 from drivingscene.gaussians.core import Gaussians, rgb_to_sh0
 from drivingscene.geometry.camera import unproject
-from drivingscene.geometry.se3 import matrix_to_quat, matvec, quat_left_matrix, transform_points
+from drivingscene.geometry.se3 import matrix_to_quat, matvec, quat_left_matrix, quat_to_matrix, transform_points
 
 # Splat sigma in pixels in the source view. With the renderer's 0.3 px^2 low-pass a pixel's splat
 # has sigma ~0.65 px, which still closes the surface; larger footprints blur the input views
@@ -43,6 +43,17 @@ DEFAULT_OPACITY = 0.95  # of a pixel's Gaussian when nothing predicts one
 # low-pass (render.EPS2D) is lowered by as much, so a view at the input's size is as before.
 MAX_FOOTPRINT = 0.5  # pixels of the source view (sigma); 1.0 before 2026-11-28 (docs/magnification.md)
 FOOTPRINT_FLOOR = 0.2  # pixels^2 of the source view (variance); with EPS2D, 3DGS's 0.3 at the input's size
+
+# Along the view ray (docs/magnification.md, *Along the rays*). Two neighbouring pixels of a slope
+# seen at a grazing angle (the road, a wall beside the car) are one footprint apart across the
+# ray but their depths a step apart along it: seen from elsewhere (from above, from the side) the
+# rows of splats separate into stripes where a depth mesh's triangles stay closed. Each Gaussian
+# gains the variance (RAY_EXTENT x that step)^2 along its own view ray, which its own view cannot
+# see (the ray projects to a point: J r = 0), so every input view renders as before; the step is
+# the smaller of the two towards a pixel's neighbours, and only where the depth runs through the
+# pixel monotonically (a slope; a peak or a valley is an isolated structure or noise, and a depth
+# edge's far side is the larger step). Inference only (`extend_along_rays`).
+RAY_EXTENT = 1.0  # chosen on validation pairs 100000-100003 (docs/magnification.md, *Along the rays*)
 
 
 @dataclass(frozen=True)
@@ -163,6 +174,69 @@ def surfel_frames_torch(depth: Tensor, intrinsics: Tensor, footprint: float = FO
     rotation = torch.stack([d1, d2, normals], dim=-1)
     scales = torch.cat([tangent_scales, (THICKNESS * pixel)[..., None]], dim=-1)
     return axes_to_quat(rotation), torch.log(scales)
+
+
+def slope_steps(depth: Tensor) -> Tensor:
+    """Per pixel the depth step ``[V, H, W]`` (metres of z) to its neighbours along the image
+    axis where it is larger: of the two steps along an axis the smaller one, where both have
+    the same sign (the depth runs through the pixel monotonically), else 0."""
+    padded = F.pad(depth[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
+    steps = []
+    for ahead, behind in ((padded[:, 1:-1, 2:], padded[:, 1:-1, :-2]), (padded[:, 2:, 1:-1], padded[:, :-2, 1:-1])):
+        forward, backward = ahead - depth, depth - behind
+        slope = forward * backward > 0
+        steps.append(torch.where(slope, torch.minimum(forward.abs(), backward.abs()), torch.zeros_like(depth)))
+    return torch.maximum(*steps)
+
+
+def extend_along_rays_torch(
+    points: Tensor,  # [N, 3] means in their camera's axes
+    quats: Tensor,  # [N, 4] w, x, y, z, camera axes
+    log_scales: Tensor,  # [N, 3]
+    sigma: Tensor,  # [N] metres along the ray (<= 0: unchanged)
+) -> tuple[Tensor, Tensor]:
+    """The pure-torch reference of `kernels.extend_along_rays`: R S^2 R^T + sigma^2 u u^T (u the unit
+    ray to the mean) decomposed again by ``torch.linalg.eigh`` (float64); quaternions and log scales."""
+    changed = sigma > 0
+    quats, log_scales = quats.clone(), log_scales.clone()
+    if not changed.any():
+        return quats, log_scales
+    rot = quat_to_matrix(F.normalize(quats[changed].double(), dim=-1))
+    cov = rot @ torch.diag_embed(torch.exp(2 * log_scales[changed].double())) @ rot.transpose(-1, -2)
+    ray = F.normalize(points[changed].double(), dim=-1)
+    cov = cov + sigma[changed].double()[:, None, None] ** 2 * ray[:, :, None] * ray[:, None, :]
+    values, vectors = torch.linalg.eigh(cov)
+    vectors[:, :, 2] *= torch.linalg.det(vectors).sign()[:, None]  # a rotation
+    quats[changed] = axes_to_quat(vectors).to(quats)
+    log_scales[changed] = (0.5 * torch.log(values.clamp(min=1e-30))).to(log_scales)
+    return quats, log_scales
+
+
+def extend_along_rays(
+    depth: Tensor,  # [V, H, W] z-depth, metres
+    intrinsics: Tensor,  # [V, 3, 3]
+    quats: Tensor,  # [V, H, W, 4] camera axes
+    log_scales: Tensor,  # [V, H, W, 3]
+    extent: float = RAY_EXTENT,
+    backend: str = "auto",
+) -> tuple[Tensor, Tensor]:
+    """Per-pixel Gaussians extended along their view rays by ``extent`` times their `slope_steps`
+    (module constants): quaternions ``[V, H, W, 4]`` and log scales ``[V, H, W, 3]``. Not
+    differentiable (inference); ``backend`` as `surfel_frames`."""
+    if extent <= 0:
+        return quats, log_scales
+    with torch.no_grad():
+        dtype = log_scales.dtype
+        depth = depth.detach().to(dtype)
+        points = unproject(depth.clamp(min=1e-3), intrinsics.to(dtype))
+        # the step in z is a step along the ray of |ray| / z times it
+        sigma = extent * slope_steps(depth) * points.norm(dim=-1) / points[..., 2]
+        flat = (points.reshape(-1, 3), quats.detach().reshape(-1, 4).to(dtype), log_scales.detach().reshape(-1, 3))
+        if kernels.available(kernels.extend_along_rays, backend, *flat):
+            q, s = kernels.extend_along_rays(*flat, sigma.reshape(-1))
+        else:
+            q, s = extend_along_rays_torch(*flat, sigma.reshape(-1))
+    return q.view(quats.shape).to(quats.dtype), s.view(log_scales.shape).to(log_scales.dtype)
 
 
 def gaussians_from_pixels(

@@ -44,7 +44,7 @@ from drivingscene.kernels.matching import (
 )
 from drivingscene.kernels.pairs import find_pairs, splat_boxes
 from drivingscene.kernels.solve import own_layer_solve
-from drivingscene.kernels.surfels import activate_surfels, surfel_frames
+from drivingscene.kernels.surfels import activate_surfels, extend_along_rays, surfel_frames
 
 __all__ = [
     "BACKENDS",
@@ -58,6 +58,7 @@ __all__ = [
     "composite_forward",
     "default_build_dir",
     "epipolar_parallax",
+    "extend_along_rays",
     "fb_consistent",
     "find_pairs",
     "lift_dense",

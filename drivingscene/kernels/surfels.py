@@ -42,3 +42,19 @@ def activate_surfels(
     CPU tensors, any float dtype (computed in float32); no gradients. Reference path:
     ``drivingscene.models.gaussian_head.GaussianHead._activate`` (the same up to float rounding)."""
     return call("activate_surfels", depth, intrinsics, raw, images, footprint, thickness, min_cos, opacity_bias, sh_c0)
+
+
+@compiled
+def extend_along_rays(
+    points: Tensor,  # [N, 3] means in their source camera's axes, metres
+    quats: Tensor,  # [N, 4] w, x, y, z, the same axes
+    log_scales: Tensor,  # [N, 3]
+    sigma: Tensor,  # [N] metres added along the view ray (<= 0: unchanged)
+) -> tuple[Tensor, Tensor]:
+    """Quaternions ``[N, 4]`` and log scales ``[N, 3]`` of the Gaussians whose covariance gained
+    ``sigma^2`` along the unit ray from the camera centre to the mean, float32 (a Jacobi
+    eigen-decomposition per Gaussian, in double precision).
+
+    CPU tensors, any float dtype; not differentiable. Reference path:
+    ``drivingscene.gaussians.assembly.extend_along_rays_torch`` (the same covariances up to float rounding)."""
+    return call("extend_along_rays", points, quats, log_scales, sigma)

@@ -60,7 +60,7 @@ from torch import Tensor
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.road_plane import road_plane_depth
 from drivingscene.data.tensors import PairTensors, pair_to_tensors, world_cameras
-from drivingscene.gaussians.assembly import gaussians_from_pixels
+from drivingscene.gaussians.assembly import RAY_EXTENT, extend_along_rays, gaussians_from_pixels
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.geometry.flow import forward_backward_consistency, vector_length
@@ -116,6 +116,8 @@ class ClassicalConfig:
     # Iterations of the colour solve, as the oracle and the model (`refine_colors`,
     # render/color_solve.py); 0: the pixel colours as they are.
     refine: int = COLOR_ITERATIONS
+    # Each Gaussian extended along its view ray, as the model's (`gaussians.assembly.extend_along_rays`); 0: none.
+    ray_extent: float = RAY_EXTENT
 
     def __post_init__(self):
         if self.preset not in DIS_PRESETS:
@@ -330,7 +332,7 @@ def classical_reconstruction(pair: FramePair, config: ClassicalConfig = Classica
     timings["lift_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    gaussians, sky_sh = _assemble(batch, depth, sky, sky_pixels, scene_flow, config.refine)
+    gaussians, sky_sh = _assemble(batch, depth, sky, sky_pixels, scene_flow, config.refine, config.ray_extent)
     timings["assembly_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - start
     sky_np = sky.numpy()
@@ -353,10 +355,11 @@ def classical_reconstruction(pair: FramePair, config: ClassicalConfig = Classica
 
 
 def _assemble(
-    batch: PairTensors, depth: Tensor, sky: Tensor, sky_pixels: Tensor, scene_flow: Tensor, refine: int
+    batch: PairTensors, depth: Tensor, sky: Tensor, sky_pixels: Tensor, scene_flow: Tensor, refine: int, ray_extent: float
 ) -> tuple[Gaussians, Tensor]:
     """Gaussians of both keyframes in the world frame, one per non-sky world pixel with its colour
-    (after ``refine`` iterations of the colour solve), and the sky SH fitted to ``sky_pixels``."""
+    (after ``refine`` iterations of the colour solve) and extended along its view ray by
+    ``ray_extent``, and the sky SH fitted to ``sky_pixels``."""
     num_views = batch.num_views
     c2w = world_cameras(batch)  # [2, V, 4, 4]
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, c2w, batch.intrinsics)
@@ -364,6 +367,7 @@ def _assemble(
     depths, intrinsics = depth.flatten(0, 1), batch.intrinsics.repeat(2, 1, 1)
     quats, log_scales = surfel_maps(depths, intrinsics)
     colors = refine_colors(depths, intrinsics, colors, ~sky.flatten(0, 1), refine, (quats, log_scales))
+    quats, log_scales = extend_along_rays(depths, intrinsics, quats, log_scales, ray_extent)
     flows = rotate_vectors(batch.local_to_world[:3, :3].float(), scene_flow.float())
     gaussians = gaussians_from_pixels(
         depths,

@@ -25,7 +25,7 @@ from torch import Tensor
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.tensors import pair_to_tensors, world_cameras
 from drivingscene.errors import InputError
-from drivingscene.gaussians.assembly import FootprintRule
+from drivingscene.gaussians.assembly import RAY_EXTENT, FootprintRule
 from drivingscene.gaussians.core import sh0_to_rgb
 from drivingscene.gaussians.ground import fit_ground, road_plane
 from drivingscene.gaussians.recon import Reconstruction
@@ -90,6 +90,10 @@ class InferenceOptions:
     surface_tolerance: float = SURFACE_TOLERANCE
     # The footprint rule on P's scales (gaussians/assembly.py); NO_FOOTPRINT_RULE: as 3DGS (ablation).
     footprints: FootprintRule = FootprintRule()
+    # Each Gaussian extended along its view ray by this many times the depth step to its neighbours
+    # on a slope, invisible in its own view (gaussians/assembly.py, docs/magnification.md, *Along the
+    # rays*); 0: none.
+    ray_extent: float = RAY_EXTENT
     # The pixels beyond the sky distance (far content and the sky itself) as Gaussians at their depth,
     # at most this many (> 1) times the sky distance away, static and view-bound
     # (docs/magnification.md, *Far layer*); 0: none, the sky model alone draws them.
@@ -333,7 +337,7 @@ def reconstruct(
             layer_flow = torch.where(sky_pixels[..., None], torch.zeros_like(scene_flow), scene_flow)
     gaussians = assemble(
         layer_static, batch, layer_sky, layer_flow, local_to_world=batch.local_to_world, fit_colors=options.fit_colors,
-        footprints=options.footprints, surface_tolerance=options.surface_tolerance,
+        footprints=options.footprints, surface_tolerance=options.surface_tolerance, ray_extent=options.ray_extent,
     )  # fmt: skip
     far = sky_pixels[~layer_sky]  # [N]: the far layer's Gaussians (pixel order, as assembled)
     if options.carve is not None:

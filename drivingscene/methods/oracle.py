@@ -13,7 +13,14 @@ import torch
 from drivingscene.data.frame_pair import FramePair
 from drivingscene.data.tensors import pair_to_tensors, world_cameras
 from drivingscene.errors import InputError
-from drivingscene.gaussians.assembly import DEFAULT_OPACITY, gaussians_from_pixels, pixel_footprints, surfel_frames
+from drivingscene.gaussians.assembly import (
+    DEFAULT_OPACITY,
+    RAY_EXTENT,
+    extend_along_rays,
+    gaussians_from_pixels,
+    pixel_footprints,
+    surfel_frames,
+)
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.models.pipeline import rigid_flows
@@ -46,9 +53,12 @@ def refine_colors(
     return solve_pixel_colors(depth, intrinsics, quats, log_scales, opacities, images, images, valid, iterations)
 
 
-def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refine: int = COLOR_ITERATIONS) -> Reconstruction:
+def oracle_reconstruction(
+    pair: FramePair, *, use_scene_flow: bool = True, refine: int = COLOR_ITERATIONS, ray_extent: float = RAY_EXTENT
+) -> Reconstruction:
     """Gaussians from ``gt_depth`` (and ``gt_scene_flow``) of both keyframes, in the world frame;
-    ``refine`` iterations of the colour solve (0 = the pixel colours as they are)."""
+    ``refine`` iterations of the colour solve (0 = the pixel colours as they are); each Gaussian
+    extended along its view ray by ``ray_extent`` (`gaussians.assembly.extend_along_rays`, as the model's)."""
     if pair.gt_depth is None:
         raise InputError("oracle: the scene has no gt_depth; the oracle needs ground-truth depth")
     if use_scene_flow and pair.gt_scene_flow is None:
@@ -69,6 +79,7 @@ def oracle_reconstruction(pair: FramePair, *, use_scene_flow: bool = True, refin
         images = batch.images[k].permute(0, 2, 3, 1)
         quats, log_scales = surfel_maps(depth[k], batch.intrinsics)
         colors = refine_colors(depth[k], batch.intrinsics, images, ~sky[k], refine, (quats, log_scales))
+        quats, log_scales = extend_along_rays(depth[k], batch.intrinsics, quats, log_scales, ray_extent)
         parts.append(
             gaussians_from_pixels(
                 depth[k],

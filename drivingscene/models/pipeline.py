@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.data.tensors import PairTensors
-from drivingscene.gaussians.assembly import FootprintRule, gaussians_from_pixels, pixel_footprints
+from drivingscene.gaussians.assembly import FootprintRule, extend_along_rays, gaussians_from_pixels, pixel_footprints
 from drivingscene.gaussians.core import Gaussians
 from drivingscene.geometry.camera import pixel_grid, scale_intrinsics
 from drivingscene.geometry.flow import (
@@ -275,13 +275,16 @@ def assemble(
     fit_colors: int = 0,
     footprints: FootprintRule = FootprintRule(),
     surface_tolerance: float = SURFACE_TOLERANCE,
+    ray_extent: float = 0.0,
 ) -> Gaussians:
     """Gaussians of the requested keyframes in the local frame, or the world frame with
     ``local_to_world`` (one pass, not a second transform of every Gaussian); sky pixels excluded.
     ``fit_colors`` > 0: that many iterations of the colour solve (`render.color_solve`) that makes
     each input image's own Gaussians re-render it (inference; training leaves the colours to P).
     ``footprints``: the footprint rule applied to P's scales (`gaussians.assembly`);
-    ``surface_tolerance``: the own layer's rule the solve fits for (the layered blends')."""
+    ``surface_tolerance``: the own layer's rule the solve fits for (the layered blends');
+    ``ray_extent`` > 0: each Gaussian extended along its view ray (`gaussians.assembly.extend_along_rays`;
+    inference: not differentiable)."""
     num_views = batch.num_views
     p = static.params
     cams = batch.cam_to_local
@@ -306,6 +309,8 @@ def assemble(
             depth, intrinsics, quats, log_scales, per_view(p.opacity_logits), sh, per_view(batch.images.flatten(0, 1)), valid,
             fit_colors, surface_tolerance,
         )  # fmt: skip
+    if ray_extent > 0:  # after the solve: the own views do not see it
+        quats, log_scales = extend_along_rays(depth, intrinsics, quats, log_scales, ray_extent)
     return gaussians_from_pixels(
         depth,
         intrinsics,

@@ -32,7 +32,7 @@ def registered_schemas() -> dict[str, list[tuple[str, str]]]:
 def test_the_sources_register_the_ops_we_know():
     schemas = registered_schemas()
     assert (
-        len(schemas) == 18
+        len(schemas) == 19
         and "composite_backward" in schemas
         and "own_layer_solve" in schemas
         and "find_pairs" in schemas
