@@ -54,6 +54,10 @@ FOOTPRINT_FLOOR = 0.2  # pixels^2 of the source view (variance); with EPS2D, 3DG
 # pixel monotonically (a slope; a peak or a valley is an isolated structure or noise, and a depth
 # edge's far side is the larger step). Inference only (`extend_along_rays`).
 RAY_EXTENT = 1.0  # chosen on validation pairs 100000-100003 (docs/magnification.md, *Along the rays*)
+# The step taken is at most this share of the depth: far slopes (a facade down the street, the last
+# rows of the road) have steps of many metres, whose extension drew long streaks into the sky and
+# across the unseen ground under the ego in views from elsewhere, for no PSNR (level on validation pairs).
+RAY_STEP_CAP = 0.1
 
 
 @dataclass(frozen=True)
@@ -218,11 +222,12 @@ def extend_along_rays(
     quats: Tensor,  # [V, H, W, 4] camera axes
     log_scales: Tensor,  # [V, H, W, 3]
     extent: float = RAY_EXTENT,
+    step_cap: float = RAY_STEP_CAP,
     backend: str = "auto",
 ) -> tuple[Tensor, Tensor]:
-    """Per-pixel Gaussians extended along their view rays by ``extent`` times their `slope_steps`
-    (module constants): quaternions ``[V, H, W, 4]`` and log scales ``[V, H, W, 3]``. Not
-    differentiable (inference); ``backend`` as `surfel_frames`."""
+    """Per-pixel Gaussians extended along their view rays by ``extent`` times their `slope_steps`,
+    each at most ``step_cap`` times the depth (module constants): quaternions ``[V, H, W, 4]`` and
+    log scales ``[V, H, W, 3]``. Not differentiable (inference); ``backend`` as `surfel_frames`."""
     if extent <= 0:
         return quats, log_scales
     with torch.no_grad():
@@ -230,7 +235,7 @@ def extend_along_rays(
         depth = depth.detach().to(dtype)
         points = unproject(depth.clamp(min=1e-3), intrinsics.to(dtype))
         # the step in z is a step along the ray of |ray| / z times it
-        sigma = extent * slope_steps(depth) * points.norm(dim=-1) / points[..., 2]
+        sigma = extent * torch.minimum(slope_steps(depth), step_cap * depth) * points.norm(dim=-1) / points[..., 2]
         flat = (points.reshape(-1, 3), quats.detach().reshape(-1, 4).to(dtype), log_scales.detach().reshape(-1, 3))
         if kernels.available(kernels.extend_along_rays, backend, *flat):
             q, s = kernels.extend_along_rays(*flat, sigma.reshape(-1))

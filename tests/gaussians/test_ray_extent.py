@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from drivingscene.gaussians.assembly import (
+    RAY_STEP_CAP,
     extend_along_rays,
     extend_along_rays_torch,
     gaussians_from_pixels,
@@ -59,11 +60,13 @@ def test_the_extension_is_along_the_ray_and_invisible_in_the_own_view():
     points = unproject(depth, K[None]).reshape(-1, 3)
     before, after = _cov(quats.reshape(-1, 4), log_scales.reshape(-1, 3)), _cov(q2.reshape(-1, 4), s2.reshape(-1, 3))
     ray = torch.nn.functional.normalize(points, dim=-1)
-    sigma = 0.7 * slope_steps(depth).reshape(-1) * points.norm(dim=-1) / points[:, 2]
+    steps = torch.minimum(slope_steps(depth), RAY_STEP_CAP * depth)  # far steps capped
+    sigma = 0.7 * steps.reshape(-1) * points.norm(dim=-1) / points[:, 2]
     expected = before + sigma[:, None, None] ** 2 * ray[:, :, None] * ray[:, None, :]
     torch.testing.assert_close(after, expected, rtol=1e-6, atol=1e-12)
     # the road's rows are extended (but the last, whose step behind is the border's 0), the sky's are not
     assert (sigma.view(32, 48)[18:31] > 0).all() and (sigma.view(32, 48)[:16] == 0).all()
+    assert (steps < slope_steps(depth)).any() and (steps <= RAY_STEP_CAP * depth).all()
 
     def own_view(q, s):
         proj = project_covariances(
