@@ -7,7 +7,8 @@ match must be (``bonus``, MotionSearchConfig.static_bonus), the photometric chec
 (``photo``), parallax before motion (``parallax``, LiftConfig.epipolar_static) and the
 smallest dynamic region (``region``). For each,
 pair by pair on the same inputs: the input views rendered back at their keyframes, the
-intermediate frame on all and on moving pixels, the share of dynamic Gaussians (with the
+intermediate frame on all and on moving pixels (and, pair by pair against the first variant, how
+many pairs gain on moving pixels, with a two-sided sign test), the flow error, the share of dynamic Gaussians (with the
 ground-truth share of moving pixels), and the seconds of the reconstruction. Run it on validation
 pairs (``drivingscene synth --split val``), never on the test pairs the results report on.
 """
@@ -15,6 +16,7 @@ pairs (``drivingscene synth --split val``), never on the test pairs the results 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -37,6 +39,7 @@ DEFAULT_VARIANTS = [
     "blend=cameras,parallax=on,head=off",  # P ablated: every pixel's default surfel
 ]
 CARVES = ("off", "same_time", "all")
+OBJECTS = ("off", "search", "rigid")
 MATCHES = ("off", "medium", "fast", "ultrafast")
 
 
@@ -66,6 +69,10 @@ class Variant:
     replace: bool | None = None  # MatchedDepthConfig.replace: determined pixels take the triangulated depth
     pdepth: str | None = None  # LiftConfig.epipolar_depth
     ptex: float | None = None  # LiftConfig.epipolar_min_texture
+    objects: str = "off"  # InferenceOptions.objects: "off", or tracked with "search" or "rigid" flow elsewhere
+    residual: bool = True  # InferenceOptions.use_residual (False: static-only)
+    osplit: bool | None = None  # ObjectMotionConfig.split; None: the default
+    omotion: float | None = None  # ObjectMotionConfig.min_motion; None: the default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -113,7 +120,17 @@ class Variant:
             search = replace(search, unseen_static=self.unseen)
         if search is not None and self.unseen_px is not None:
             search = replace(search, unseen_residual_px=self.unseen_px)
-        return replace(base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match)
+        from drivingscene.methods.object_motion import ObjectMotionConfig
+
+        objects = None if self.objects == "off" else ObjectMotionConfig(elsewhere=self.objects)
+        if objects is not None and self.osplit is not None:
+            objects = replace(objects, split=self.osplit)
+        if objects is not None and self.omotion is not None:
+            objects = replace(objects, min_motion=self.omotion)
+        return replace(
+            base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
+            use_residual=self.residual,
+        )  # fmt: skip
 
 
 def _is_number(text: str) -> bool:
@@ -134,9 +151,30 @@ def _nanmean(values: list[float]) -> float:
     return float(np.mean(finite)) if finite else float("nan")
 
 
+def sign_test(wins: int, losses: int) -> float:
+    """Two-sided exact sign test: the probability of a split at least this uneven by chance (ties dropped)."""
+    n = wins + losses
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(wins, losses) + 1)) / 2**n
+    return min(1.0, 2 * tail)
+
+
+def _sign(values: list[float] | None, reference: list[float] | None) -> str:
+    """ "wins / pairs (p ...)" of ``values`` against ``reference`` pair by pair; "–" without both."""
+    if values is None or reference is None:
+        return "–"
+    pairs = [(a, b) for a, b in zip(values, reference) if not (np.isnan(a) or np.isnan(b))]
+    if not pairs:
+        return "–"
+    wins, losses = sum(a > b for a, b in pairs), sum(a < b for a, b in pairs)
+    return f"{wins} / {len(pairs)} (p {sign_test(wins, losses):.3f})"
+
+
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx."""
+    windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
+    residual, osplit, omotion."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -156,7 +194,11 @@ def parse_variant(text: str) -> Variant:
             values["unseen"] = value == "static"
         elif key == "unseenpx" and _is_number(value) and float(value) >= 0:
             values["unseen_px"] = float(value)
-        elif key in ("photo", "parallax", "head", "rig", "replace") and value in ("on", "off"):
+        elif key == "objects" and value in OBJECTS:
+            values["objects"] = value
+        elif key == "omotion" and _is_number(value) and float(value) >= 0:
+            values["omotion"] = float(value)
+        elif key in ("photo", "parallax", "head", "rig", "replace", "residual", "osplit") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
             values["match"] = value
@@ -185,7 +227,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
@@ -209,7 +251,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def score_variant(model, pair, variant: Variant) -> dict[str, float]:
-    from drivingscene.eval.reconstruction import score_depth, score_input_views, score_novel_views
+    from drivingscene.eval.reconstruction import score_depth, score_flow, score_input_views, score_novel_views
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
 
     tic = time.perf_counter()
@@ -222,7 +264,18 @@ def score_variant(model, pair, variant: Variant) -> dict[str, float]:
     if pair.num_eval:
         novel = score_novel_views(recon, pair, None, variant.blend)
         out["psnr"], out["psnr_dyn"] = novel["psnr"], novel.get("psnr_dyn", float("nan"))
+    flow = score_flow(recon, pair)
+    out["epe_dyn"], out["epe_static"] = flow.get("epe_dyn_total", float("nan")), flow.get("epe_static_total", float("nan"))
     return out
+
+
+def score_blend(pair) -> dict[str, float]:
+    """The baseline without geometry: the two keyframes blended by time, scored as the variants."""
+    from drivingscene.eval.baselines import blend_frames
+    from drivingscene.eval.reconstruction import score_frames
+
+    scores = score_frames(blend_frames(pair), pair, None)
+    return {"psnr": scores["psnr"], "psnr_dyn": scores.get("psnr_dyn", float("nan"))}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -238,21 +291,35 @@ def run(args: argparse.Namespace) -> int:
         pairs = [load_frame_pair(f) for f in files]
         moving = np.mean([p.gt_dynamic.mean() for p in pairs if p.gt_dynamic is not None] or [np.nan])
         rows = []
+        first = None  # the first variant's moving-pixel PSNR per pair: the others' pair-by-pair reference
         for variant in variants:
             scores = [score_variant(model, p, variant) for p in pairs]
             keys = dict.fromkeys(k for s in scores for k in s)  # a pair without eval frames has no psnr
             mean = {k: _nanmean([s.get(k, np.nan) for s in scores]) for k in keys}
+            per_pair = [s.get("psnr_dyn", np.nan) for s in scores]
             rows.append(
-                f"| {variant.name} | {mean['inputs']:.2f} | {mean.get('psnr', np.nan):.2f} | {_cell(mean.get('psnr_dyn', np.nan))} "
+                f"| {variant.name or '(defaults)'} | {mean['inputs']:.2f} | {mean.get('psnr', np.nan):.2f} "
+                f"| {_cell(mean.get('psnr_dyn', np.nan))} | {_sign(per_pair, first)} "
+                f"| {_cell(mean.get('epe_dyn', np.nan))} / {_cell(mean.get('epe_static', np.nan))} "
                 f"| {100 * mean['dynamic']:.1f} % | {mean.get('abs_rel', np.nan):.3f} | {np.median([s['seconds'] for s in scores]):.2f} |"
             )
+            first = per_pair if first is None else first
             print(f"{folder}: {rows[-1]}", flush=True)
+        with_eval = [p for p in pairs if p.num_eval]
+        if with_eval:
+            blend = [score_blend(p) for p in with_eval]
+            per_pair = [b["psnr_dyn"] for b in blend] if len(with_eval) == len(pairs) else None
+            rows.append(
+                f"| *keyframes blended (no geometry)* | – | {_nanmean([b['psnr'] for b in blend]):.2f} "
+                f"| {_cell(_nanmean([b['psnr_dyn'] for b in blend]))} | {_sign(per_pair, first)} | – | – | – | – |"
+            )
         motion = "no ground-truth motion" if np.isnan(moving) else f"moving pixels in the ground truth: {100 * moving:.1f} %"
         sections += [
             f"### {folder} ({len(pairs)} {'pair' if len(pairs) == 1 else 'pairs'}; {motion})",
             "",
-            "| variant | input views PSNR | intermediate PSNR | intermediate PSNR, moving | dynamic Gaussians | depth AbsRel | s / pair |",
-            "|---|---|---|---|---|---|---|",
+            "| variant | input views PSNR | intermediate PSNR | intermediate PSNR, moving | moving: pairs above the first row (sign test) "
+            "| flow EPE moving / static (px) | dynamic Gaussians | depth AbsRel | s / pair |",
+            "|---|---|---|---|---|---|---|---|---|",
             *rows,
             "",
         ]

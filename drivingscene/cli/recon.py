@@ -115,6 +115,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="every pixel R and the search move stays dynamic, also where a static surface at another depth "
         "explains its flow (docs/depth.md, parallax before motion)",
     )
+    p.add_argument(
+        "--objects",
+        action="store_true",
+        help="track moving objects as wholes between the keyframes (methods/object_motion.py; a few seconds "
+        "more per pair, docs/moving-objects.md)",
+    )
     add_match_arguments(p)
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: torch's choice)")
     add_amp_arguments(p)
@@ -253,6 +259,10 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
         options = replace(options, search=None)
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
+    if args.objects and not args.static_only:
+        from drivingscene.methods.object_motion import ObjectMotionConfig
+
+        options = replace(options, objects=ObjectMotionConfig())
     options = replace(options, match=match_mode(args.match))
     progress.stage(f"reconstructing {pair.num_views} cameras at {pair.image_size[1]}x{pair.image_size[0]}")
     recon = reconstruct(model, pair, options, progress=progress)

@@ -116,7 +116,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     proposal level) or a multiple of the rigid flow on the search's grid (--no-parallax: the rigid
     flow as D's depth makes it); --no-search keeps R's (every level); --static-only moves nothing;
     by default parallax explains some of the moving pixels (fewer dynamic Gaussians); --no-match
-    keeps D's depth, which matching the keyframes otherwise corrects."""
+    keeps D's depth, which matching the keyframes otherwise corrects; --objects tracks moving objects."""
     import numpy as np
 
     from drivingscene.gaussians.recon import load_reconstruction
@@ -132,6 +132,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
         ("static", ["--static-only"]),
         ("default", []),
         ("no_match", ["--no-match"]),
+        ("objects", ["--objects"]),
     )
     for name, extra in runs:
         assert main(["reconstruct", str(scene), "-o", str(tmp_path / f"{name}.npz"), *extra]) == 0
@@ -139,6 +140,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     assert not recons["static"].gaussians.dynamic.any() and recons["full"].gaussians.dynamic.any()
     assert recons["default"].gaussians.dynamic.sum() < recons["full"].gaussians.dynamic.sum()
     assert "match_s" in recons["default"].meta["timings"] and "match_s" not in recons["no_match"].meta["timings"]
+    assert "objects_s" in recons["objects"].meta["timings"] and "objects_s" not in recons["default"].meta["timings"]
     matched = recons["default"].depth > 0
     assert not np.allclose(recons["default"].depth[matched], recons["no_match"].depth[matched], rtol=1e-3)
     full, alone = recons["full"], recons["r_alone"]

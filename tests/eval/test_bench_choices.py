@@ -24,6 +24,15 @@ def test_variants_parse_and_bad_ones_are_named():
         parse_variant("bonus=-1")
 
 
+def test_sign_test_is_the_exact_binomial_tail():
+    from drivingscene.bench.choices import _sign, sign_test
+
+    assert sign_test(10, 0) == pytest.approx(2 / 2**10)
+    assert sign_test(5, 5) == 1.0 and sign_test(0, 0) == 1.0
+    assert sign_test(15, 5) == pytest.approx(0.0414, abs=1e-4)  # 20 pairs, 15 wins: below 0.05
+    assert _sign([2.0, 3.0, float("nan")], [1.0, 4.0, 1.0]) == "1 / 2 (p 1.000)" and _sign([1.0], None) == "–"
+
+
 def test_variant_options_change_only_what_they_name():
     from drivingscene.methods.feedforward import InferenceOptions
 
@@ -53,6 +62,13 @@ def test_variant_options_change_only_what_they_name():
             parse_variant(bad)
     with pytest.raises(InputError, match="'unseenpx=-1'"):
         parse_variant("unseenpx=-1")
+    assert base.objects is None and parse_variant("").options(base).objects is None
+    objects = parse_variant("objects=rigid,osplit=on,omotion=2").options(base).objects
+    assert (objects.elsewhere, objects.split, objects.min_motion) == ("rigid", True, 2.0)
+    assert not parse_variant("residual=off").options(base).use_residual
+    for bad in ("objects=maybe", "omotion=-1", "osplit=maybe"):
+        with pytest.raises(InputError, match=f"'{bad}'"):
+            parse_variant(bad)
 
 
 def test_bench_choices_report(synth_pair, synth_pair_folder, tiny_weights, tmp_path):  # noqa: F811

@@ -1,0 +1,311 @@
+"""Moving objects tracked as wholes between the keyframes (issue 46, an option of the inference).
+
+Where the world is static the rigid flow (depth and ego motion) explains the other keyframe. A
+moving object breaks it in a blob: its own pixels, and those whose rigid flow lands on where it
+went. Per camera and keyframe:
+
+    cost(p)   = |I_k(p) - I_o(p + rigid(p))|, box-averaged      what the static world fails to explain
+    blobs     = components of cost > threshold (opened, closed) not sky, seen by the other image
+    tries     = the blob (optionally also its near and far parts by depth and its two halves: ``split``)
+    core      = the try's pixels that a first match (unscaled) explains better than the rigid flow:
+                a blob holds the object and background it uncovers or covers, which nothing matches
+    warp      = argmin over scale a and position (x, y) of the masked SSD of the core's template in
+                I_o (OpenCV matchTemplate, a search window around where the blob is and where the
+                rigid flow puts it, sub-pixel by a parabola through the minimum)
+    accepted  = the warped core matched back into I_k lands where it came from (forward-backward),
+                moves at least ``min_motion`` px off the rigid flow, and explains the try better
+                than the rigid flow does by ``ratio``
+    pixels    = the blob's pixels the warp explains better than the rigid flow (opened)
+
+An accepted object's flow is its warp at keyframe k and the inverse warp over its warped pixels at
+the other keyframe, so both directions agree (the lift's forward-backward test passes) and an
+object found in one keyframe need not be found again in the other. The warp is an axis-aligned
+scale and a translation: a vehicle crossing or turning, which a multiple of the rigid flow (the
+search, models/lift.py) cannot express.
+
+Measured in docs/moving-objects.md: what it gains, what it costs, and what lost. An option of the
+inference (`InferenceOptions.objects`, ``drivingscene reconstruct --objects``), not the default.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+_LUMA = np.array([0.299, 0.587, 0.114], np.float32)
+
+
+@dataclass(frozen=True)
+class ObjectMotionConfig:
+    # A pixel is a candidate where the rigid flow's mean absolute RGB difference (in [0, 1]),
+    # averaged over a ``box`` x ``box`` window, exceeds this.
+    threshold: float = 0.08
+    box: int = 5
+    # Morphological opening and closing radii (pixels) of the candidates, and the smallest blob,
+    # try and object (pixels at the image's size).
+    open_radius: int = 1
+    close_radius: int = 2
+    min_pixels: int = 80
+    # With ``split``: a blob whose depth spans more than this ratio is also tried as its near and far parts.
+    split_ratio: float = 1.3
+    # Template scales tried, and the search window's margins (pixels) around the blob's box and the
+    # box the rigid flow carries it to: objects cross the image faster sideways than up and down.
+    scales: tuple[float, ...] = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.17, 1.25)
+    margin_x: int = 96
+    margin_y: int = 24
+    # Forward-backward: the median distance (pixels) between where the back match puts the warped
+    # pixels and where they came from.
+    back_px: float = 1.5
+    # Accepted only if the warp moves the pixels at least this far (median, pixels) from the rigid
+    # flow and its photometric cost is at most ``ratio`` times the rigid flow's over the try.
+    min_motion: float = 3.0
+    ratio: float = 0.6
+    # True: a blob is also tried as its near and far parts (where its depth spans ``split_ratio``)
+    # and as two halves across its longer side, for an object merged with the background it
+    # uncovers or with a neighbour. Off: on validation pairs the extra tries found more static
+    # surfaces than objects (docs/moving-objects.md).
+    split: bool = False
+    # Where no object is found, the flow is "search" (R and the search's, as without objects) or
+    # "rigid" (the static world).
+    elsewhere: str = "search"
+
+    def __post_init__(self):
+        if self.elsewhere not in ("search", "rigid"):
+            raise ValueError(f"ObjectMotionConfig.elsewhere: expected 'search' or 'rigid', found {self.elsewhere!r}")
+        for name in ("box", "min_pixels"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"ObjectMotionConfig.{name}: expected >= 1, found {getattr(self, name)}")
+        if not self.scales or min(self.scales) <= 0:
+            raise ValueError(f"ObjectMotionConfig.scales: expected positive scales, found {self.scales}")
+
+
+def _grid(height: int, width: int) -> np.ndarray:
+    return np.stack(np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32)), -1)
+
+
+def warp_cost(
+    image: np.ndarray, other: np.ndarray, flow: np.ndarray, box: int, grid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Box-averaged mean |RGB difference| ``[H, W]`` between ``image`` and ``other`` sampled at
+    p + ``flow`` (float images in [0, 1]), and the mask of samples outside ``other`` (cost 0 there:
+    the other image cannot say)."""
+    warped = cv2.remap(other, grid + flow, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(-1, -1, -1))
+    outside = warped[..., 0] < 0
+    cost = np.abs(warped - image).mean(-1)
+    cost[outside] = 0.0
+    return cv2.blur(cost, (box, box)), outside
+
+
+def _clamped_cost(image: np.ndarray, other: np.ndarray, flow: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """`warp_cost` over 3 x 3 with samples outside clamped to the border (two flows compared)."""
+    warped = cv2.remap(other, grid + flow, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.blur(np.abs(warped - image).mean(-1), (3, 3))
+
+
+def _subpixel(res: np.ndarray, x: int, y: int) -> tuple[float, float]:
+    """The minimum of ``res`` at (x, y) refined by a parabola through its neighbours, per axis."""
+    out = [float(x), float(y)]
+    for axis, (i, n) in enumerate(((x, res.shape[1]), (y, res.shape[0]))):
+        if 0 < i < n - 1:
+            a, b, c = (res[y, x - 1], res[y, x], res[y, x + 1]) if axis == 0 else (res[y - 1, x], res[y, x], res[y + 1, x])
+            d = a - 2 * b + c
+            if d > 1e-12:
+                out[axis] += float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+    return out[0], out[1]
+
+
+def match_region(
+    image: np.ndarray,
+    other: np.ndarray,
+    mask: np.ndarray,
+    window: tuple[float, float, float, float],
+    config: ObjectMotionConfig,
+    scales: tuple[float, ...] | None = None,
+) -> tuple[float, np.ndarray] | None:
+    """Best (masked SSD per pixel, 2x3 warp) placing ``mask``'s pixels of grey ``image`` in grey
+    ``other``: scaled by each of ``scales`` (default ``config.scales``) and searched over ``window``
+    (x0, x1, y0, y1: the box to cover, widened by the margins). None where no scale fits."""
+    height, width = image.shape
+    ys, xs = np.nonzero(mask)
+    x0, x1, y0, y1 = xs.min(), xs.max() + 1, ys.min(), ys.max() + 1
+    template, weights = image[y0:y1, x0:x1], mask[y0:y1, x0:x1].astype(np.uint8)
+    best = None
+    for a in config.scales if scales is None else scales:
+        w, h = max(3, round((x1 - x0) * a)), max(3, round((y1 - y0) * a))
+        t = cv2.resize(template, (w, h), interpolation=cv2.INTER_LINEAR)
+        m = cv2.resize(weights, (w, h), interpolation=cv2.INTER_NEAREST)
+        if m.sum() < 5:
+            continue
+        grow_x, grow_y = (w - (x1 - x0)) / 2, (h - (y1 - y0)) / 2
+        sx0 = int(max(0, np.floor(window[0] - config.margin_x - grow_x)))
+        sx1 = int(min(width, np.ceil(window[1] + config.margin_x + grow_x)))
+        sy0 = int(max(0, np.floor(window[2] - config.margin_y - grow_y)))
+        sy1 = int(min(height, np.ceil(window[3] + config.margin_y + grow_y)))
+        if sx1 - sx0 < w or sy1 - sy0 < h:
+            continue
+        res = cv2.matchTemplate(other[sy0:sy1, sx0:sx1], t, cv2.TM_SQDIFF, mask=m) / float(m.sum())
+        _, _, (lx, ly), _ = cv2.minMaxLoc(res)
+        value = float(res[ly, lx])
+        if not np.isfinite(value) or (best is not None and value >= best[0]):
+            continue
+        fx, fy = _subpixel(res, lx, ly)
+        ax, ay = w / (x1 - x0), h / (y1 - y0)
+        best = (value, np.array([[ax, 0, sx0 + fx - ax * x0], [0, ay, sy0 + fy - ay * y0]], np.float32))
+    return best
+
+
+def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    ys, xs = np.nonzero(mask)
+    return xs.min(), xs.max() + 1, ys.min(), ys.max() + 1
+
+
+def _apply(warp: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ warp[:, :2].T + warp[:, 2]
+
+
+def track_region(
+    image: np.ndarray, other: np.ndarray, mask: np.ndarray, rigid: np.ndarray, config: ObjectMotionConfig
+) -> np.ndarray | None:
+    """The 2x3 warp carrying ``mask``'s pixels of grey ``image`` into grey ``other``, or None where
+    the match is not found again backwards (`ObjectMotionConfig.back_px`)."""
+    height, width = image.shape
+    x0, x1, y0, y1 = _box(mask)
+    shift = np.median(rigid[mask], 0)
+    window = (min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1]))
+    found = match_region(image, other, mask, window, config)
+    if found is None:
+        return None
+    warp = found[1]
+    moved = cv2.warpAffine(mask.astype(np.uint8), warp, (width, height), flags=cv2.INTER_NEAREST) > 0
+    if moved.sum() < 5:
+        return None
+    bx0, bx1, by0, by1 = _box(moved)
+    window = (min(bx0, x0), max(bx1, x1), min(by0, y0), max(by1, y1))
+    back = match_region(other, image, moved, window, config, (1.0 / float(np.sqrt(abs(np.linalg.det(warp[:, :2])))),))
+    if back is None:
+        return None
+    ys, xs = np.nonzero(moved)
+    points = np.stack([xs, ys], -1).astype(np.float32)
+    returned = _apply(back[1], points)
+    expected = _apply(cv2.invertAffineTransform(warp), points)
+    if np.median(np.linalg.norm(returned - expected, axis=-1)) > config.back_px:
+        return None
+    return warp
+
+
+def _near_far(mask: np.ndarray, depth: np.ndarray, ratio: float) -> list[np.ndarray]:
+    """A blob's near and far parts (Otsu on log depth) where its depth spans more than ``ratio``."""
+    d = np.log(np.maximum(depth[mask], 1e-3))
+    if d.max() - d.min() < np.log(ratio):
+        return []
+    q = ((d - d.min()) / (d.max() - d.min()) * 255).astype(np.uint8)
+    level, _ = cv2.threshold(q[:, None], 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    near = np.zeros_like(mask)
+    near[mask] = q <= level
+    return [near, mask & ~near]
+
+
+def _halves(mask: np.ndarray) -> list[np.ndarray]:
+    """A blob cut in two across its longer side: an object moving sideways leaves a blob of itself
+    and of the background it uncovers side by side, which one match cannot explain at once."""
+    x0, x1, y0, y1 = _box(mask)
+    first = np.zeros_like(mask)
+    if x1 - x0 >= y1 - y0:
+        first[:, : (x0 + x1) // 2] = True
+    else:
+        first[: (y0 + y1) // 2] = True
+    return [mask & first, mask & ~first]
+
+
+def object_flows(
+    images: np.ndarray,  # [2, V, H, W, 3] uint8
+    rigid: np.ndarray,  # [2, V, H, W, 2] pixels
+    excluded: np.ndarray,  # [2, V, H, W] bool: sky, outside valid_mask: never an object
+    depth: np.ndarray,  # [2, V, H, W]
+    config: ObjectMotionConfig = ObjectMotionConfig(),
+) -> tuple[np.ndarray, np.ndarray]:
+    """The flow ``[2, V, H, W, 2]`` (the rigid flow where no object was found) and the mask
+    ``[2, V, H, W]`` of the pixels of tracked objects, both directions (module docstring)."""
+    num_views, height, width = images.shape[1:4]
+    grid = _grid(height, width)
+    rgb = images.astype(np.float32) / 255
+    grey = rgb @ _LUMA
+    flow = rigid.astype(np.float32).copy()
+    owned = np.zeros(rigid.shape[:-1], bool)
+    opening = np.ones((2 * config.open_radius + 1,) * 2, np.uint8)
+    closing = np.ones((2 * config.close_radius + 1,) * 2, np.uint8)
+    for k in (0, 1):
+        o = 1 - k
+        for v in range(num_views):
+            static_cost, outside = warp_cost(rgb[k, v], rgb[o, v], rigid[k, v], config.box, grid)
+            candidates = ((static_cost > config.threshold) & ~excluded[k, v] & ~outside & ~owned[k, v]).astype(np.uint8)
+            candidates = cv2.morphologyEx(cv2.morphologyEx(candidates, cv2.MORPH_OPEN, opening), cv2.MORPH_CLOSE, closing)
+            count, labels, stats, _ = cv2.connectedComponentsWithStats(candidates, connectivity=8)
+            for label in range(1, count):
+                if stats[label, cv2.CC_STAT_AREA] < config.min_pixels:
+                    continue
+                blob = (labels == label) & ~excluded[k, v]
+                tries = [blob]
+                if config.split:
+                    tries += [*_near_far(blob, depth[k, v], config.split_ratio), *_halves(blob)]
+                for region in tries:
+                    region = region & ~owned[k, v]
+                    if region.sum() >= config.min_pixels:
+                        _track_and_paint(flow, owned, rgb, grey, rigid, k, v, region, blob & ~owned[k, v], grid, config)
+    return flow, owned
+
+
+def _explained(image, other, region, warp, rigid, grid) -> tuple[np.ndarray, np.ndarray]:
+    """The flow ``[H, W, 2]`` of ``warp`` over ``region`` and the region's pixels it explains better
+    than ``rigid`` does (3 x 3 costs; opened, so that single pixels do not count)."""
+    ys, xs = np.nonzero(region)
+    points = np.stack([xs, ys], -1).astype(np.float32)
+    dense = np.zeros_like(rigid)
+    dense[region] = _apply(warp, points) - points
+    better = region & (_clamped_cost(image, other, dense, grid) < _clamped_cost(image, other, rigid, grid))
+    return dense, cv2.morphologyEx(better.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+
+
+def _track_and_paint(flow, owned, rgb, grey, rigid, k, v, region, blob, grid, config) -> bool:
+    """Track ``region`` (a part of ``blob``) of image (k, v); where accepted, write its flow over the
+    blob's pixels it explains both ways into ``flow`` and ``owned``.
+
+    A blob holds the object and the background it uncovers or covers (no match in the other image),
+    so a first match picks the pixels it explains, and those are tracked again (with the backward
+    check) and tested."""
+    o = 1 - k
+    x0, x1, y0, y1 = _box(region)
+    shift = np.median(rigid[k, v][region], 0)
+    window = (min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1]))
+    first = match_region(grey[k, v], grey[o, v], region, window, config, (1.0,))  # where, roughly
+    if first is None:
+        return False
+    _, core = _explained(rgb[k, v], rgb[o, v], region, first[1], rigid[k, v], grid)
+    if core.sum() < config.min_pixels // 2:
+        return False
+    warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config)
+    if warp is None:
+        return False
+    dense, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, rigid[k, v], grid)
+    if keep.sum() < config.min_pixels // 2:
+        return False
+    if np.median(np.linalg.norm(dense[keep] - rigid[k, v][keep], axis=-1)) < config.min_motion:
+        return False
+    if (
+        _clamped_cost(rgb[k, v], rgb[o, v], dense, grid)[region].mean()
+        > config.ratio * _clamped_cost(rgb[k, v], rgb[o, v], rigid[k, v], grid)[region].mean()
+    ):
+        return False
+    flow[k, v][keep] = dense[keep]
+    owned[k, v] |= keep
+    height, width = region.shape
+    there = cv2.warpAffine(keep.astype(np.uint8), warp, (width, height), flags=cv2.INTER_NEAREST) > 0
+    there &= ~owned[o, v]
+    ys, xs = np.nonzero(there)
+    if len(xs):
+        points = np.stack([xs, ys], -1).astype(np.float32)
+        flow[o, v][there] = _apply(cv2.invertAffineTransform(warp), points) - points
+        owned[o, v] |= there
+    return True
