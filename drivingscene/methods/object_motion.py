@@ -128,8 +128,7 @@ def match_region(
     ``other``: scaled by each of ``scales`` (default ``config.scales``) and searched over ``window``
     (x0, x1, y0, y1: the box to cover, widened by the margins). None where no scale fits."""
     height, width = image.shape
-    ys, xs = np.nonzero(mask)
-    x0, x1, y0, y1 = xs.min(), xs.max() + 1, ys.min(), ys.max() + 1
+    x0, x1, y0, y1 = _box(mask)
     template, weights = image[y0:y1, x0:x1], mask[y0:y1, x0:x1].astype(np.uint8)
     best = None
     for a in config.scales if scales is None else scales:
@@ -165,6 +164,13 @@ def _apply(warp: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ warp[:, :2].T + warp[:, 2]
 
 
+def _search_window(mask: np.ndarray, rigid: np.ndarray) -> tuple[float, float, float, float]:
+    """The box (x0, x1, y0, y1) covering ``mask``'s box where it is and where its median rigid flow puts it."""
+    x0, x1, y0, y1 = _box(mask)
+    shift = np.median(rigid[mask], 0)
+    return min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1])
+
+
 def track_region(
     image: np.ndarray, other: np.ndarray, mask: np.ndarray, rigid: np.ndarray, config: ObjectMotionConfig
 ) -> np.ndarray | None:
@@ -172,9 +178,7 @@ def track_region(
     the match is not found again backwards (`ObjectMotionConfig.back_px`)."""
     height, width = image.shape
     x0, x1, y0, y1 = _box(mask)
-    shift = np.median(rigid[mask], 0)
-    window = (min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1]))
-    found = match_region(image, other, mask, window, config)
+    found = match_region(image, other, mask, _search_window(mask, rigid), config)
     if found is None:
         return None
     warp = found[1]
@@ -243,6 +247,7 @@ def object_flows(
             candidates = ((static_cost > config.threshold) & ~excluded[k, v] & ~outside & ~owned[k, v]).astype(np.uint8)
             candidates = cv2.morphologyEx(cv2.morphologyEx(candidates, cv2.MORPH_OPEN, opening), cv2.MORPH_CLOSE, closing)
             count, labels, stats, _ = cv2.connectedComponentsWithStats(candidates, connectivity=8)
+            rigid_cost = _clamped_cost(rgb[k, v], rgb[o, v], rigid[k, v], grid) if count > 1 else None
             for label in range(1, count):
                 if stats[label, cv2.CC_STAT_AREA] < config.min_pixels:
                     continue
@@ -253,22 +258,26 @@ def object_flows(
                 for region in tries:
                     region = region & ~owned[k, v]
                     if region.sum() >= config.min_pixels:
-                        _track_and_paint(flow, owned, rgb, grey, rigid, k, v, region, blob & ~owned[k, v], grid, config)
+                        _track_and_paint(
+                            flow, owned, rgb, grey, rigid, rigid_cost, k, v, region, blob & ~owned[k, v], grid, config
+                        )
     return flow, owned
 
 
-def _explained(image, other, region, warp, rigid, grid) -> tuple[np.ndarray, np.ndarray]:
-    """The flow ``[H, W, 2]`` of ``warp`` over ``region`` and the region's pixels it explains better
-    than ``rigid`` does (3 x 3 costs; opened, so that single pixels do not count)."""
+def _explained(image, other, region, warp, rigid_cost, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The flow ``[H, W, 2]`` of ``warp`` over ``region``, its cost (`_clamped_cost`) and the
+    region's pixels it explains better than the rigid flow of cost ``rigid_cost`` does (opened, so
+    that single pixels do not count)."""
     ys, xs = np.nonzero(region)
     points = np.stack([xs, ys], -1).astype(np.float32)
-    dense = np.zeros_like(rigid)
+    dense = np.zeros((*region.shape, 2), np.float32)
     dense[region] = _apply(warp, points) - points
-    better = region & (_clamped_cost(image, other, dense, grid) < _clamped_cost(image, other, rigid, grid))
-    return dense, cv2.morphologyEx(better.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+    cost = _clamped_cost(image, other, dense, grid)
+    better = (region & (cost < rigid_cost)).astype(np.uint8)
+    return dense, cost, cv2.morphologyEx(better, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
 
 
-def _track_and_paint(flow, owned, rgb, grey, rigid, k, v, region, blob, grid, config) -> bool:
+def _track_and_paint(flow, owned, rgb, grey, rigid, rigid_cost, k, v, region, blob, grid, config) -> bool:
     """Track ``region`` (a part of ``blob``) of image (k, v); where accepted, write its flow over the
     blob's pixels it explains both ways into ``flow`` and ``owned``.
 
@@ -276,27 +285,21 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, k, v, region, blob, grid, co
     so a first match picks the pixels it explains, and those are tracked again (with the backward
     check) and tested."""
     o = 1 - k
-    x0, x1, y0, y1 = _box(region)
-    shift = np.median(rigid[k, v][region], 0)
-    window = (min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1]))
-    first = match_region(grey[k, v], grey[o, v], region, window, config, (1.0,))  # where, roughly
+    first = match_region(grey[k, v], grey[o, v], region, _search_window(region, rigid[k, v]), config, (1.0,))  # roughly
     if first is None:
         return False
-    _, core = _explained(rgb[k, v], rgb[o, v], region, first[1], rigid[k, v], grid)
+    _, _, core = _explained(rgb[k, v], rgb[o, v], region, first[1], rigid_cost, grid)
     if core.sum() < config.min_pixels // 2:
         return False
     warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config)
     if warp is None:
         return False
-    dense, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, rigid[k, v], grid)
+    dense, cost, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, rigid_cost, grid)
     if keep.sum() < config.min_pixels // 2:
         return False
     if np.median(np.linalg.norm(dense[keep] - rigid[k, v][keep], axis=-1)) < config.min_motion:
         return False
-    if (
-        _clamped_cost(rgb[k, v], rgb[o, v], dense, grid)[region].mean()
-        > config.ratio * _clamped_cost(rgb[k, v], rgb[o, v], rigid[k, v], grid)[region].mean()
-    ):
+    if cost[region].mean() > config.ratio * rigid_cost[region].mean():
         return False
     flow[k, v][keep] = dense[keep]
     owned[k, v] |= keep
