@@ -156,8 +156,9 @@ def match_region(
 
 
 def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
-    ys, xs = np.nonzero(mask)
-    return xs.min(), xs.max() + 1, ys.min(), ys.max() + 1
+    """(x0, x1, y0, y1): the bounding box of a non-empty boolean mask, ends exclusive."""
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    return x, x + w, y, y + h
 
 
 def _apply(warp: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -187,7 +188,8 @@ def track_region(
         return None
     bx0, bx1, by0, by1 = _box(moved)
     window = (min(bx0, x0), max(bx1, x1), min(by0, y0), max(by1, y1))
-    back = match_region(other, image, moved, window, config, (1.0 / float(np.sqrt(abs(np.linalg.det(warp[:, :2])))),))
+    scale = 1.0 / float(np.sqrt(abs(np.linalg.det(warp[:, :2]))))
+    back = match_region(other, image, moved, window, config, (scale,))
     if back is None:
         return None
     ys, xs = np.nonzero(moved)
@@ -265,16 +267,25 @@ def object_flows(
 
 
 def _explained(image, other, region, warp, rigid_cost, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The flow ``[H, W, 2]`` of ``warp`` over ``region``, its cost (`_clamped_cost`) and the
-    region's pixels it explains better than the rigid flow of cost ``rigid_cost`` does (opened, so
-    that single pixels do not count)."""
-    ys, xs = np.nonzero(region)
-    points = np.stack([xs, ys], -1).astype(np.float32)
-    dense = np.zeros((*region.shape, 2), np.float32)
-    dense[region] = _apply(warp, points) - points
-    cost = _clamped_cost(image, other, dense, grid)
-    better = (region & (cost < rigid_cost)).astype(np.uint8)
-    return dense, cost, cv2.morphologyEx(better, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+    """The flow ``[H, W, 2]`` of ``warp`` over ``region`` (zero elsewhere), its cost
+    (`_clamped_cost`, computed over the region's box and 2 pixels around it: inf further out) and
+    the region's pixels it explains better than the rigid flow of cost ``rigid_cost`` does (opened,
+    so that single pixels do not count)."""
+    height, width = region.shape
+    x0, x1, y0, y1 = _box(region)
+    x0, x1, y0, y1 = max(0, x0 - 2), min(width, x1 + 2), max(0, y0 - 2), min(height, y1 + 2)
+    crop = region[y0:y1, x0:x1]
+    ys, xs = np.nonzero(crop)
+    points = np.stack([xs + x0, ys + y0], -1).astype(np.float32)
+    dense = np.zeros((height, width, 2), np.float32)
+    dense[y0:y1, x0:x1][crop] = _apply(warp, points) - points
+    cost = np.full((height, width), np.inf, np.float32)
+    warped = cv2.remap(other, grid[y0:y1, x0:x1] + dense[y0:y1, x0:x1], None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    cost[y0:y1, x0:x1] = cv2.blur(np.abs(warped - image[y0:y1, x0:x1]).mean(-1), (3, 3))
+    better = np.zeros((height, width), np.uint8)
+    better[y0:y1, x0:x1] = crop & (cost[y0:y1, x0:x1] < rigid_cost[y0:y1, x0:x1])
+    better[y0:y1, x0:x1] = cv2.morphologyEx(better[y0:y1, x0:x1], cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    return dense, cost, better > 0
 
 
 def _track_and_paint(flow, owned, rgb, grey, rigid, rigid_cost, k, v, region, blob, grid, config) -> bool:
