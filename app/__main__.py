@@ -73,7 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="T",
         help="normalised times, space-separated (default 0 0.5 1)",
     )
-    p.add_argument("--camera", action="extend", nargs="+", metavar="NAME", help="rig cameras to render, space-separated (default all)")
+    p.add_argument(
+        "--camera", action="extend", nargs="+", metavar="NAME", help="rig cameras to render, space-separated (default all)"
+    )
     p.add_argument("--mode", choices=MODES, default="rgb", help="what to render (headless)")
     p.add_argument("--blend", choices=BLEND_MODES, default=DEFAULT_BLEND, help="how both keyframes' Gaussians combine at time t")
     p.add_argument("--size", type=image_size, default=(1280, 720), metavar="WxH", help="overview / window size")

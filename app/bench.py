@@ -187,7 +187,9 @@ def run_bench(args) -> int:
             "moving": measure_moving(viewport, doc, _cameras(doc, args.frames), ctx),
             "rest": measure_rest(viewport, doc, _cameras(doc, 3), ctx),
             # the same pictures with each layer composited in one pass, as before surface averaging
-            "rest_composited": measure_rest(viewport, doc, _cameras(doc, 3), ctx, RenderOptions(layer_blend=LayerBlend(surface_tolerance=0.0))),
+            "rest_composited": measure_rest(
+                viewport, doc, _cameras(doc, 3), ctx, RenderOptions(layer_blend=LayerBlend(surface_tolerance=0.0))
+            ),
             "baseline": measure_baseline(viewport, doc, _cameras(doc, 3), ctx),
             "lod_s": lod_s,
             "levels": [len(s.splats) for s in viewport.levels],

@@ -151,7 +151,12 @@ class ReplaceEdit:
 
     @property
     def nbytes(self) -> int:
-        maps = sum(getattr(r, k).nbytes for r in (self.recon_before, self.recon_after) for k in ("depth", "rigid_flow", "residual_flow") if getattr(r, k) is not None)
+        maps = sum(
+            getattr(r, k).nbytes
+            for r in (self.recon_before, self.recon_after)
+            for k in ("depth", "rigid_flow", "residual_flow")
+            if getattr(r, k) is not None
+        )
         return self.before.nbytes() + self.after.nbytes() + maps
 
     def apply(self, doc: SceneDoc) -> None:

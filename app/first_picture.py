@@ -57,8 +57,10 @@ def main(argv: list[str] | None = None) -> int:
         runs = [time_open(args.scene, paced) for _ in range(args.runs)]
         med = {k: statistics.median(r.get(k, float("nan")) for r in runs) for k in ("reconstruct", "model", "first", "full")}
         rows.append(f"| {name} | {med['reconstruct']:.2f} | {med['model']:.2f} | {med['first']:.2f} | {med['full']:.2f} |")
-    print(f"Measured with `python -m drivingscene_view.first_picture {args.scene} --runs {args.runs}` under Xvfb (Mesa llvmpipe) "
-          f"on {machine_description()}; medians of {args.runs} windows each, seconds from opening the scene.\n")
+    print(
+        f"Measured with `python -m drivingscene_view.first_picture {args.scene} --runs {args.runs}` under Xvfb (Mesa llvmpipe) "
+        f"on {machine_description()}; medians of {args.runs} windows each, seconds from opening the scene.\n"
+    )
     print("| window frames | the model's reconstruction | model done | first picture | full-quality picture |")
     print("|---|---|---|---|---|")
     print("\n".join(rows))

@@ -78,7 +78,10 @@ def reconstruct_pair(pair: FramePair, source: Path | None, method: str, weights:
         recon = reconstruct(model, pair, progress=stage)
     seconds = time.perf_counter() - start
     return Loaded(
-        recon, source, {"kind": "scene", "method": recon.meta.get("method", method), "seconds": seconds, "up": "z", "low_pass": EPS2D}, pair
+        recon,
+        source,
+        {"kind": "scene", "method": recon.meta.get("method", method), "seconds": seconds, "up": "z", "low_pass": EPS2D},
+        pair,
     )
 
 

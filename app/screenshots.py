@@ -201,7 +201,9 @@ def _pointer_to(win: ViewerWindow, x: float, y: float) -> bool:
 
     if shutil.which("xdotool") is None:
         return False
-    subprocess.run(["xdotool", "mousemove", "--window", str(win.window._window), str(int(x)), str(int(y))], check=True, timeout=20)
+    subprocess.run(
+        ["xdotool", "mousemove", "--window", str(win.window._window), str(int(x)), str(int(y))], check=True, timeout=20
+    )
     return True
 
 

@@ -32,7 +32,13 @@ def draw(viewer: Viewer) -> None:
     _, blend = imgui.combo(
         "blend",
         BLEND_MODES.index(v.blend),
-        ["both keyframes opaque (all)", "cross-fade (fade)", "nearest keyframe", "keyframe layers (layers)", "camera layers (cameras)"],
+        [
+            "both keyframes opaque (all)",
+            "cross-fade (fade)",
+            "nearest keyframe",
+            "keyframe layers (layers)",
+            "camera layers (cameras)",
+        ],
     )
     v.blend = BLEND_MODES[blend]
     if imgui.is_item_hovered():

@@ -79,7 +79,7 @@ def _dtype_ok(array: np.ndarray, want: str) -> bool:
         return array.dtype.kind == "U"
     if want == "int":
         return array.dtype.kind in "iu"
-    return array.dtype == np.dtype(want)
+    return any(array.dtype == np.dtype(name) for name in want.split("|"))  # "float16|float32": either
 
 
 def _bind_axes(shapes: dict[str, tuple], specs: dict[str, KeySpec]) -> dict[str, int]:
@@ -222,12 +222,20 @@ def check_keys(
     return problems, dims
 
 
-def check_header(arrays: dict[str, np.ndarray], name: str, version: int, source: str) -> list[Problem]:
+def check_header(
+    arrays: dict[str, np.ndarray], name: str, version: int, source: str, older: tuple[int, ...] = ()
+) -> list[Problem]:
+    """The format's name and version: ``version``, or one of the ``older`` versions the reader also reads."""
     out = []
     if str(arrays["format"]) != name:
         out.append(Problem(source, "format", f'"{name}"', f'"{arrays["format"]}"'))
-    if int(arrays["version"]) != version:
-        out.append(Problem(source, "version", f"{version} (this reader's format version)", str(int(arrays["version"]))))
+    if int(arrays["version"]) not in (version, *older):
+        read = (
+            f"{version} (this reader's format version)"
+            if not older
+            else f"one of {sorted((version, *older))} (the versions this reader reads)"
+        )
+        out.append(Problem(source, "version", read, str(int(arrays["version"]))))
     return out
 
 

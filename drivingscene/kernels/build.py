@@ -37,7 +37,15 @@ log = logging.getLogger(__name__)
 EXTENSION_NAME = "drivingscene_render"
 SOURCES = tuple(
     Path(__file__).parent / "csrc" / name
-    for name in ("find_pairs.cpp", "composite.cpp", "color_solve.cpp", "surfels.cpp", "ray_extend.cpp", "flow.cpp", "matching.cpp")
+    for name in (
+        "find_pairs.cpp",
+        "composite.cpp",
+        "color_solve.cpp",
+        "surfels.cpp",
+        "ray_extend.cpp",
+        "flow.cpp",
+        "matching.cpp",
+    )
 )
 # -ffp-contract=off: no fused multiply-adds, so the kernels round like the torch paths. No errno
 # from sqrt and no trapping floating-point exceptions (neither changes a result) let the compiler

@@ -109,15 +109,35 @@ def _recon(with_maps: bool = True) -> Reconstruction:
     )
 
 
-def test_recon_round_trip_is_exact(tmp_path):
+@pytest.mark.parametrize("precision", ["float32", "float16"])
+def test_recon_round_trip_is_exact_up_to_the_stored_precision(tmp_path, precision):
+    from drivingscene.gaussians.recon import HALF
+
     recon = _recon()
-    back = load_reconstruction(save_reconstruction(recon, tmp_path / "r.npz"))
+    back = load_reconstruction(save_reconstruction(recon, tmp_path / "r.npz", precision=precision))
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "flows", "keyframes", "cameras"):
-        torch.testing.assert_close(getattr(back.gaussians, name), getattr(recon.gaussians, name), atol=0, rtol=0)
+        want = getattr(recon.gaussians, name)
+        if precision == "float16" and name in HALF:
+            want = want.half().float()  # rounded to float16 once, read back as float32
+        assert getattr(back.gaussians, name).dtype == want.dtype
+        torch.testing.assert_close(getattr(back.gaussians, name), want, atol=0, rtol=0)
     np.testing.assert_array_equal(back.depth, recon.depth)
-    np.testing.assert_array_equal(back.total_flow, recon.rigid_flow + recon.residual_flow)
+    np.testing.assert_array_equal(back.total_flow, recon.rigid_flow + recon.residual_flow)  # the maps stay float32
     assert back.meta == {"method": "test"} and back.camera_names == recon.camera_names
     torch.testing.assert_close(back.sky_sh, recon.sky_sh)
+
+
+def test_version_1_files_are_read_and_unknown_versions_refused(tmp_path):
+    recon = _recon()
+    arrays = recon_to_arrays(recon)  # float32: the version-1 layout
+    arrays["version"] = np.array(1, np.int64)
+    save_npz(tmp_path / "v1.npz", arrays)
+    back = load_reconstruction(tmp_path / "v1.npz")
+    torch.testing.assert_close(back.gaussians.quats, recon.gaussians.quats, atol=0, rtol=0)
+    arrays["version"] = np.array(3, np.int64)
+    save_npz(tmp_path / "v3.npz", arrays)
+    with pytest.raises(SceneFormatError, match=r"v3.npz: version: expected one of \[1, 2\]"):
+        load_reconstruction(tmp_path / "v3.npz")
 
 
 def test_static_gaussians_carry_no_flow_in_the_file():
