@@ -25,6 +25,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.synth_speed",
         "synthetic benchmark: seconds per pair with all ground truth, with/without writing",
     ),
+    "command": (
+        "drivingscene.bench.command",
+        "the reconstruct command from start to file in fresh processes: wall time against the reconstruction's own",
+    ),
     "inference": (
         "drivingscene.bench.inference",
         "seconds to reconstruct one pair (networks + assembly) per resolution, peak memory",
