@@ -73,6 +73,7 @@ class Variant:
     residual: bool = True  # InferenceOptions.use_residual (False: static-only)
     osplit: bool | None = None  # ObjectMotionConfig.split; None: the default
     omotion: float | None = None  # ObjectMotionConfig.min_motion; None: the default
+    odetect: str | None = None  # ObjectMotionConfig.detect: "rigid" or "fallback"; None: the default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -127,6 +128,8 @@ class Variant:
             objects = replace(objects, split=self.osplit)
         if objects is not None and self.omotion is not None:
             objects = replace(objects, min_motion=self.omotion)
+        if objects is not None and self.odetect is not None:
+            objects = replace(objects, detect=self.odetect)
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
             use_residual=self.residual,
@@ -174,7 +177,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion."""
+    residual, osplit, omotion, odetect."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -198,6 +201,8 @@ def parse_variant(text: str) -> Variant:
             values["objects"] = value
         elif key == "omotion" and _is_number(value) and float(value) >= 0:
             values["omotion"] = float(value)
+        elif key == "odetect" and value in ("rigid", "fallback"):
+            values["odetect"] = value
         elif key in ("photo", "parallax", "head", "rig", "replace", "residual", "osplit") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
@@ -227,7 +232,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

@@ -60,7 +60,9 @@ def measure(scene: Path, runs: int) -> tuple[list[dict], dict[str, float]]:
     }
     with tempfile.TemporaryDirectory() as tmp:
         outs = [Path(tmp) / f"recon{k}.npz" for k in range(len(VARIANTS))]
-        commands = [[*cli, "reconstruct", str(scene), "-o", str(out), "--force", *extra] for out, (_, extra) in zip(outs, VARIANTS)]
+        commands = [
+            [*cli, "reconstruct", str(scene), "-o", str(out), "--force", *extra] for out, (_, extra) in zip(outs, VARIANTS)
+        ]
         for argv in commands:  # warm-up: the compiled kernels' build cache, the page cache
             _wall(argv)
         walls, recons = [[] for _ in VARIANTS], [[] for _ in VARIANTS]

@@ -29,6 +29,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.command",
         "the reconstruct command from start to file in fresh processes: wall time against the reconstruction's own",
     ),
+    "runtimes": (
+        "drivingscene.bench.runtimes",
+        "D's encoder and decoder in torch, TorchScript and ONNX Runtime (where installed): seconds against torch",
+    ),
     "inference": (
         "drivingscene.bench.inference",
         "seconds to reconstruct one pair (networks + assembly) per resolution, peak memory",

@@ -233,9 +233,11 @@ def _with_objects(flow, batch, pair: FramePair, depth: Tensor, excluded: Tensor,
     """``flow`` with its total flow replaced by the tracked objects' (`object_flows`) where one was
     found, and by the rigid flow elsewhere when ``config.elsewhere`` is "rigid"."""
     rigid = flow.rigid.detach().cpu().numpy()
-    moved, owned = object_flows(pair.images, rigid, excluded.cpu().numpy(), depth.detach().cpu().numpy(), config)
-    moved, owned = torch.from_numpy(moved).to(flow.rigid), torch.from_numpy(owned).to(flow.rigid.device)
     other = flow.rigid if config.elsewhere == "rigid" else flow.total
+    moved, owned = object_flows(
+        pair.images, rigid, excluded.cpu().numpy(), depth.detach().cpu().numpy(), config, other.detach().cpu().numpy()
+    )
+    moved, owned = torch.from_numpy(moved).to(flow.rigid), torch.from_numpy(owned).to(flow.rigid.device)
     return replace(flow, searched=torch.where(owned[..., None], moved, other))
 
 

@@ -70,10 +70,16 @@ class ObjectMotionConfig:
     # Where no object is found, the flow is "search" (R and the search's, as without objects) or
     # "rigid" (the static world).
     elsewhere: str = "search"
+    # What an object must explain better than: "rigid" (the static world's flow: blobs and tests
+    # against it) or "fallback" (the flow kept where no object is found, `elsewhere`: R and the
+    # search's, which already explain much of what the rigid flow does not).
+    detect: str = "rigid"
 
     def __post_init__(self):
         if self.elsewhere not in ("search", "rigid"):
             raise ValueError(f"ObjectMotionConfig.elsewhere: expected 'search' or 'rigid', found {self.elsewhere!r}")
+        if self.detect not in ("rigid", "fallback"):
+            raise ValueError(f"ObjectMotionConfig.detect: expected 'rigid' or 'fallback', found {self.detect!r}")
         for name in ("box", "min_pixels"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ObjectMotionConfig.{name}: expected >= 1, found {getattr(self, name)}")
@@ -231,25 +237,28 @@ def object_flows(
     excluded: np.ndarray,  # [2, V, H, W] bool: sky, outside valid_mask: never an object
     depth: np.ndarray,  # [2, V, H, W]
     config: ObjectMotionConfig = ObjectMotionConfig(),
+    fallback: np.ndarray | None = None,  # [2, V, H, W, 2]: the flow kept where no object is found
 ) -> tuple[np.ndarray, np.ndarray]:
     """The flow ``[2, V, H, W, 2]`` (the rigid flow where no object was found) and the mask
-    ``[2, V, H, W]`` of the pixels of tracked objects, both directions (module docstring)."""
+    ``[2, V, H, W]`` of the pixels of tracked objects, both directions (module docstring). With
+    ``config.detect`` "fallback", blobs and tests are against ``fallback`` (default: the rigid flow)."""
     num_views, height, width = images.shape[1:4]
     grid = _grid(height, width)
     rgb = images.astype(np.float32) / 255
     grey = rgb @ _LUMA
     flow = rigid.astype(np.float32).copy()
+    base = rigid if config.detect == "rigid" or fallback is None else fallback.astype(np.float32)
     owned = np.zeros(rigid.shape[:-1], bool)
     opening = np.ones((2 * config.open_radius + 1,) * 2, np.uint8)
     closing = np.ones((2 * config.close_radius + 1,) * 2, np.uint8)
     for k in (0, 1):
         o = 1 - k
         for v in range(num_views):
-            static_cost, outside = warp_cost(rgb[k, v], rgb[o, v], rigid[k, v], config.box, grid)
+            static_cost, outside = warp_cost(rgb[k, v], rgb[o, v], base[k, v], config.box, grid)
             candidates = ((static_cost > config.threshold) & ~excluded[k, v] & ~outside & ~owned[k, v]).astype(np.uint8)
             candidates = cv2.morphologyEx(cv2.morphologyEx(candidates, cv2.MORPH_OPEN, opening), cv2.MORPH_CLOSE, closing)
             count, labels, stats, _ = cv2.connectedComponentsWithStats(candidates, connectivity=8)
-            rigid_cost = _clamped_cost(rgb[k, v], rgb[o, v], rigid[k, v], grid) if count > 1 else None
+            rigid_cost = _clamped_cost(rgb[k, v], rgb[o, v], base[k, v], grid) if count > 1 else None
             for label in range(1, count):
                 if stats[label, cv2.CC_STAT_AREA] < config.min_pixels:
                     continue

@@ -83,6 +83,7 @@ def rasterize(
     backend: str = "auto",
     views: Tensor | None = None,  # [N] int: the one camera of the batch each Gaussian is drawn into
     surface_tolerance: float = 0.0,  # > 0: each pixel's front surface averaged (render.composite)
+    pair_opacity=None,  # (camera_ids [M], gaussian_ids [M]) -> [M] opacity multipliers (`make_splats`)
 ) -> RenderOutput:
     """Render RGB, expected depth and alpha of Gaussians into ``B`` cameras.
 
@@ -98,13 +99,15 @@ def rasterize(
     if max_layers < 1:
         raise InputError(f"max_layers must be >= 1, found {max_layers}")
     chosen = choose_backend(backend, means)
-    if chosen == "gsplat" and backend == "auto" and (views is not None or surface_tolerance > 0):
+    if chosen == "gsplat" and backend == "auto" and (views is not None or surface_tolerance > 0 or pair_opacity is not None):
         chosen = "torch"  # what gsplat does not do
     if views is not None and tuple(views.shape) != (means.shape[0],):
         raise InputError(f"views: expected shape [{means.shape[0]}] (one camera per Gaussian), found {list(views.shape)}")
     if chosen == "gsplat":
-        if views is not None or surface_tolerance > 0:
-            raise InputError("views and surface_tolerance: not supported by the gsplat backend; use backend 'torch' or 'cpp'")
+        if views is not None or surface_tolerance > 0 or pair_opacity is not None:
+            raise InputError(
+                "views, surface_tolerance and pair_opacity: not supported by the gsplat backend; use backend 'torch' or 'cpp'"
+            )
         from drivingscene.render.gsplat_backend import rasterize_gsplat
 
         rgb, depths, alphas = rasterize_gsplat(
@@ -131,6 +134,7 @@ def rasterize(
         far=far,
         eps2d=eps2d,
         views=views,
+        pair_opacity=pair_opacity,
     )
     inp = pair_inputs(s, width, height)
     if chosen == "cpp":

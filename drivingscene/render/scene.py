@@ -71,36 +71,24 @@ def render_gaussians(
         )
     g = gaussians
     bound = bool(g.view_bound.any())  # view-bound Gaussians fade with the angle to their view ray, per camera
-    if bound and len(world_to_cam) > 1 and raster_kwargs.get("views") is None:  # each camera fades them its way
-        outs = [
-            render_gaussians(
-                g,
-                t,
-                world_to_cam[b : b + 1],
-                intrinsics[b : b + 1],
-                height,
-                width,
-                sky_sh=sky_sh,
-                background=background,
-                ground=ground,
-                blend=blend,
-                **raster_kwargs,
-            )
-            for b in range(len(world_to_cam))
-        ]
-        return RenderOutput(*(torch.cat([getattr(o, f) for o in outs]) for f in ("colors", "depths", "alphas")))
     opacities = g.opacities * g.time_weights(t, blend)
-    if bound:  # one camera, or each Gaussian drawn into one camera of the batch (``views``)
+    means = g.means_at(t)
+    if bound:
         centres = invert_rigid(world_to_cam.double())[:, :3, 3].float()
         views = raster_kwargs.get("views")
-        opacities = opacities * view_fade(
-            g.view_rays, g.means_at(t), centres[0] if views is None else centres[views.clamp(min=0)]
-        )
+        if views is not None or len(world_to_cam) == 1:  # each Gaussian drawn into one camera
+            opacities = opacities * view_fade(g.view_rays, means, centres[0] if views is None else centres[views.clamp(min=0)])
+        else:  # each camera of the batch fades them its way: per (camera, Gaussian) pair
+            rays = g.view_rays
+            raster_kwargs = {
+                **raster_kwargs,
+                "pair_opacity": lambda cams, ids: view_fade(rays[ids], means[ids], centres[cams]),
+            }
     degree = g.sh_degree
     # 3DGS colour: max(SH + 0.5, 0), no upper clamp (degree 0 is passed as plain RGB).
     colors = torch.clamp_min(sh0_to_rgb(g.sh[:, 0]), 0.0) if degree == 0 else g.sh
     out = rasterize(
-        g.means_at(t),
+        means,
         g.quats,
         g.scales,
         opacities,

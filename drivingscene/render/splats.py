@@ -10,6 +10,7 @@ by Gaussian index (a stable sort): the compositing order.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -59,8 +60,13 @@ def make_splats(
     far: float,
     eps2d: float,
     views: Tensor | None = None,  # [N] int: the only camera each Gaussian may be drawn into (-1: none)
+    pair_opacity: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> Splats:
-    """Cull, sort and project (with grad) the visible pairs; SH colours evaluated per camera."""
+    """Cull, sort and project (with grad) the visible pairs; SH colours evaluated per camera.
+
+    ``pair_opacity(camera_ids, gaussian_ids)`` (``[M]`` each), when given, multiplies each pair's
+    opacity (a view-dependent fade); pairs it leaves below `MIN_ALPHA` are culled, as a Gaussian
+    of that opacity drawn into that camera alone would be."""
     num_cams = viewmats.shape[0]
     with torch.no_grad():
         # Conservative cull without covariances; the exact rule (radii > 0) is applied after projection.
@@ -87,6 +93,10 @@ def make_splats(
                 eps2d=eps2d,
             )
             cam_ids, gs_ids = cam_ids[keep], gs_ids[keep]
+        if pair_opacity is not None:
+            faded = opacities.detach()[gs_ids] * pair_opacity(cam_ids, gs_ids).detach()
+            keep = faded >= MIN_ALPHA
+            cam_ids, gs_ids = cam_ids[keep], gs_ids[keep]
         # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a
         # fronto-parallel wall, a ground-plane row) does not depend on float32 rounding.
         rot_z = viewmats[:, 2, :3].double()
@@ -110,7 +120,7 @@ def make_splats(
         conics=proj.conics,
         depths=proj.depths,
         radii=proj.radii,
-        opacities=opacities[gs_ids],
+        opacities=opacities[gs_ids] if pair_opacity is None else opacities[gs_ids] * pair_opacity(cam_ids, gs_ids),
         colors=splat_colors,
         camera_ids=cam_ids,
         gaussian_ids=gs_ids,

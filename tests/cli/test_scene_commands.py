@@ -129,7 +129,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     runs = (
         ("full", ["--no-parallax"]),
         ("r_alone", ["--no-search", "--no-parallax"]),
-        ("static", ["--static-only"]),
+        ("static", ["--static-only", "--file-precision", "float32", "--deflate"]),
         ("default", []),
         ("no_match", ["--no-match"]),
         ("objects", ["--objects"]),
@@ -141,6 +141,14 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     assert recons["default"].gaussians.dynamic.sum() < recons["full"].gaussians.dynamic.sum()
     assert "match_s" in recons["default"].meta["timings"] and "match_s" not in recons["no_match"].meta["timings"]
     assert "objects_s" in recons["objects"].meta["timings"] and "objects_s" not in recons["default"].meta["timings"]
+    # The file: float16 attributes, stored, by default; float32 and deflated as before issue 48 on request
+    import zipfile
+
+    for name, dtype, method in (("default", np.float16, zipfile.ZIP_STORED), ("static", np.float32, zipfile.ZIP_DEFLATED)):
+        with zipfile.ZipFile(tmp_path / f"{name}.npz") as zf:
+            assert {i.compress_type for i in zf.infolist()} == {method}
+            with zf.open("quats.npy") as f:
+                assert np.lib.format.read_array(f, allow_pickle=False).dtype == dtype
     matched = recons["default"].depth > 0
     assert not np.allclose(recons["default"].depth[matched], recons["no_match"].depth[matched], rtol=1e-3)
     full, alone = recons["full"], recons["r_alone"]

@@ -63,10 +63,10 @@ def test_variant_options_change_only_what_they_name():
     with pytest.raises(InputError, match="'unseenpx=-1'"):
         parse_variant("unseenpx=-1")
     assert base.objects is None and parse_variant("").options(base).objects is None
-    objects = parse_variant("objects=rigid,osplit=on,omotion=2").options(base).objects
-    assert (objects.elsewhere, objects.split, objects.min_motion) == ("rigid", True, 2.0)
+    objects = parse_variant("objects=rigid,osplit=on,omotion=2,odetect=fallback").options(base).objects
+    assert (objects.elsewhere, objects.split, objects.min_motion, objects.detect) == ("rigid", True, 2.0, "fallback")
     assert not parse_variant("residual=off").options(base).use_residual
-    for bad in ("objects=maybe", "omotion=-1", "osplit=maybe"):
+    for bad in ("objects=maybe", "omotion=-1", "osplit=maybe", "odetect=maybe"):
         with pytest.raises(InputError, match=f"'{bad}'"):
             parse_variant(bad)
 

@@ -83,6 +83,27 @@ def test_a_static_world_has_no_objects():
     assert not owned.any()
 
 
+def test_detect_fallback_tracks_only_what_the_fallback_flow_does_not_explain():
+    images, mask0, mask1, warp = _scene()
+    rigid = np.zeros((*images.shape[:4], 2), np.float32)
+    excluded = np.zeros(images.shape[:4], bool)
+    depth = np.full(images.shape[:4], 10.0, np.float32)
+    config = ObjectMotionConfig(detect="fallback")
+    # a fallback that is the rigid flow finds the object as detect="rigid" does
+    _, owned_rigid = object_flows(images, rigid, excluded, depth, ObjectMotionConfig(), rigid)
+    _, owned = object_flows(images, rigid, excluded, depth, config, rigid)
+    np.testing.assert_array_equal(owned, owned_rigid)
+    assert (owned[0, 0] & mask0).sum() >= 0.6 * mask0.sum()
+    # a fallback that already carries the object (its true flow at both keyframes): nothing to track
+    explained = rigid.copy()
+    ys, xs = np.nonzero(mask0)
+    explained[0, 0][ys, xs] = np.array([17.0, 2.0], np.float32)
+    ys, xs = np.nonzero(mask1)
+    explained[1, 0][ys, xs] = np.array([-17.0, -2.0], np.float32)
+    _, owned = object_flows(images, rigid, excluded, depth, config, explained)
+    assert (owned & np.stack([mask0, mask1])[:, None]).sum() < 0.1 * mask0.sum()
+
+
 def test_excluded_pixels_are_never_objects():
     images, mask0, mask1, _ = _scene()
     rigid = np.zeros((*images.shape[:4], 2), np.float32)
@@ -98,6 +119,8 @@ def test_config_checks_its_values():
         ObjectMotionConfig(scales=(0.0, 1.0))
     with pytest.raises(ValueError, match="min_pixels"):
         ObjectMotionConfig(min_pixels=0)
+    with pytest.raises(ValueError, match="detect"):
+        ObjectMotionConfig(detect="search")
 
 
 def test_reconstruct_with_objects(synth_pair):

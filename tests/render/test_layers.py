@@ -249,6 +249,14 @@ def test_a_view_bound_wall_shows_from_its_own_direction_only():
     for i in range(2):
         one = render_gaussians(both, 0.0, cams, ks, HEIGHT, WIDTH, views=torch.full((len(both),), i)).colors[i]
         torch.testing.assert_close(one, alone[i], atol=1e-5, rtol=0)
+    # the batch fades per (camera, Gaussian) pair: the same gradients as the cameras one at a time
+    grads = []
+    for views in ([cams], [cams[:1], cams[1:]]):
+        means = both.means.clone().requires_grad_(True)
+        moved = dataclasses.replace(both, means=means)
+        sum(render_gaussians(moved, 0.0, v, K.expand(len(v), 3, 3), HEIGHT, WIDTH).colors.sum() for v in views).backward()
+        grads.append(means.grad)
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-5, rtol=1e-4)
 
 
 def test_a_view_where_the_layers_camera_stood_is_weighed_as_at_its_keyframe():

@@ -1,0 +1,130 @@
+"""``drivingscene bench runtimes``: D's encoder and decoder (the networks' bulk) on other runtimes.
+
+The shipped model's depth encoder and decoder on a batch of 12 images (one 6-camera pair) at the
+networks' input size, timed as torch runs them in the reconstruction (channels-last), in the
+default layout, as a frozen TorchScript graph (``torch.jit.optimize_for_inference``: oneDNN
+fusions) and, where ``onnxruntime`` is installed (not a dependency), exported to ONNX and run by
+ONNX Runtime's CPU provider with the same thread count. Also the one-off costs (tracing, export,
+session) and the largest difference to torch's outputs. Prints a markdown table (``--out``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from drivingscene.arguments import positive_int
+from drivingscene.data.atomic import atomic_write_text
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=positive_int, default=5, help="timed runs per runtime after 2 warm-up runs (default 5)")
+    p.add_argument("--threads", type=positive_int, default=2, help="threads for every runtime (default 2)")
+    p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
+    p.add_argument("-o", "--out", type=Path, default=None, help="also write the markdown table here")
+
+
+def _median_seconds(call, runs: int) -> float:
+    call(), call()  # warm-up: oneDNN and ONNX Runtime build their kernels for the shape on first calls
+    times = []
+    for _ in range(runs):
+        tic = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - tic)
+    return statistics.median(times)
+
+
+def measure(weights: Path | None, runs: int, threads: int) -> tuple[list[dict], tuple[int, ...]]:
+    """One row per runtime: median seconds, one-off seconds, largest absolute output difference."""
+    import torch
+
+    from drivingscene.methods.feedforward import load_model
+
+    torch.set_num_threads(threads)
+    model = load_model(weights).eval()
+    depth_net = model.depth_net
+    height, width = model.config.input_size or (176, 320)
+
+    class EncoderDecoder(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.encoder, self.decoder = depth_net.encoder, depth_net.decoder
+
+        def forward(self, x):
+            feats = self.encoder(x)
+            disps, decoded = self.decoder(feats, (height, width))
+            return (*feats, *disps, decoded)
+
+    net = EncoderDecoder().eval()
+    channels = 5 if depth_net.config.road_prior else 3
+    x = torch.rand(12, channels, height, width, generator=torch.Generator().manual_seed(0))
+    rows = []
+    with torch.no_grad():
+        reference = [o.contiguous() for o in net(x)]
+
+        def diff(outputs) -> float:
+            return max(float((torch.as_tensor(o) - r).abs().max()) for o, r in zip(outputs, reference))
+
+        x_last = x.contiguous(memory_format=torch.channels_last)
+        seconds = _median_seconds(lambda: net(x_last), runs)
+        rows.append(dict(runtime="torch, channels-last (the reconstruction's)", s=seconds, once=0.0, diff=diff(net(x_last))))
+        rows.append(dict(runtime="torch, default layout", s=_median_seconds(lambda: net(x), runs), once=0.0, diff=0.0))
+        tic = time.perf_counter()
+        frozen = torch.jit.optimize_for_inference(torch.jit.freeze(torch.jit.trace(net, x_last, check_trace=False).eval()))
+        once = time.perf_counter() - tic
+        seconds = _median_seconds(lambda: frozen(x_last), runs)
+        rows.append(dict(runtime="TorchScript, frozen, optimize_for_inference", s=seconds, once=once, diff=diff(frozen(x_last))))
+    try:
+        import onnxruntime
+    except ImportError:
+        rows.append(dict(runtime="ONNX Runtime (not installed: pip install onnxruntime onnx)", s=None, once=None, diff=None))
+        return rows, tuple(x.shape)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "encoder_decoder.onnx"
+        tic = time.perf_counter()
+        torch.onnx.export(net, (x,), str(path), opset_version=17, dynamo=False, input_names=["x"])
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+        options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+        session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        once = time.perf_counter() - tic
+        feed = {"x": x.numpy()}
+        seconds = _median_seconds(lambda: session.run(None, feed), runs)
+        rows.append(
+            dict(
+                runtime=f"ONNX Runtime {onnxruntime.__version__}, CPU provider, all graph optimisations",
+                s=seconds,
+                once=once,
+                diff=diff(session.run(None, feed)),
+            )
+        )
+    return rows, tuple(x.shape)
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivingscene.machine import machine_description
+    from drivingscene.precision import cpu_flags_summary
+
+    rows, shape = measure(args.weights, args.runs, args.threads)
+    base = rows[0]["s"]
+    lines = [
+        f"Measured with `drivingscene bench runtimes --runs {args.runs} --threads {args.threads}` on "
+        f"{machine_description(cpu_flags_summary())}; D's encoder and decoder on a float32 batch {list(shape)} "
+        f"(one pair's 12 images at the networks' input size), median of {args.runs} runs after 2 warm-up runs.",
+        "",
+        "| runtime | s (median) | against torch channels-last | one-off s (trace, export, session) | largest output difference |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if r["s"] is None:
+            lines.append(f"| {r['runtime']} | – | – | – | – |")
+        else:
+            lines.append(f"| {r['runtime']} | {r['s']:.3f} | {r['s'] / base:.2f}x | {r['once']:.1f} | {r['diff']:.1e} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        atomic_write_text(args.out, text)
+    return 0
