@@ -45,13 +45,15 @@ class Profile:
 
 PROFILES = {
     "full": Profile(6, (176, 320), Plan(CLASSES, (0.0, 0.5), (2, 4), (720, 1280), 2)),
-    "quick": Profile(1, (96, 176), Plan((RIG, SIDE_1, UP_10_DOWN, OVERVIEW), (0.0, 0.5), (2, 4), (180, 320), 2)),
+    "quick": Profile(1, (64, 112), Plan((RIG, SIDE_1, UP_10_DOWN, OVERVIEW), (0.0, 0.5), (2, 4), (126, 224), 2)),
 }
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--quick", action="store_true", help="1 pair at 96x176, fewer viewpoints, a small overview: a smoke test (under a minute)"
+        "--quick",
+        action="store_true",
+        help="1 pair at 64x112, fewer viewpoints, a small overview: a smoke test (about a minute on 2 cores)",
     )
     p.add_argument("--count", type=positive_int, default=None, help="procedural test pairs (default 6; quick: 1)")
     p.add_argument(
@@ -59,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=parse_resolution,
         default=None,
         metavar="HxW",
-        help="procedural pairs' size (default 176x320; quick: 96x176)",
+        help="procedural pairs' size (default 176x320; quick: 64x112)",
     )
     p.add_argument(
         "--scenes",

@@ -274,3 +274,41 @@ def test_an_ablation_within_noise_reads_level_not_reproduced():
     assert _direction(row(LEVEL_DB / 2)).startswith("level")
     assert _direction(row(-LEVEL_DB / 2)).startswith("level")
     assert _direction({"ours_db": None, "reproduces": None}) == "–"
+
+
+def test_stability_runs_each_generator_config_once(monkeypatch):
+    """Axes whose easiest setting is the same generator config (the default preset) are generated
+    and scored once; each axis still lists its values and one result per value and method."""
+    import dataclasses
+
+    import numpy as np
+
+    import drivingscene.synth.generate as generate
+    import drivingscene.synth.render as render
+    from drivingscene.bench.report_stability import AXES, _axis_config, stability
+
+    @dataclasses.dataclass(frozen=True)
+    class Dummy:
+        camera_names: tuple = ("CAM_FRONT", "CAM_BACK")
+        valid_mask: object = None
+
+        def world_mask(self):
+            return np.ones((2, 2, 2), bool)
+
+    made = []
+    monkeypatch.setattr(render, "SynthRenderer", lambda: None)
+    monkeypatch.setattr(generate, "generate_pair", lambda config, seed, renderer: made.append(repr(config)) or Dummy())
+
+    class Failing:
+        name, frames = "fails", False
+
+        def run(self, pair):
+            raise ValueError("no")
+
+    axes = stability([Failing()], (24, 40), 1, ends_only=True)
+    configs = {repr(_axis_config(a, v, (24, 40))) for a in AXES for v in (a.values[a.easiest], a.values[-1])}
+    assert len(made) == len(configs) < 2 * len(AXES)
+    for axis in axes:
+        assert len(axis["curves"]["fails"]["error"]) == 2 and all(
+            e.startswith("ValueError") for e in axis["curves"]["fails"]["error"]
+        )
