@@ -3,7 +3,7 @@
 The shipped model's depth encoder and decoder on a batch of 12 images (one 6-camera pair) at the
 networks' input size, timed as torch runs them in the reconstruction (channels-last), in the
 default layout, as a frozen TorchScript graph (``torch.jit.optimize_for_inference``: oneDNN
-fusions) and, where ``onnxruntime`` is installed (not a dependency), exported to ONNX and run by
+fusions), with ``--compile`` through ``torch.compile`` (inductor) and, where ``onnxruntime`` is installed (not a dependency), exported to ONNX and run by
 ONNX Runtime's CPU provider with the same thread count. Also the one-off costs (tracing, export,
 session) and the largest difference to torch's outputs. Prints a markdown table (``--out``).
 """
@@ -24,6 +24,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=positive_int, default=5, help="timed runs per runtime after 2 warm-up runs (default 5)")
     p.add_argument("--threads", type=positive_int, default=2, help="threads for every runtime (default 2)")
     p.add_argument("--weights", type=Path, default=None, help="default: the shipped weights")
+    p.add_argument(
+        "--compile",
+        action="store_true",
+        help="also torch.compile (inductor, needs a C++ compiler; about 90 s to compile on 2 cores)",
+    )
     p.add_argument("-o", "--out", type=Path, default=None, help="also write the markdown table here")
 
 
@@ -37,7 +42,7 @@ def _median_seconds(call, runs: int) -> float:
     return statistics.median(times)
 
 
-def measure(weights: Path | None, runs: int, threads: int) -> tuple[list[dict], tuple[int, ...]]:
+def measure(weights: Path | None, runs: int, threads: int, compile_: bool = False) -> tuple[list[dict], tuple[int, ...]]:
     """One row per runtime: median seconds, one-off seconds, largest absolute output difference."""
     import torch
 
@@ -77,6 +82,15 @@ def measure(weights: Path | None, runs: int, threads: int) -> tuple[list[dict], 
         once = time.perf_counter() - tic
         seconds = _median_seconds(lambda: frozen(x_last), runs)
         rows.append(dict(runtime="TorchScript, frozen, optimize_for_inference", s=seconds, once=once, diff=diff(frozen(x_last))))
+        if compile_:
+            tic = time.perf_counter()
+            compiled = torch.compile(net)
+            compiled(x_last)  # compiles on the first call
+            once = time.perf_counter() - tic
+            seconds = _median_seconds(lambda: compiled(x_last), runs)
+            rows.append(
+                dict(runtime="torch.compile (inductor), channels-last", s=seconds, once=once, diff=diff(compiled(x_last)))
+            )
     try:
         import onnxruntime
     except ImportError:
@@ -108,10 +122,10 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.machine import machine_description
     from drivingscene.precision import cpu_flags_summary
 
-    rows, shape = measure(args.weights, args.runs, args.threads)
+    rows, shape = measure(args.weights, args.runs, args.threads, args.compile)
     base = rows[0]["s"]
     lines = [
-        f"Measured with `drivingscene bench runtimes --runs {args.runs} --threads {args.threads}` on "
+        f"Measured with `drivingscene bench runtimes --runs {args.runs} --threads {args.threads}{' --compile' if args.compile else ''}` on "
         f"{machine_description(cpu_flags_summary())}; D's encoder and decoder on a float32 batch {list(shape)} "
         f"(one pair's 12 images at the networks' input size), median of {args.runs} runs after 2 warm-up runs.",
         "",
