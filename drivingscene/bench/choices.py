@@ -123,13 +123,10 @@ class Variant:
             search = replace(search, unseen_residual_px=self.unseen_px)
         from drivingscene.methods.object_motion import ObjectMotionConfig
 
-        objects = None if self.objects == "off" else ObjectMotionConfig(elsewhere=self.objects)
-        if objects is not None and self.osplit is not None:
-            objects = replace(objects, split=self.osplit)
-        if objects is not None and self.omotion is not None:
-            objects = replace(objects, min_motion=self.omotion)
-        if objects is not None and self.odetect is not None:
-            objects = replace(objects, detect=self.odetect)
+        chosen = {"split": self.osplit, "min_motion": self.omotion, "detect": self.odetect}  # None: the default
+        objects = None
+        if self.objects != "off":
+            objects = ObjectMotionConfig(elsewhere=self.objects, **{k: v for k, v in chosen.items() if v is not None})
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
             use_residual=self.residual,

@@ -53,7 +53,9 @@ def add_file_arguments(p: argparse.ArgumentParser) -> None:
         "picture, docs/reconstruction-format.md; float32 as before issue 48)",
     )
     p.add_argument(
-        "--deflate", action="store_true", help="compress the file (about 1 % smaller for about 2 s more per 6x176x320 pair)"
+        "--deflate",
+        action="store_true",
+        help="compress the file (the Gaussians barely compress; about 2 s more to write per 6x176x320 pair)",
     )
 
 

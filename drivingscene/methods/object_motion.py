@@ -105,7 +105,9 @@ def warp_cost(
 
 
 def _clamped_cost(image: np.ndarray, other: np.ndarray, flow: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """`warp_cost` over 3 x 3 with samples outside clamped to the border (two flows compared)."""
+    """`warp_cost` over 3 x 3 with samples outside clamped to the border (two flows compared).
+    ``image``, ``flow`` and ``grid`` may be a crop of the whole (``grid`` holds the whole image's
+    coordinates); ``other`` is the whole other image."""
     warped = cv2.remap(other, grid + flow, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return cv2.blur(np.abs(warped - image).mean(-1), (3, 3))
 
@@ -258,7 +260,7 @@ def object_flows(
             candidates = ((static_cost > config.threshold) & ~excluded[k, v] & ~outside & ~owned[k, v]).astype(np.uint8)
             candidates = cv2.morphologyEx(cv2.morphologyEx(candidates, cv2.MORPH_OPEN, opening), cv2.MORPH_CLOSE, closing)
             count, labels, stats, _ = cv2.connectedComponentsWithStats(candidates, connectivity=8)
-            rigid_cost = _clamped_cost(rgb[k, v], rgb[o, v], base[k, v], grid) if count > 1 else None
+            base_cost = _clamped_cost(rgb[k, v], rgb[o, v], base[k, v], grid) if count > 1 else None
             for label in range(1, count):
                 if stats[label, cv2.CC_STAT_AREA] < config.min_pixels:
                     continue
@@ -270,16 +272,16 @@ def object_flows(
                     region = region & ~owned[k, v]
                     if region.sum() >= config.min_pixels:
                         _track_and_paint(
-                            flow, owned, rgb, grey, rigid, rigid_cost, k, v, region, blob & ~owned[k, v], grid, config
+                            flow, owned, rgb, grey, rigid, base_cost, k, v, region, blob & ~owned[k, v], grid, config
                         )
     return flow, owned
 
 
-def _explained(image, other, region, warp, rigid_cost, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _explained(image, other, region, warp, base_cost, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The flow ``[H, W, 2]`` of ``warp`` over ``region`` (zero elsewhere), its cost
     (`_clamped_cost`, computed over the region's box and 2 pixels around it: inf further out) and
-    the region's pixels it explains better than the rigid flow of cost ``rigid_cost`` does (opened,
-    so that single pixels do not count)."""
+    the region's pixels it explains better than the flow of cost ``base_cost`` does (the rigid
+    flow's or the fallback's, `ObjectMotionConfig.detect`; opened, so that single pixels do not count)."""
     height, width = region.shape
     x0, x1, y0, y1 = _box(region)
     x0, x1, y0, y1 = max(0, x0 - 2), min(width, x1 + 2), max(0, y0 - 2), min(height, y1 + 2)
@@ -289,15 +291,14 @@ def _explained(image, other, region, warp, rigid_cost, grid) -> tuple[np.ndarray
     dense = np.zeros((height, width, 2), np.float32)
     dense[y0:y1, x0:x1][crop] = _apply(warp, points) - points
     cost = np.full((height, width), np.inf, np.float32)
-    warped = cv2.remap(other, grid[y0:y1, x0:x1] + dense[y0:y1, x0:x1], None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    cost[y0:y1, x0:x1] = cv2.blur(np.abs(warped - image[y0:y1, x0:x1]).mean(-1), (3, 3))
+    cost[y0:y1, x0:x1] = _clamped_cost(image[y0:y1, x0:x1], other, dense[y0:y1, x0:x1], grid[y0:y1, x0:x1])
     better = np.zeros((height, width), np.uint8)
-    better[y0:y1, x0:x1] = crop & (cost[y0:y1, x0:x1] < rigid_cost[y0:y1, x0:x1])
+    better[y0:y1, x0:x1] = crop & (cost[y0:y1, x0:x1] < base_cost[y0:y1, x0:x1])
     better[y0:y1, x0:x1] = cv2.morphologyEx(better[y0:y1, x0:x1], cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     return dense, cost, better > 0
 
 
-def _track_and_paint(flow, owned, rgb, grey, rigid, rigid_cost, k, v, region, blob, grid, config) -> bool:
+def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blob, grid, config) -> bool:
     """Track ``region`` (a part of ``blob``) of image (k, v); where accepted, write its flow over the
     blob's pixels it explains both ways into ``flow`` and ``owned``.
 
@@ -308,18 +309,18 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, rigid_cost, k, v, region, bl
     first = match_region(grey[k, v], grey[o, v], region, _search_window(region, rigid[k, v]), config, (1.0,))  # roughly
     if first is None:
         return False
-    _, _, core = _explained(rgb[k, v], rgb[o, v], region, first[1], rigid_cost, grid)
+    _, _, core = _explained(rgb[k, v], rgb[o, v], region, first[1], base_cost, grid)
     if core.sum() < config.min_pixels // 2:
         return False
     warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config)
     if warp is None:
         return False
-    dense, cost, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, rigid_cost, grid)
+    dense, cost, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, base_cost, grid)
     if keep.sum() < config.min_pixels // 2:
         return False
     if np.median(np.linalg.norm(dense[keep] - rigid[k, v][keep], axis=-1)) < config.min_motion:
         return False
-    if cost[region].mean() > config.ratio * rigid_cost[region].mean():
+    if cost[region].mean() > config.ratio * base_cost[region].mean():
         return False
     flow[k, v][keep] = dense[keep]
     owned[k, v] |= keep
