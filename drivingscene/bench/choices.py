@@ -74,6 +74,8 @@ class Variant:
     osplit: bool | None = None  # ObjectMotionConfig.split; None: the default
     omotion: float | None = None  # ObjectMotionConfig.min_motion; None: the default
     odetect: str | None = None  # ObjectMotionConfig.detect: "rigid" or "fallback"; None: the default
+    merge: float | None = None  # BlockMerge.color_range (gaussians/parsimony.py); -1: no merge; None: the default
+    dedupe: bool | None = None  # InferenceOptions.dedupe on (KeyframeDedupe()) or off; None: the default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -127,9 +129,15 @@ class Variant:
         objects = None
         if self.objects != "off":
             objects = ObjectMotionConfig(elsewhere=self.objects, **{k: v for k, v in chosen.items() if v is not None})
+        from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe
+
+        merge = base.merge
+        if self.merge is not None:
+            merge = None if self.merge < 0 else replace(merge or BlockMerge(), color_range=self.merge)
+        dedupe = base.dedupe if self.dedupe is None else (KeyframeDedupe() if self.dedupe else None)
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
-            use_residual=self.residual,
+            use_residual=self.residual, merge=merge, dedupe=dedupe,
         )  # fmt: skip
 
 
@@ -174,7 +182,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect."""
+    residual, osplit, omotion, odetect, merge, dedupe."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -200,7 +208,9 @@ def parse_variant(text: str) -> Variant:
             values["omotion"] = float(value)
         elif key == "odetect" and value in ("rigid", "fallback"):
             values["odetect"] = value
-        elif key in ("photo", "parallax", "head", "rig", "replace", "residual", "osplit") and value in ("on", "off"):
+        elif key == "merge" and (value == "off" or (_is_number(value) and float(value) >= 0)):
+            values["merge"] = -1.0 if value == "off" else float(value)
+        elif key in ("photo", "parallax", "head", "rig", "replace", "residual", "osplit", "dedupe") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
             values["match"] = value
@@ -229,7 +239,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
@@ -261,6 +271,7 @@ def score_variant(model, pair, variant: Variant) -> dict[str, float]:
     seconds = time.perf_counter() - tic
     out = {"inputs": score_input_views(recon, pair, variant.blend)["psnr_input"], "seconds": seconds}
     out["dynamic"] = float(recon.visible().dynamic.float().mean())
+    out["gaussians"] = float(len(recon.visible()))
     if pair.gt_depth is not None:  # as docs/results.md and docs/real-data.md score it
         out["abs_rel"] = score_depth(recon, pair)["depth_abs_rel"]
     if pair.num_eval:
@@ -303,7 +314,8 @@ def run(args: argparse.Namespace) -> int:
                 f"| {variant.name or '(defaults)'} | {mean['inputs']:.2f} | {mean.get('psnr', np.nan):.2f} "
                 f"| {_cell(mean.get('psnr_dyn', np.nan))} | {_sign(per_pair, first)} "
                 f"| {_cell(mean.get('epe_dyn', np.nan))} / {_cell(mean.get('epe_static', np.nan))} "
-                f"| {100 * mean['dynamic']:.1f} % | {mean.get('abs_rel', np.nan):.3f} | {np.median([s['seconds'] for s in scores]):.2f} |"
+                f"| {100 * mean['dynamic']:.1f} % | {mean['gaussians'] / 1000:.0f} | {mean.get('abs_rel', np.nan):.3f} "
+                f"| {np.median([s['seconds'] for s in scores]):.2f} |"
             )
             first = per_pair if first is None else first
             print(f"{folder}: {rows[-1]}", flush=True)
@@ -313,15 +325,15 @@ def run(args: argparse.Namespace) -> int:
             per_pair = [b["psnr_dyn"] for b in blend] if len(with_eval) == len(pairs) else None
             rows.append(
                 f"| *keyframes blended (no geometry)* | – | {_nanmean([b['psnr'] for b in blend]):.2f} "
-                f"| {_cell(_nanmean([b['psnr_dyn'] for b in blend]))} | {_sign(per_pair, first)} | – | – | – | – |"
+                f"| {_cell(_nanmean([b['psnr_dyn'] for b in blend]))} | {_sign(per_pair, first)} | – | – | – | – | – |"
             )
         motion = "no ground-truth motion" if np.isnan(moving) else f"moving pixels in the ground truth: {100 * moving:.1f} %"
         sections += [
             f"### {folder} ({len(pairs)} {'pair' if len(pairs) == 1 else 'pairs'}; {motion})",
             "",
             "| variant | input views PSNR | intermediate PSNR | intermediate PSNR, moving | moving: pairs above the first row (sign test) "
-            "| flow EPE moving / static (px) | dynamic Gaussians | depth AbsRel | s / pair |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "| flow EPE moving / static (px) | dynamic Gaussians | Gaussians (thousands) | depth AbsRel | s / pair |",
+            "|---|---|---|---|---|---|---|---|---|---|",
             *rows,
             "",
         ]

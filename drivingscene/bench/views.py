@@ -21,7 +21,7 @@ import argparse
 import json
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -29,7 +29,7 @@ import numpy as np
 
 from drivingscene.arguments import parse_resolution, positive_int
 from drivingscene.bench.views_cameras import CLASSES, OVERVIEW, RIG, SIDE_1, UP_10_DOWN
-from drivingscene.bench.views_run import CLASSICAL, MESH, MODEL, ORACLE, Plan
+from drivingscene.bench.views_run import CLASSICAL, MESH, MODEL, ORACLE, PER_PIXEL, Plan
 from drivingscene.errors import InputError
 
 MESSAGE = "drivingscene bench views"
@@ -112,12 +112,14 @@ def _command(args: argparse.Namespace) -> str:
     return " ".join(parts + [f"--out {args.out_dir}"])
 
 
-def _reconstructions(model, pair, oracle: bool) -> dict:
+def _reconstructions(model, pair, oracle: bool, per_pixel: bool = False) -> dict:
     from drivingscene.methods.classical import classical_reconstruction
-    from drivingscene.methods.feedforward import reconstruct
+    from drivingscene.methods.feedforward import InferenceOptions, reconstruct
     from drivingscene.methods.oracle import oracle_reconstruction
 
     recons = {MODEL: reconstruct(model, pair)}
+    if per_pixel:  # the parsimony ablation: one Gaussian per pixel and keyframe (gaussians/parsimony.py)
+        recons[PER_PIXEL] = reconstruct(model, pair, replace(InferenceOptions(), merge=None, dedupe=None))
     if oracle:
         recons[ORACLE] = oracle_reconstruction(pair)
     recons[CLASSICAL] = classical_reconstruction(pair)
@@ -145,7 +147,7 @@ def _procedural(args, profile: Profile, model, renderer, perceptual, progress, r
     for i, seed in enumerate(seeds):
         progress(i / len(seeds), f"procedural pair {i + 1}/{len(seeds)} (seed {seed})")
         pair = generate_pair(config, seed, renderer)
-        recons = _reconstructions(model, pair, oracle=True)
+        recons = _reconstructions(model, pair, oracle=True, per_pixel=not args.quick)
         mesh = DepthMeshRenderer(recons[MODEL], renderer.ctx, capture_ego_to_world=pair.camera_ego_poses())
         try:
             with ProceduralScene(config, seed, renderer) as truth:
@@ -168,7 +170,7 @@ def _real(args, pairs: list, profile: Profile, model, renderer, perceptual, prog
     for path, pair in zip(args.scenes, pairs):
         progress(None, f"real scene {path.name}")
         name = path.stem
-        recons = _reconstructions(model, pair, oracle=False)
+        recons = _reconstructions(model, pair, oracle=False, per_pixel=not args.quick)
         mesh = DepthMeshRenderer(recons[MODEL], renderer.ctx, capture_ego_to_world=pair.camera_ego_poses())
         try:
             got, pictures = score_real(pair, name, recons[MODEL], _methods(recons, mesh), profile.plan, perceptual)

@@ -12,11 +12,11 @@ from collections import defaultdict
 from dataclasses import asdict
 
 from drivingscene.bench.views_cameras import CLASSES
-from drivingscene.bench.views_run import BICUBIC, CLASSICAL, MESH, MODEL, ORACLE, ViewRecord
+from drivingscene.bench.views_run import BICUBIC, CLASSICAL, MESH, MODEL, ORACLE, PER_PIXEL, ViewRecord
 
 FORMAT = "drivingscene/bench-views"
 VERSION = 1
-METHOD_ORDER = (MODEL, MESH, CLASSICAL, ORACLE, BICUBIC)
+METHOD_ORDER = (MODEL, PER_PIXEL, MESH, CLASSICAL, ORACLE, BICUBIC)
 METRICS = ("psnr", "ssim", "lpips", "holes", "psnr_down", "ssim_down", "psnr_seen")
 
 

@@ -20,6 +20,7 @@ from drivingscene.bench.views_scoring import HOLE_ALPHA, area_down, bicubic_up, 
 from drivingscene.eval.metrics import psnr
 
 MODEL = "DrivingScene"
+PER_PIXEL = "DrivingScene, one Gaussian per pixel"  # the parsimony ablation (InferenceOptions.merge, .dedupe off)
 ORACLE = "oracle (GT depth + scene flow)"
 CLASSICAL = "classical (DIS flow + triangulation)"
 MESH = "depth mesh (DrivingScene's depth, DIBR)"

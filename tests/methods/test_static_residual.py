@@ -15,7 +15,8 @@ def recon_and_pair(synth_pair):
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
 
     assert InferenceOptions().search.unseen_static  # the search's fix for surfaces leaving the view is the default
-    return reconstruct(load_model(), synth_pair, InferenceOptions()), synth_pair
+    # one Gaussian per pixel (no block merge, gaussians/parsimony.py): the moving mask is checked pixel by pixel
+    return reconstruct(load_model(), synth_pair, InferenceOptions(merge=None)), synth_pair
 
 
 def _static_cameras(pair) -> list[int]:

@@ -30,7 +30,7 @@ def model():
 
 
 def test_no_gaussian_from_a_masked_pixel(synth_pair, model, tmp_path):
-    options = InferenceOptions(amp=False)
+    options = InferenceOptions(amp=False, merge=None)  # one Gaussian per pixel: the lost ones are counted
     plain = reconstruct(model, synth_pair, options)
     mask = _bottom_mask(synth_pair, 12)
     masked = reconstruct(model, replace(synth_pair, valid_mask=mask), options)
@@ -101,10 +101,10 @@ def test_view_bound_gaussians_are_those_another_image_sees_through(synth_pair, m
     ones carving drops, each with the unit ray from its source camera's centre to its mean."""
     from drivingscene.gaussians.visibility import CarveConfig
 
-    plain = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, far_layer=0))  # no far layer: none bound
+    plain = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, far_layer=0, merge=None))  # no far layer: none bound
     assert not plain.gaussians.view_bound.any()
-    bound = reconstruct(model, synth_pair, InferenceOptions(far_layer=0))
-    carved = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, carve=CarveConfig(), far_layer=0))
+    bound = reconstruct(model, synth_pair, InferenceOptions(far_layer=0, merge=None))  # per pixel: carving compares
+    carved = reconstruct(model, synth_pair, InferenceOptions(view_bound=None, carve=CarveConfig(), far_layer=0, merge=None))
     g = bound.gaussians
     assert len(g) == len(plain.gaussians) and 0 < int(g.view_bound.sum()) == len(g) - len(carved.gaussians)
     torch.testing.assert_close(g.index(~g.view_bound).means, carved.gaussians.means)
@@ -120,8 +120,8 @@ def test_the_far_layer_draws_what_lies_beyond_the_sky_distance(synth_pair, model
     ray and at most ``far_layer`` times the sky distance away; the input views re-render those
     pixels far better than the sky model alone draws them, and nothing else changes."""
     lift = replace(InferenceOptions().lift, sky_depth=12.0)
-    plain = reconstruct(model, synth_pair, InferenceOptions(lift=lift, far_layer=0))
-    recon = reconstruct(model, synth_pair, InferenceOptions(lift=lift, far_layer=3.0))
+    plain = reconstruct(model, synth_pair, InferenceOptions(lift=lift, far_layer=0, merge=None))  # per pixel: counted
+    recon = reconstruct(model, synth_pair, InferenceOptions(lift=lift, far_layer=3.0, merge=None))
     beyond = plain.depth == 0  # [2, V, H, W]: what the sky model alone drew
     assert 0.05 < beyond.mean() < 0.9
     g, before = recon.gaussians, plain.gaussians

@@ -1,0 +1,206 @@
+"""No more Gaussians than an image needs: per-pixel Gaussians merged into blocks where one does.
+
+Per-pixel assembly gives every input pixel a Gaussian, whatever the pixel shows. Where a 2x2 block
+of an image's pixels is one flat piece of surface of one colour that moves as one, four Gaussians
+draw what one Gaussian twice their size draws: the block's Gaussians become one, at their mean,
+with their mean colour, opacity and flow, and their shape scaled by the block's side (2: the
+pixel grid of the block's Gaussians is twice as coarse, so a merged Gaussian overlaps its
+neighbours as a per-pixel one does and the surface stays closed at any magnification). Repeated
+on the merged blocks (``levels`` > 1), flat regions (road, walls, sky at the far layer) end up
+with one Gaussian per 4x4 pixels.
+
+A block merges only when its Gaussians are all there (no sky, no ego body, none carved), come
+from one image, are all view-bound or none, agree in colour (the largest range of a channel is at
+most ``color_range``), lie on one plane (the block's depths span at most ``depth_range`` of
+their mean and are bilinear within ``planarity`` of it: a depth edge or a fold is not merged) and move alike (flows within
+``flow_range`` metres): nothing that moves is merged with what does not, and a merged Gaussian
+keeps its image's layer (keyframe and camera), so the layered blends draw it as before. The
+thresholds were chosen on validation pairs (docs/parsimony.md); the per-pixel output stays
+selectable (``InferenceOptions.merge = None``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
+from drivingscene.geometry.camera import unproject
+
+
+@dataclass(frozen=True)
+class BlockMerge:
+    """When a 2x2 block of Gaussians becomes one (module docstring)."""
+
+    color_range: float = 0.06  # largest range of an RGB channel in the block, in [0, 1]
+    planarity: float = 0.03  # |d00 + d11 - d01 - d10| / mean depth
+    depth_range: float = 0.1  # (largest - smallest depth) / mean depth: a depth edge is not merged
+    flow_range: float = 0.05  # metres: largest range of a flow component in the block
+    levels: int = 1  # 1: 2x2 blocks only; 2: merged blocks merge again into 4x4
+
+    def __post_init__(self):
+        from drivingscene.errors import InputError
+
+        if self.levels < 1 or min(self.color_range, self.planarity, self.depth_range, self.flow_range) < 0:
+            raise InputError(f"BlockMerge: expected levels >= 1 and non-negative thresholds, found {self}")
+
+
+def _blocks(x: Tensor) -> Tensor:
+    """``[I, H, W, ...]`` -> ``[I, H // 2, W // 2, 4, ...]``: each 2x2 block's four entries (row-major;
+    an odd last row or column is left out)."""
+    num, height, width = x.shape[:3]
+    x = x[:, : height // 2 * 2, : width // 2 * 2]
+    tail = x.shape[3:]
+    x = x.reshape(num, height // 2, 2, width // 2, 2, *tail).transpose(2, 3)
+    return x.reshape(num, height // 2, width // 2, 4, *tail)
+
+
+def _merge_level(g: Gaussians, ids: Tensor, depth: Tensor, focal: Tensor, config: BlockMerge, side: float, eps2d: float):
+    """One level: the blocks of the id map ``ids`` ``[I, H, W]`` (-1: none) that merge. Returns the
+    merged Gaussians, the ids ``[M, 4]`` they replace, and the next level's id map (into the merged
+    ones, -1 where a block did not merge) and depth map."""
+    block_ids = _blocks(ids)  # [I, h, w, 4]
+    block_depth = _blocks(depth)
+    full = (block_ids >= 0).all(-1)
+    cand = block_ids[full]  # [C, 4]
+    d = block_depth[full]
+    mean_depth = d.mean(-1)
+    planar = ((d[:, 0] + d[:, 3] - d[:, 1] - d[:, 2]).abs() <= config.planarity * mean_depth) & (
+        d.amax(-1) - d.amin(-1) <= config.depth_range * mean_depth
+    )
+    rgb = sh0_to_rgb(g.sh[:, 0]).index_select(0, cand.flatten()).view(-1, 4, 3)
+    flows = g.flows.index_select(0, cand.flatten()).view(-1, 4, 3)
+    bound = g.view_bound.index_select(0, cand.flatten()).view(-1, 4)
+    ok = (
+        planar
+        & ((rgb.amax(1) - rgb.amin(1)).amax(-1) <= config.color_range)
+        & ((flows.amax(1) - flows.amin(1)).amax(-1) <= config.flow_range)
+        & (bound.all(-1) | ~bound.any(-1))
+    )
+    groups = cand[ok]  # [M, 4]
+    flat = groups.flatten()
+
+    def mean(x: Tensor) -> Tensor:
+        return x.index_select(0, flat).view(len(groups), 4, *x.shape[1:]).mean(1)
+
+    first = groups[:, 0]
+    # The renderer adds its low-pass ``eps2d`` (px^2) to every splat: scaling the 3D shape by ``side``
+    # scales the splat's own variance by side^2 but not the low-pass, so (side^2 - 1) eps2d more,
+    # isotropic at the block's depth, make the merged splat exactly ``side`` times a pixel's.
+    image = full.nonzero()[:, 0][ok]  # [M] each block's image
+    low_pass = (side**2 - 1) * eps2d * (mean_depth[ok] / focal.to(mean_depth)[image]) ** 2  # m^2
+    log_scales = 0.5 * torch.log(torch.exp(2 * (mean(g.log_scales) + math.log(side))) + low_pass[:, None])
+    view_rays = F.normalize(mean(g.view_rays), dim=-1)  # zero stays zero
+    merged = Gaussians(
+        means=mean(g.means),
+        quats=g.quats.index_select(0, first),
+        log_scales=log_scales,
+        opacity_logits=torch.logit(mean(g.opacities[:, None])[:, 0].clamp(1e-6, 1 - 1e-6)),
+        sh=mean(g.sh),
+        flows=mean(g.flows),
+        keyframes=g.keyframes.index_select(0, first),
+        cameras=g.cameras.index_select(0, first),
+        view_rays=view_rays,
+    )
+    next_ids = torch.full(block_ids.shape[:3], -1, dtype=torch.long, device=ids.device)
+    where = full.clone()
+    where[full] = ok
+    next_ids[where] = torch.arange(len(groups), device=ids.device)
+    return merged, groups, next_ids, block_depth.mean(-1)
+
+
+def merge_blocks(
+    g: Gaussians,
+    pixels: Tensor,  # [N] int64: each Gaussian's flat pixel index into [I, H, W] (image-major)
+    depth: Tensor,  # [I, H, W] z-depth of every image (metres)
+    intrinsics: Tensor,  # [I, 3, 3]
+    config: BlockMerge = BlockMerge(),
+    *,
+    eps2d: float,  # the renderer's low-pass, px^2 (render.project.EPS2D)
+) -> Gaussians:
+    """``g`` with the blocks that qualify merged (module docstring), ordered by image (keyframe,
+    then camera) as assembled: merged Gaussians follow their image's remaining per-pixel ones."""
+    num, height, width = depth.shape
+    focal = 0.5 * (intrinsics[:, 0, 0] + intrinsics[:, 1, 1]).float()  # [I] pixels per metre at 1 m
+    ids = torch.full((num * height * width,), -1, dtype=torch.long, device=pixels.device)
+    ids[pixels] = torch.arange(len(g), device=pixels.device)
+    ids = ids.view(num, height, width)
+    kept = torch.ones(len(g), dtype=torch.bool, device=g.device)
+    current, current_depth, parts = g, depth.float(), []
+    for level in range(config.levels):
+        if min(current_depth.shape[1:]) < 2:
+            break
+        merged, groups, ids, current_depth = _merge_level(current, ids, current_depth, focal * 0.5**level, config, 2.0, eps2d)
+        if level == 0:
+            kept[groups.flatten()] = False
+            parts.append(g.index(kept))
+        else:  # the previous level's merged Gaussians that merged again give way
+            alive = torch.ones(len(current), dtype=torch.bool, device=g.device)
+            alive[groups.flatten()] = False
+            parts.append(current.index(alive))
+        current = merged
+        if len(merged) == 0:
+            break
+    parts.append(current)
+    out = Gaussians.cat(parts)
+    image = out.keyframes * (int(out.cameras.max()) + 1 if len(out) else 1) + out.cameras
+    order = torch.sort(image, stable=True).indices
+    return out.index(order)
+
+
+@dataclass(frozen=True)
+class KeyframeDedupe:
+    """When a static pixel's Gaussian is left to the other keyframe's image of the same camera
+    (`keyframe_duplicates`)."""
+
+    depth_tolerance: float = 0.03  # relative: the other image's depth where the point lands
+    color_tolerance: float = 0.03  # mean absolute RGB difference over a 3x3 window, in [0, 1]
+    finer: float = 0.95  # keyframe 0 gives way only where keyframe 1 is this much nearer (finer)
+
+
+def keyframe_duplicates(
+    depth: Tensor,  # [2, V, H, W] z-depth
+    static: Tensor,  # [2, V, H, W] bool: pixels whose Gaussian exists and does not move
+    images: Tensor,  # [2, V, 3, H, W] in [0, 1]
+    cam_to_world: Tensor,  # [2, V, 4, 4] (any common frame)
+    intrinsics: Tensor,  # [V, 3, 3]
+    config: KeyframeDedupe = KeyframeDedupe(),
+) -> Tensor:
+    """``[2, V, H, W]`` bool: static pixels whose surface point the same camera's image at the other
+    keyframe also holds (it lands inside that image on a static pixel at the same depth within
+    ``depth_tolerance`` and the same colours over a 3x3 window), and samples at least as finely
+    (keyframe 0's point given way only where keyframe 1 sees it ``finer`` times nearer, so that of
+    two copies one stays): the Gaussians one of the two copies makes redundant."""
+    _, num_views, height, width = depth.shape
+    k = intrinsics.float()
+    out = torch.zeros_like(static)
+    for key in (0, 1):
+        other = 1 - key
+        points = unproject(depth[key].float().clamp(min=1e-3), k)  # [V, H, W, 3] camera axes
+        rel = (torch.linalg.inv(cam_to_world[other].double()) @ cam_to_world[key].double()).float()
+        q = torch.einsum("vij,vhwj->vhwi", rel[:, :3, :3], points) + rel[:, None, None, :3, 3]
+        z = q[..., 2].clamp(min=1e-3)
+        u = k[:, None, None, 0, 0] * q[..., 0] / z + k[:, None, None, 0, 2]
+        v = k[:, None, None, 1, 1] * q[..., 1] / z + k[:, None, None, 1, 2]
+        grid = torch.stack([(u + 0.5) / width * 2 - 1, (v + 0.5) / height * 2 - 1], -1)
+        inside = (grid.abs() <= 1).all(-1) & (q[..., 2] > 1e-2)
+        there = F.grid_sample(
+            torch.cat([depth[other].float()[:, None], static[other].float()[:, None]], 1), grid, mode="nearest",
+            align_corners=False,
+        )  # fmt: skip
+        warped = F.grid_sample(images[other].float(), grid, mode="bilinear", align_corners=False)
+        diff = F.avg_pool2d((warped - images[key].float()).abs().mean(1, keepdim=True), 3, 1, 1, count_include_pad=False)[:, 0]
+        agree = (
+            inside
+            & static[key]
+            & (there[:, 1] > 0.5)
+            & ((z - there[:, 0]).abs() <= config.depth_tolerance * there[:, 0])
+            & (diff <= config.color_tolerance)
+        )
+        finer = z <= depth[key] * (1.0 if key == 1 else config.finer)
+        out[key] = agree & finer
+    return out
