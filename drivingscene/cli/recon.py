@@ -136,6 +136,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="track moving objects as wholes between the keyframes (methods/object_motion.py; a few seconds "
         "more per pair, docs/moving-objects.md)",
     )
+    p.add_argument(
+        "--per-pixel",
+        action="store_true",
+        help="one Gaussian per pixel and keyframe: flat blocks not merged (about twice the Gaussians; ablation, "
+        "docs/parsimony.md)",
+    )
     add_match_arguments(p)
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: torch's choice)")
     add_amp_arguments(p)
@@ -273,6 +279,8 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
     options = InferenceOptions(use_residual=not args.static_only, amp=args.amp, threads=args.threads)
     if args.no_search:
         options = replace(options, search=None)
+    if args.per_pixel:
+        options = replace(options, merge=None)
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
     if args.objects and not args.static_only:

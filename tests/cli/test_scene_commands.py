@@ -116,7 +116,8 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     proposal level) or a multiple of the rigid flow on the search's grid (--no-parallax: the rigid
     flow as D's depth makes it); --no-search keeps R's (every level); --static-only moves nothing;
     by default parallax explains some of the moving pixels (fewer dynamic Gaussians); --no-match
-    keeps D's depth, which matching the keyframes otherwise corrects; --objects tracks moving objects."""
+    keeps D's depth, which matching the keyframes otherwise corrects; --objects tracks moving objects;
+    --per-pixel keeps a Gaussian per pixel."""
     import numpy as np
 
     from drivingscene.gaussians.recon import load_reconstruction
@@ -133,6 +134,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
         ("default", []),
         ("no_match", ["--no-match"]),
         ("objects", ["--objects"]),
+        ("per_pixel", ["--per-pixel"]),
     )
     for name, extra in runs:
         assert main(["reconstruct", str(scene), "-o", str(tmp_path / f"{name}.npz"), *extra]) == 0
@@ -141,6 +143,11 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     assert recons["default"].gaussians.dynamic.sum() < recons["full"].gaussians.dynamic.sum()
     assert "match_s" in recons["default"].meta["timings"] and "match_s" not in recons["no_match"].meta["timings"]
     assert "objects_s" in recons["objects"].meta["timings"] and "objects_s" not in recons["default"].meta["timings"]
+    # flat blocks merged by default (gaussians/parsimony.py); --per-pixel keeps one Gaussian per world pixel
+    per_pixel = recons["per_pixel"]
+    world = np.broadcast_to(True if per_pixel.valid_mask is None else per_pixel.valid_mask, per_pixel.depth.shape)
+    assert len(per_pixel.gaussians) == int(world.sum()) and "merge_s" not in per_pixel.meta["timings"]
+    assert len(recons["default"].gaussians) < 0.75 * len(per_pixel.gaussians)
     # The file: float16 attributes, stored, by default; float32 and deflated as before issue 48 on request
     import zipfile
 
