@@ -57,6 +57,9 @@ class Variant:
     blend: LayerBlend = LayerBlend()
     note: str = ""
     far_layer: float = FAR_LAYER  # InferenceOptions.far_layer
+    # InferenceOptions.merge: these rows were measured with one Gaussian per pixel, before the flat
+    # blocks were merged (issue 49, docs/parsimony.md); True: the merge's default (its own row)
+    merge: bool = False
 
 
 BEFORE_CAP = FootprintRule(max_footprint=1.0)  # the cap before 2026-11-28 (two solve iterations)
@@ -87,6 +90,7 @@ VARIANTS = (
     Variant("one iteration of the colour solve", fit_colors=1),
     Variant("eight iterations of the colour solve", fit_colors=8),
     Variant("no far layer (beyond the sky distance: the sky model)", far_layer=0.0),
+    Variant("default + flat 2x2 blocks merged (issue 49; the default since 2026-12-02)", merge=True),
 )
 DEFAULT = VARIANTS[8]
 QUICK = (VARIANTS[0], DEFAULT)
@@ -168,6 +172,7 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
     import cv2
 
     from drivingscene.bench.views_scoring import area_down
+    from drivingscene.gaussians.parsimony import BlockMerge
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
     from drivingscene.render.scene import (
         render_eval_frames,
@@ -182,6 +187,7 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
         footprints=variant.footprints,
         surface_tolerance=variant.blend.surface_tolerance,
         far_layer=variant.far_layer,
+        merge=BlockMerge() if variant.merge else None,
     )
     times = []
     for _ in range(2):  # the second run is timed warm (kernels built, caches filled)
