@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from drivingscene.gaussians.core import Gaussians, sh0_to_rgb
-from drivingscene.geometry.camera import unproject
+from drivingscene.geometry.camera import project, unproject
 
 
 @dataclass(frozen=True)
@@ -129,19 +129,14 @@ def merge_blocks(
     ids = torch.full((num * height * width,), -1, dtype=torch.long, device=pixels.device)
     ids[pixels] = torch.arange(len(g), device=pixels.device)
     ids = ids.view(num, height, width)
-    kept = torch.ones(len(g), dtype=torch.bool, device=g.device)
     current, current_depth, parts = g, depth.float(), []
     for level in range(config.levels):
         if min(current_depth.shape[1:]) < 2:
             break
         merged, groups, ids, current_depth = _merge_level(current, ids, current_depth, focal * 0.5**level, config, 2.0, eps2d)
-        if level == 0:
-            kept[groups.flatten()] = False
-            parts.append(g.index(kept))
-        else:  # the previous level's merged Gaussians that merged again give way
-            alive = torch.ones(len(current), dtype=torch.bool, device=g.device)
-            alive[groups.flatten()] = False
-            parts.append(current.index(alive))
+        alive = torch.ones(len(current), dtype=torch.bool, device=g.device)  # the previous level's that merged give way
+        alive[groups.flatten()] = False
+        parts.append(current.index(alive))
         current = merged
         if len(merged) == 0:
             break
@@ -183,11 +178,12 @@ def keyframe_duplicates(
         points = unproject(depth[key].float().clamp(min=1e-3), k)  # [V, H, W, 3] camera axes
         rel = (torch.linalg.inv(cam_to_world[other].double()) @ cam_to_world[key].double()).float()
         q = torch.einsum("vij,vhwj->vhwi", rel[:, :3, :3], points) + rel[:, None, None, :3, 3]
-        z = q[..., 2].clamp(min=1e-3)
-        u = k[:, None, None, 0, 0] * q[..., 0] / z + k[:, None, None, 0, 2]
-        v = k[:, None, None, 1, 1] * q[..., 1] / z + k[:, None, None, 1, 2]
-        grid = torch.stack([(u + 0.5) / width * 2 - 1, (v + 0.5) / height * 2 - 1], -1)
-        inside = (grid.abs() <= 1).all(-1) & (q[..., 2] > 1e-2)
+        uv, z_there = project(q.flatten(1, 2), k, eps=1e-3)
+        uv, z_there = uv.view(num_views, height, width, 2), z_there.view(num_views, height, width)
+        z = z_there.clamp(min=1e-3)
+        size = torch.tensor([width, height], dtype=uv.dtype, device=uv.device)
+        grid = (uv + 0.5) / size * 2 - 1
+        inside = (grid.abs() <= 1).all(-1) & (z_there > 1e-2)
         there = F.grid_sample(
             torch.cat([depth[other].float()[:, None], static[other].float()[:, None]], 1), grid, mode="nearest",
             align_corners=False,
