@@ -14,6 +14,7 @@ from drivingscene.bench.report_methods import (
     FULL,
     KEYS,
     NO_WARP,
+    PER_PIXEL,
     PROFILES,
     SINGLE,
     STATIC,
@@ -53,24 +54,36 @@ def network_widths(pairs: list, paths: list[Path], perceptual) -> list[dict]:
     return sorted(out, key=lambda w: w["width"])
 
 
-def parsimony(recons: list, pairs: list, fractions: tuple[float, ...]) -> dict:
+# The parsimony level of the model's default reconstruction (flat blocks merged, issue 49)
+DEFAULT_LEVEL = "flat blocks merged (default)"
+
+
+def parsimony(recons: list, pairs: list, fractions: tuple[float, ...], per_pixel: list | None = None) -> dict:
     """The model's Gaussians under budgets (means over pairs): count, in-between PSNR, seconds to
-    apply the budget (``budget_s``) and to render and score the in-between frames (``seconds``)."""
+    apply the budget (``budget_s``) and to render and score the in-between frames (``seconds``).
+    The budgets (`gaussians.budget`, targets as ``fractions`` of the per-pixel count) start from
+    ``per_pixel``, the reconstructions with one Gaussian per pixel, beside which ``recons`` (the
+    default: flat blocks merged, gaussians/parsimony.py) is one level; without ``per_pixel`` the
+    budgets start from ``recons`` and it is the "per-pixel" level."""
     from drivingscene.eval.reconstruction import score_novel_views
     from drivingscene.gaussians.budget import BudgetConfig, apply_budget
 
-    configs = [("per-pixel", None), ("pruned + merged", BudgetConfig())]
+    configs = [("per-pixel", None)]
+    if per_pixel:
+        configs.append((DEFAULT_LEVEL, None))
+    configs += [("pruned + merged", BudgetConfig())]
     configs += [(f"target {100 * f:g} %", f) for f in fractions]
     levels: dict[str, dict[str, list[float]]] = {}
-    for recon, pair in zip(recons, pairs):
+    for recon, source, pair in zip(recons, per_pixel or recons, pairs):
         for level, config in configs:
             start = time.perf_counter()
-            g = recon.visible()
+            base = recon if level == DEFAULT_LEVEL else source
+            g = base.visible()
             if config is not None:
                 budget = config if isinstance(config, BudgetConfig) else BudgetConfig(target_count=max(1, int(config * len(g))))
                 g, _ = apply_budget(g, budget)
             applied = time.perf_counter()
-            psnr = score_novel_views(recon.with_gaussians(g), pair, None)["psnr"]
+            psnr = score_novel_views(base.with_gaussians(g), pair, None)["psnr"]
             entry = levels.setdefault(level, {"gaussians": [], "psnr": [], "seconds": [], "budget_s": []})
             entry["gaussians"].append(float(len(g)))
             entry["psnr"].append(psnr)
@@ -84,9 +97,11 @@ def parsimony(recons: list, pairs: list, fractions: tuple[float, ...]) -> dict:
 
 
 def budget_points(points: list[dict], par: dict) -> list[dict]:
-    """The Gaussian budgets as points of the speed chart: the model's seconds plus the budget's,
-    the in-between PSNR (depth and flow are the model's, unchanged, so not repeated)."""
-    full = _find(points, FULL)
+    """The Gaussian budgets as points of the speed chart: the seconds of the reconstruction they start
+    from (one Gaussian per pixel where that was measured) plus the budget's, the in-between PSNR
+    (depth and flow are the model's, unchanged, so not repeated). The default's level is the model's
+    own point already."""
+    full = _find(points, FULL, PER_PIXEL) or _find(points, FULL)
     if full is None:
         return []
     return [
@@ -100,7 +115,7 @@ def budget_points(points: list[dict], par: dict) -> list[dict]:
             "gaussians": b["gaussians"],
         }
         for b in par["budgets"]
-        if b["level"] != "per-pixel"
+        if b["level"] not in ("per-pixel", DEFAULT_LEVEL)
     ]
 
 

@@ -30,6 +30,9 @@ BUDGETED = "DrivingScene + Gaussian budget"
 NO_WARP = "DrivingScene, stage 2 without L_warp"
 REFINED = "DrivingScene + refine"
 SCRATCH = "refinement from scratch"
+# The model's setting without the flat-block merge (gaussians/parsimony.py): its reconstructions are
+# the parsimony budgets' source (report_ablations.parsimony)
+PER_PIXEL = "one Gaussian per pixel"
 CLASSICAL = "classical (DIS flow + triangulation)"
 ORACLE = "oracle (GT depth + scene flow)"
 COPY, BLEND = "copy the nearest keyframe", "blend the two keyframes"
@@ -141,6 +144,7 @@ def benchmark_methods(model, args, profile: Profile, real: bool) -> list[Method]
                     FULL, f"input x{scale:g}", FULL, lambda p, s=scale: at_full_size(reconstruct(model, resized_pair(p, s)), p)
                 )
             )
+    out.append(Method(FULL, PER_PIXEL, FULL, lambda p: reconstruct(model, p, InferenceOptions(merge=None))))
     # D's depth as it is (no classical matching at inference), and matching guided by D alone (no
     # road-plane fallback): the same model, faster
     out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
@@ -243,11 +247,12 @@ def mark_fronts(points: list[dict]) -> None:
 
 
 def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tuple[list[dict], dict]:
-    """One point per method over ``pairs``; also the per-pair rows and the model's reconstructions
-    (for the budgets)."""
+    """One point per method over ``pairs``; also the per-pair rows and the model's reconstructions,
+    by default and one Gaussian per pixel (for the budgets; the latter empty without that method)."""
     rows: dict[int, list[dict]] = {i: [] for i in range(len(methods))}
     seconds: dict[int, list[float]] = {i: [] for i in range(len(methods))}
-    recons = []
+    per_pixel = next((i for i, m in enumerate(methods) if m.name == FULL and m.setting == PER_PIXEL), None)
+    recons, per_pixel_recons = [], []
     methods[0].run(pairs[0])  # warm-up, not timed: kernels built, caches filled (the model's first pass)
     for n, pair in enumerate(pairs):
         for i, method in enumerate(methods):
@@ -256,10 +261,13 @@ def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tup
             seconds[i].append(secs)
             if i == 0:
                 recons.append(recon)
+            elif i == per_pixel:
+                per_pixel_recons.append(recon)
         print(f"{label}: pair {n + 1}/{len(pairs)} scored", file=sys.stderr)
     points = [_point(m, rows[i], seconds[i]) for i, m in enumerate(methods)]
     mark_fronts(points)
-    return points, {"rows": {f"{m.name} | {m.setting}": rows[i] for i, m in enumerate(methods)}, "recons": recons}
+    table = {f"{m.name} | {m.setting}": rows[i] for i, m in enumerate(methods)}
+    return points, {"rows": table, "recons": recons, "per_pixel_recons": per_pixel_recons}
 
 
 def procedural_pairs(args, profile: Profile) -> tuple[list, str]:

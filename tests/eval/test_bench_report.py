@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from drivingscene.bench.report_ablations import DEFAULT_LEVEL
 from drivingscene.bench.report_methods import (
     BLEND,
     CLASSICAL,
@@ -74,6 +75,9 @@ def test_bench_report_quick(synth_pair, tmp_path):
     assert ego["values"][0] == 0.0
     par = report["parsimony"]
     assert par["budgets"][0]["level"] == "per-pixel" and par["chosen"] in {b["level"] for b in par["budgets"]}
+    # the default (flat blocks merged) beside the per-pixel reconstruction the budgets start from
+    counts = {b["level"]: b["gaussians"] for b in par["budgets"]}
+    assert counts[DEFAULT_LEVEL] < counts["per-pixel"] and counts["target 50 %"] <= 0.5 * counts["per-pixel"] + 1
     assert len(report["ablations"]) == 3
     assert 0 < report["run_seconds"] < 3600
     page = md.read_text()
