@@ -149,7 +149,7 @@ def build_report(args) -> dict:
         real_points, _ = score_set(list(real_pairs), benchmark_methods(model, args, profile, real=True), perceptual, "real")
         h, w = real_pairs[0].image_size
         sets["real"] = {"description": ", ".join(names), "pairs": len(real_pairs), "size": f"{w}x{h}", "points": real_points}
-    par = parsimony(extra["recons"], pairs, profile.budget_fractions, extra["per_pixel_recons"])
+    par = parsimony(extra["recons"], pairs, profile.budget_fractions, extra["settings"])
     if args.width_weights:
         par["widths"] = network_widths(pairs, args.width_weights, perceptual)
     points += budget_points(points, par)

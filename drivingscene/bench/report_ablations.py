@@ -23,6 +23,7 @@ from drivingscene.bench.report_methods import (
     Profile,
     benchmark_methods,
     mark_fronts,
+    merged_to,
     procedural_pairs,
     score_set,
 )
@@ -58,26 +59,32 @@ def network_widths(pairs: list, paths: list[Path], perceptual) -> list[dict]:
 DEFAULT_LEVEL = "flat blocks merged (default)"
 
 
-def parsimony(recons: list, pairs: list, fractions: tuple[float, ...], per_pixel: list | None = None) -> dict:
+def parsimony(recons: list, pairs: list, fractions: tuple[float, ...], settings: dict | None = None) -> dict:
     """The model's Gaussians under budgets (means over pairs): count, in-between PSNR, seconds to
     apply the budget (``budget_s``) and to render and score the in-between frames (``seconds``).
-    The budgets (`gaussians.budget`, targets as ``fractions`` of the per-pixel count) start from
-    ``per_pixel``, the reconstructions with one Gaussian per pixel, beside which ``recons`` (the
-    default: flat blocks merged, gaussians/parsimony.py) is one level; without ``per_pixel`` the
-    budgets start from ``recons`` and it is the "per-pixel" level."""
+
+    ``recons`` are the model's default reconstructions; ``settings`` its reconstructions at other
+    settings (`score_set`). With the per-pixel setting there, the budgets of `gaussians.budget`
+    (targets as ``fractions`` of the per-pixel count) start from it, the default is a level of its
+    own, and so is each setting with the merge loosened to a share (``merged_to``); without it the
+    budgets start from ``recons``, which is then the "per-pixel" level."""
     from drivingscene.eval.reconstruction import score_novel_views
     from drivingscene.gaussians.budget import BudgetConfig, apply_budget
 
-    configs = [("per-pixel", None)]
+    settings = settings or {}
+    per_pixel = settings.get(PER_PIXEL)
+    sources = {"per-pixel": per_pixel or recons}  # level -> the reconstructions it starts from
     if per_pixel:
-        configs.append((DEFAULT_LEVEL, None))
+        sources[DEFAULT_LEVEL] = recons
+        sources.update({merged_to(f): settings[merged_to(f)] for f in fractions if merged_to(f) in settings})
+    configs = [(level, None) for level in sources]
     configs += [("pruned + merged", BudgetConfig())]
     configs += [(f"target {100 * f:g} %", f) for f in fractions]
     levels: dict[str, dict[str, list[float]]] = {}
-    for recon, source, pair in zip(recons, per_pixel or recons, pairs):
+    for n, pair in enumerate(pairs):
         for level, config in configs:
             start = time.perf_counter()
-            base = recon if level == DEFAULT_LEVEL else source
+            base = sources.get(level, sources["per-pixel"])[n]
             g = base.visible()
             if config is not None:
                 budget = config if isinstance(config, BudgetConfig) else BudgetConfig(target_count=max(1, int(config * len(g))))
@@ -115,7 +122,7 @@ def budget_points(points: list[dict], par: dict) -> list[dict]:
             "gaussians": b["gaussians"],
         }
         for b in par["budgets"]
-        if b["level"] not in ("per-pixel", DEFAULT_LEVEL)
+        if b["level"] not in ("per-pixel", DEFAULT_LEVEL) and not b["level"].startswith("merged to")
     ]
 
 

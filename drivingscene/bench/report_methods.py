@@ -33,6 +33,13 @@ SCRATCH = "refinement from scratch"
 # The model's setting without the flat-block merge (gaussians/parsimony.py): its reconstructions are
 # the parsimony budgets' source (report_ablations.parsimony)
 PER_PIXEL = "one Gaussian per pixel"
+
+
+def merged_to(share: float) -> str:
+    """The model's setting with the flat-block merge loosened to ``share`` of the per-pixel count."""
+    return f"merged to {100 * share:g} %"
+
+
 CLASSICAL = "classical (DIS flow + triangulation)"
 ORACLE = "oracle (GT depth + scene flow)"
 COPY, BLEND = "copy the nearest keyframe", "blend the two keyframes"
@@ -128,6 +135,7 @@ def scratch_method(seconds: float) -> Method:
 
 def benchmark_methods(model, args, profile: Profile, real: bool) -> list[Method]:
     from drivingscene.eval.baselines import blend_frames, copy_nearest_frames
+    from drivingscene.gaussians.parsimony import BlockMerge
     from drivingscene.methods.classical import ClassicalConfig, classical_reconstruction
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
     from drivingscene.methods.matched_depth import match_mode
@@ -145,6 +153,9 @@ def benchmark_methods(model, args, profile: Profile, real: bool) -> list[Method]
                 )
             )
     out.append(Method(FULL, PER_PIXEL, FULL, lambda p: reconstruct(model, p, InferenceOptions(merge=None))))
+    for share in profile.budget_fractions:  # the merge loosened to a budget (gaussians/parsimony.py)
+        budget = InferenceOptions(merge=BlockMerge(budget=share))
+        out.append(Method(FULL, merged_to(share), FULL, lambda p, o=budget: reconstruct(model, p, o)))
     # D's depth as it is (no classical matching at inference), and matching guided by D alone (no
     # road-plane fallback): the same model, faster
     out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
@@ -247,12 +258,12 @@ def mark_fronts(points: list[dict]) -> None:
 
 
 def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tuple[list[dict], dict]:
-    """One point per method over ``pairs``; also the per-pair rows and the model's reconstructions,
-    by default and one Gaussian per pixel (for the budgets; the latter empty without that method)."""
+    """One point per method over ``pairs``; also the per-pair rows and the model's reconstructions
+    (for the budgets): the first method's (``recons``) and, by setting, the model's others."""
     rows: dict[int, list[dict]] = {i: [] for i in range(len(methods))}
     seconds: dict[int, list[float]] = {i: [] for i in range(len(methods))}
-    per_pixel = next((i for i, m in enumerate(methods) if m.name == FULL and m.setting == PER_PIXEL), None)
-    recons, per_pixel_recons = [], []
+    recons = []
+    settings: dict[str, list] = {}  # the model's reconstructions at each setting after the first
     methods[0].run(pairs[0])  # warm-up, not timed: kernels built, caches filled (the model's first pass)
     for n, pair in enumerate(pairs):
         for i, method in enumerate(methods):
@@ -261,13 +272,13 @@ def score_set(pairs: list, methods: list[Method], perceptual, label: str) -> tup
             seconds[i].append(secs)
             if i == 0:
                 recons.append(recon)
-            elif i == per_pixel:
-                per_pixel_recons.append(recon)
+            elif method.name == FULL:
+                settings.setdefault(method.setting, []).append(recon)
         print(f"{label}: pair {n + 1}/{len(pairs)} scored", file=sys.stderr)
     points = [_point(m, rows[i], seconds[i]) for i, m in enumerate(methods)]
     mark_fronts(points)
     table = {f"{m.name} | {m.setting}": rows[i] for i, m in enumerate(methods)}
-    return points, {"rows": table, "recons": recons, "per_pixel_recons": per_pixel_recons}
+    return points, {"rows": table, "recons": recons, "settings": settings}
 
 
 def procedural_pairs(args, profile: Profile) -> tuple[list, str]:

@@ -15,6 +15,7 @@ from drivingscene.arguments import (
     add_amp_arguments,
     add_match_arguments,
     check_output,
+    fraction,
     non_negative_int,
     non_negative_seconds,
     positive_int,
@@ -142,6 +143,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="one Gaussian per pixel and keyframe: flat blocks not merged (about twice the Gaussians; ablation, "
         "docs/parsimony.md)",
     )
+    p.add_argument(
+        "--budget",
+        type=fraction,
+        default=None,
+        metavar="SHARE",
+        help="at most this share (0-1] of the per-pixel Gaussians: the flat-block merge loosened until it holds "
+        "(depth edges and moving objects stay unmerged; docs/parsimony.md)",
+    )
     add_match_arguments(p)
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: torch's choice)")
     add_amp_arguments(p)
@@ -257,6 +266,8 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct, resolve_device
     from drivingscene.methods.matched_depth import match_mode
 
+    if args.per_pixel and args.budget is not None:
+        raise InputError("--per-pixel and --budget: expected one of them (a budget merges Gaussians)")
     config = refine_config(args)
     device = resolve_device(args.device)
     if config is not None and device.type != "cpu":
@@ -281,6 +292,8 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
         options = replace(options, search=None)
     if args.per_pixel:
         options = replace(options, merge=None)
+    if args.budget is not None:
+        options = replace(options, merge=replace(options.merge, budget=args.budget))
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
     if args.objects and not args.static_only:

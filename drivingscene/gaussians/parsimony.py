@@ -22,7 +22,7 @@ selectable (``InferenceOptions.merge = None``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -41,12 +41,17 @@ class BlockMerge:
     depth_range: float = 0.1  # (largest - smallest depth) / mean depth: a depth edge is not merged
     flow_range: float = 0.05  # metres: largest range of a flow component in the block
     levels: int = 1  # 1: 2x2 blocks only; 2: merged blocks merge again into 4x4
+    # A budget: at most this share of the per-pixel Gaussians (`merge_to_budget`); None: the thresholds
+    # above decide alone.
+    budget: float | None = None
 
     def __post_init__(self):
         from drivingscene.errors import InputError
 
         if self.levels < 1 or min(self.color_range, self.planarity, self.depth_range, self.flow_range) < 0:
             raise InputError(f"BlockMerge: expected levels >= 1 and non-negative thresholds, found {self}")
+        if self.budget is not None and not 0 < self.budget <= 1:
+            raise InputError(f"BlockMerge.budget: expected a share of the per-pixel Gaussians in (0, 1], found {self.budget}")
 
 
 def _blocks(x: Tensor) -> Tensor:
@@ -199,4 +204,45 @@ def keyframe_duplicates(
         )
         finer = z <= depth[key] * (1.0 if key == 1 else config.finer)
         out[key] = agree & finer
+    return out
+
+
+# `merge_to_budget`: the most levels of merging it tries, and the bisection steps on the colour range.
+BUDGET_LEVELS = 3
+BUDGET_STEPS = 6
+
+
+def merge_to_budget(
+    g: Gaussians, pixels: Tensor, depth: Tensor, intrinsics: Tensor, config: BlockMerge, *, eps2d: float
+) -> Gaussians:
+    """`merge_blocks` that meets ``config.budget`` (a share of ``len(g)``, the per-pixel Gaussians)
+    by loosening the colour range: the configured merge if it meets the budget already; else, with
+    the fewest levels (up to `BUDGET_LEVELS`) at which merging blocks of any colour does, the
+    smallest colour range that meets it, by bisection (`BUDGET_STEPS` steps, one merge each). The
+    geometry and motion tests stay: a depth edge or a moving object is never merged to meet a budget,
+    so where the scene has too few flat blocks the result is the closest it gets."""
+    if config.budget is None:
+        return merge_blocks(g, pixels, depth, intrinsics, config, eps2d=eps2d)
+    target = config.budget * len(g)
+
+    def merged(color_range: float, levels: int) -> Gaussians:
+        return merge_blocks(g, pixels, depth, intrinsics, replace(config, color_range=color_range, levels=levels), eps2d=eps2d)
+
+    out = merged(config.color_range, config.levels)
+    if len(out) <= target:
+        return out
+    for levels in range(config.levels, max(config.levels, BUDGET_LEVELS) + 1):
+        loosest = merged(1.0, levels)
+        if len(loosest) > target:
+            out = loosest if len(loosest) < len(out) else out
+            continue
+        lo, hi, out = (config.color_range if levels == config.levels else 0.0), 1.0, loosest
+        for _ in range(BUDGET_STEPS):
+            mid = math.sqrt(max(lo, 1e-3) * hi)
+            candidate = merged(mid, levels)
+            if len(candidate) <= target:
+                hi, out = mid, candidate
+            else:
+                lo = mid
+        return out
     return out

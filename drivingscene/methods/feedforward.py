@@ -28,7 +28,7 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import RAY_EXTENT, FootprintRule
 from drivingscene.gaussians.core import sh0_to_rgb
 from drivingscene.gaussians.ground import fit_ground, road_plane
-from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe, keyframe_duplicates, merge_blocks
+from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe, keyframe_duplicates, merge_to_budget
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
@@ -396,7 +396,7 @@ def reconstruct(
     if options.merge is not None:
         t1 = time.perf_counter()
         depth_maps = layer_static.depth.detach().flatten(0, 1).float()
-        gaussians = merge_blocks(gaussians, pixels, depth_maps, batch.intrinsics.repeat(2, 1, 1), options.merge, eps2d=EPS2D)
+        gaussians = merge_to_budget(gaussians, pixels, depth_maps, batch.intrinsics.repeat(2, 1, 1), options.merge, eps2d=EPS2D)
         timings["merge_s"] = time.perf_counter() - t1
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, world_cameras(batch), batch.intrinsics)
     # the background below the horizon, here so that its cost is timed (Reconstruction fits it otherwise)

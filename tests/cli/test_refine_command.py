@@ -41,6 +41,9 @@ def scenes(tmp_path):
         (["--adapt-share", "0.5"], "--adapt-share: only with --refine"),
         (["--refine", "1", "--adapt-share", "0"], "--adapt-share"),
         (["--refine", "1", "--adapt-scale", "2"], "--adapt-scale"),
+        (["--budget", "0"], "--budget"),
+        (["--budget", "1.5"], "--budget"),
+        (["--budget", "0.3", "--per-pixel"], "--per-pixel and --budget"),
     ],
 )
 def test_bad_refine_flags_are_one_line_errors(scenes, tmp_path, capsys, flags, needle):

@@ -135,6 +135,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
         ("no_match", ["--no-match"]),
         ("objects", ["--objects"]),
         ("per_pixel", ["--per-pixel"]),
+        ("budget", ["--budget", "0.25"]),
     )
     for name, extra in runs:
         assert main(["reconstruct", str(scene), "-o", str(tmp_path / f"{name}.npz"), *extra]) == 0
@@ -148,6 +149,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     world = np.broadcast_to(True if per_pixel.valid_mask is None else per_pixel.valid_mask, per_pixel.depth.shape)
     assert len(per_pixel.gaussians) == int(world.sum()) and "merge_s" not in per_pixel.meta["timings"]
     assert len(recons["default"].gaussians) < 0.75 * len(per_pixel.gaussians)
+    assert len(recons["budget"].gaussians) <= 0.25 * len(per_pixel.gaussians) < len(recons["default"].gaussians)
     # The file: float16 attributes, stored, by default; float32 and deflated as before issue 48 on request
     import zipfile
 

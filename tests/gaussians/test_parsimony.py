@@ -145,3 +145,27 @@ def test_duplicates_of_the_other_keyframe_are_left_to_one_copy():
     assert still[1].all() and not still[0].any()
     loose = keyframe_duplicates(other, static, images, cams, K[None], KeyframeDedupe(depth_tolerance=0.5, color_tolerance=1.0))
     assert loose[0].any()
+
+
+def test_a_budget_loosens_the_colour_range_but_never_merges_across_depth_edges():
+    from drivingscene.gaussians.parsimony import merge_to_budget
+
+    # a wall of a smooth gradient: no block is flat to the default range, all are flat to a wider one
+    depth = torch.full((1, H, W), 5.0)
+    ramp = torch.linspace(0.2, 0.8, W)[None, None, :, None].expand(1, H, W, 3)
+    g, pixels = _assemble(depth, ramp)
+    assert len(merge_blocks(g, pixels, depth, KS[:1], BlockMerge(color_range=0.01), eps2d=EPS2D)) == len(g)
+    for share in (0.5, 0.25, 0.1):
+        out = merge_to_budget(g, pixels, depth, KS[:1], BlockMerge(color_range=0.01, budget=share), eps2d=EPS2D)
+        assert len(out) <= share * len(g)
+    # the budget met already: the configured merge as it is
+    flat = torch.full((1, H, W, 3), 0.5)
+    g, pixels = _assemble(depth, flat)
+    plain = merge_blocks(g, pixels, depth, KS[:1], BlockMerge(), eps2d=EPS2D)
+    assert len(merge_to_budget(g, pixels, depth, KS[:1], BlockMerge(budget=0.5), eps2d=EPS2D)) == len(plain)
+    # a depth edge through every block: no budget merges it, the result is as close as it gets
+    edged = torch.where(torch.arange(W) % 2 == 0, 5.0, 9.0).expand(1, H, W).clone()
+    g, pixels = _assemble(edged, flat)
+    assert len(merge_to_budget(g, pixels, edged, KS[:1], BlockMerge(budget=0.25), eps2d=EPS2D)) == len(g)
+    with pytest.raises(InputError, match="budget"):
+        BlockMerge(budget=1.5)
