@@ -463,27 +463,45 @@ def _count_label(n: float) -> str:
     return f"{n / 1e6:.3g} M" if n >= 1e6 else f"{n / 1e3:.3g} k" if n >= 1e3 else f"{n:.0f}"
 
 
+def _budget_family(level: str) -> str:
+    """Which way a parsimony level was reached: pruned and merged after the reconstruction
+    (`gaussians.budget`) or merged inside it (`gaussians.parsimony`); the per-pixel level starts both."""
+    return (
+        "pruned and merged afterwards" if level.startswith(("pruned", "target")) else "flat blocks merged in the reconstruction"
+    )
+
+
 def _budget_panel(ax, budgets: list[dict], chosen: str | None) -> list[tuple]:
-    """Draw the budgets; return their labels for `_place_labels`."""
+    """Draw the budgets, a line per way of reaching them (`_budget_family`) from the per-pixel level;
+    return their labels for `_place_labels`."""
     budgets = sorted((b for b in budgets if _finite(b.get("gaussians")) and _finite(b.get("psnr"))), key=lambda b: b["gaussians"])
-    xs, ys = [b["gaussians"] for b in budgets], [b["psnr"] for b in budgets]
     top = budgets[-1]["psnr"]
     ax.axhspan(top - 0.1, top, color="tab:green", alpha=0.15, label="within 0.1 dB of the largest budget")
-    label = "PSNR by Gaussian budget (labels: level, seconds to render and score the in-between frames)"
-    ax.plot(xs, ys, marker="o", color=_colour(0), linewidth=1.5, markersize=7, label=label, zorder=3)
+    start = [b for b in budgets if b["level"] == "per-pixel"]
+    families = dict.fromkeys(_budget_family(b["level"]) for b in budgets if b["level"] != "per-pixel")
+    for i, family in enumerate(families):
+        line = sorted([b for b in budgets if b["level"] != "per-pixel" and _budget_family(b["level"]) == family] + start,
+                      key=lambda b: b["gaussians"])  # fmt: skip
+        label = f"PSNR by Gaussian budget, {family}"
+        xs, ys = [b["gaussians"] for b in line], [b["psnr"] for b in line]
+        ax.plot(xs, ys, marker="o", color=_colour(i), linewidth=1.5, markersize=7, label=label, zorder=3)
     labels = []
     for b in budgets:
         sec = f", {b['seconds']:.2f} s" if _finite(b.get("seconds")) else ""
         labels.append((ax, b["gaussians"], b["psnr"], f"{b['level']}{sec}", "0.2"))
         if b["level"] == chosen:
             ax.plot(b["gaussians"], b["psnr"], marker="*", color="tab:orange", markersize=20, label=f"chosen: {chosen}", **_MARK)
+    ticks = []
+    for x in sorted({b["gaussians"] for b in budgets}):
+        if not ticks or x > 1.15 * ticks[-1]:  # counts within 15 % share a tick (their labels would overlap)
+            ticks.append(x)
     ax.set_xscale("log")
-    ax.set_xticks(xs, [_count_label(x) for x in xs])
+    ax.set_xticks(ticks, [_count_label(x) for x in ticks])
     ax.minorticks_off()
     ax.margins(x=0.15, y=0.25)
     ax.set_xlabel("Gaussians per reconstruction (log scale)")
     ax.set_ylabel("in-between PSNR (dB)")
-    ax.set_title("Gaussian budget")
+    ax.set_title("Gaussian budget (labels: level, seconds to render and score the in-between frames)", fontsize=10)
     ax.grid(alpha=0.3)
     return labels
 
