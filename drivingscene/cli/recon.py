@@ -250,7 +250,12 @@ def _report(recon, path: Path) -> None:
     timings = recon.meta.get("timings", {})
     total = f", {timings['total_s']:.3f} s" if "total_s" in timings else ""
     total += f" ({recon.meta['precision']})" if "precision" in recon.meta else ""
-    print(f"{path}: {len(g)} Gaussians ({int(g.dynamic.sum())} dynamic), {recon.num_views} cameras{total}")
+    merged = (
+        f" ({100 * len(g) / per_pixel:.0f} % of {per_pixel} per pixel)"
+        if (per_pixel := recon.meta.get("per_pixel_gaussians"))
+        else ""
+    )
+    print(f"{path}: {len(g)} Gaussians{merged} ({int(g.dynamic.sum())} dynamic), {recon.num_views} cameras{total}")
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
@@ -303,6 +308,13 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
     options = replace(options, match=match_mode(args.match))
     progress.stage(f"reconstructing {pair.num_views} cameras at {pair.image_size[1]}x{pair.image_size[0]}")
     recon = reconstruct(model, pair, options, progress=progress)
+    if args.budget is not None and len(recon.gaussians) > args.budget * recon.meta["per_pixel_gaussians"]:
+        share = len(recon.gaussians) / recon.meta["per_pixel_gaussians"]
+        print(
+            f"warning: --budget {args.budget:g}: reached {share:.3f} of the per-pixel Gaussians at most "
+            "(depth edges and moving objects are not merged)",
+            file=sys.stderr,
+        )
     progress.stage(stage_times(recon.meta.get("timings", {})))
     if config is not None:
         recon = run_refinement(model, pair, recon, config)

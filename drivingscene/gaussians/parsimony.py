@@ -207,42 +207,64 @@ def keyframe_duplicates(
     return out
 
 
-# `merge_to_budget`: the most levels of merging it tries, and the bisection steps on the colour range.
+# `merge_to_budget`: the most levels of merging it tries, the bisection steps on the colour range
+# (and on the geometry tests' factor), and the most the depth tests are loosened where colour alone
+# cannot meet a budget.
 BUDGET_LEVELS = 3
 BUDGET_STEPS = 6
+BUDGET_GEOMETRY = 4.0  # depth range 0.4, planarity 0.12: a larger depth step never merges
 
 
 def merge_to_budget(
     g: Gaussians, pixels: Tensor, depth: Tensor, intrinsics: Tensor, config: BlockMerge, *, eps2d: float
 ) -> Gaussians:
-    """`merge_blocks` that meets ``config.budget`` (a share of ``len(g)``, the per-pixel Gaussians)
-    by loosening the colour range: the configured merge if it meets the budget already; else, with
-    the fewest levels (up to `BUDGET_LEVELS`) at which merging blocks of any colour does, the
-    smallest colour range that meets it, by bisection (`BUDGET_STEPS` steps, one merge each). The
-    geometry and motion tests stay: a depth edge or a moving object is never merged to meet a budget,
-    so where the scene has too few flat blocks the result is the closest it gets."""
+    """`merge_blocks` that meets ``config.budget`` (a share of ``len(g)``, the per-pixel Gaussians).
+
+    In order, the first that meets it: the configured merge; with the fewest levels (up to
+    `BUDGET_LEVELS`) at which merging blocks of any colour does, the smallest colour range that
+    meets it (bisection, `BUDGET_STEPS` merges); with `BUDGET_LEVELS` levels and any colour, the
+    smallest factor (up to `BUDGET_GEOMETRY`) on the planarity and depth-range tests that meets it
+    (bisection), so that the blocks across the smallest depth steps merge first. Past that, a depth
+    edge is never merged (it would leave a Gaussian floating between the two surfaces), nor are
+    moving and static content: where those alone hold more than the budget it is not met, and the
+    result is the fewest Gaussians reached."""
     if config.budget is None:
         return merge_blocks(g, pixels, depth, intrinsics, config, eps2d=eps2d)
     target = config.budget * len(g)
 
-    def merged(color_range: float, levels: int) -> Gaussians:
-        return merge_blocks(g, pixels, depth, intrinsics, replace(config, color_range=color_range, levels=levels), eps2d=eps2d)
+    def merged(color_range: float, levels: int, geometry: float = 1.0) -> Gaussians:
+        loosened = replace(
+            config,
+            color_range=color_range,
+            levels=levels,
+            planarity=config.planarity * geometry,
+            depth_range=config.depth_range * geometry,
+        )
+        return merge_blocks(g, pixels, depth, intrinsics, loosened, eps2d=eps2d)
+
+    def bisect(lo: float, hi: float, best: Gaussians, candidate) -> Gaussians:
+        """The smallest parameter in ``[lo, hi]`` (geometric bisection) whose merge meets the target;
+        ``best`` is the merge at ``hi``, which does."""
+        for _ in range(BUDGET_STEPS):
+            mid = math.sqrt(lo * hi)
+            out = candidate(mid)
+            if len(out) <= target:
+                hi, best = mid, out
+            else:
+                lo = mid
+        return best
 
     out = merged(config.color_range, config.levels)
     if len(out) <= target:
         return out
-    for levels in range(config.levels, max(config.levels, BUDGET_LEVELS) + 1):
+    levels = max(config.levels, BUDGET_LEVELS)
+    for levels in range(config.levels, levels + 1):
         loosest = merged(1.0, levels)
-        if len(loosest) > target:
-            out = loosest if len(loosest) < len(out) else out
-            continue
-        lo, hi, out = (config.color_range if levels == config.levels else 0.0), 1.0, loosest
-        for _ in range(BUDGET_STEPS):
-            mid = math.sqrt(max(lo, 1e-3) * hi)
-            candidate = merged(mid, levels)
-            if len(candidate) <= target:
-                hi, out = mid, candidate
-            else:
-                lo = mid
-        return out
-    return out
+        if len(loosest) <= target:
+            lo = config.color_range if levels == config.levels else 1e-3
+            return bisect(max(lo, 1e-3), 1.0, loosest, lambda c, n=levels: merged(c, n))
+        out = loosest if len(loosest) < len(out) else out
+    loosest = merged(1.0, levels, BUDGET_GEOMETRY)
+    if len(loosest) > target:
+        return loosest if len(loosest) < len(out) else out
+    return bisect(1.0, BUDGET_GEOMETRY, loosest, lambda s: merged(1.0, levels, s))

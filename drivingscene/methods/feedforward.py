@@ -395,6 +395,7 @@ def reconstruct(
         timings["dedupe_s"] = time.perf_counter() - t1
     if options.merge is not None:
         t1 = time.perf_counter()
+        per_pixel = len(gaussians)
         depth_maps = layer_static.depth.detach().flatten(0, 1).float()
         gaussians = merge_to_budget(gaussians, pixels, depth_maps, batch.intrinsics.repeat(2, 1, 1), options.merge, eps2d=EPS2D)
         timings["merge_s"] = time.perf_counter() - t1
@@ -425,5 +426,6 @@ def reconstruct(
             "method": "drivingscene" if options.use_residual else "drivingscene-static",
             "timings": {k: round(v, 4) for k, v in timings.items()},
             "precision": "bf16 autocast" if use_amp else "float32",
+            **({} if options.merge is None else {"per_pixel_gaussians": per_pixel}),
         },
     )

@@ -111,7 +111,7 @@ def test_reconstruct_device_errors_are_one_line(tmp_path, small_pair, capsys, de
     assert not (tmp_path / "r.npz").exists()
 
 
-def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_pair):
+def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_pair, capsys):
     """The shipped model: the searched flow is, per pixel, R's flow (refined down to the search's
     proposal level) or a multiple of the rigid flow on the search's grid (--no-parallax: the rigid
     flow as D's depth makes it); --no-search keeps R's (every level); --static-only moves nothing;
@@ -150,6 +150,16 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     assert len(per_pixel.gaussians) == int(world.sum()) and "merge_s" not in per_pixel.meta["timings"]
     assert len(recons["default"].gaussians) < 0.75 * len(per_pixel.gaussians)
     assert len(recons["budget"].gaussians) <= 0.25 * len(per_pixel.gaussians) < len(recons["default"].gaussians)
+    assert recons["budget"].meta["per_pixel_gaussians"] == len(per_pixel.gaussians)
+    out = capsys.readouterr()
+    assert (
+        f"{len(recons['budget'].gaussians)} Gaussians ({100 * len(recons['budget'].gaussians) / len(per_pixel.gaussians):.0f} %"
+        in out.out
+    )
+    assert "warning" not in out.err
+    # a budget below what the moving objects alone hold is not met: said in one line, the file still written
+    assert main(["reconstruct", str(scene), "-o", str(tmp_path / "tiny.npz"), "--budget", "0.01"]) == 0
+    assert "warning: --budget 0.01: reached" in capsys.readouterr().err and (tmp_path / "tiny.npz").exists()
     # The file: float16 attributes, stored, by default; float32 and deflated as before issue 48 on request
     import zipfile
 

@@ -147,7 +147,7 @@ def test_duplicates_of_the_other_keyframe_are_left_to_one_copy():
     assert loose[0].any()
 
 
-def test_a_budget_loosens_the_colour_range_but_never_merges_across_depth_edges():
+def test_a_budget_loosens_colour_then_small_depth_steps_but_never_merges_across_depth_edges():
     from drivingscene.gaussians.parsimony import merge_to_budget
 
     # a wall of a smooth gradient: no block is flat to the default range, all are flat to a wider one
@@ -163,7 +163,13 @@ def test_a_budget_loosens_the_colour_range_but_never_merges_across_depth_edges()
     g, pixels = _assemble(depth, flat)
     plain = merge_blocks(g, pixels, depth, KS[:1], BlockMerge(), eps2d=EPS2D)
     assert len(merge_to_budget(g, pixels, depth, KS[:1], BlockMerge(budget=0.5), eps2d=EPS2D)) == len(plain)
-    # a depth edge through every block: no budget merges it, the result is as close as it gets
+    # a small depth step (18 % of the depth) through every block: past the default's depth range, so a
+    # budget that colour alone cannot meet loosens the depth tests
+    stepped = torch.where(torch.arange(W) % 2 == 0, 5.0, 6.0).expand(1, H, W).clone()
+    g, pixels = _assemble(stepped, flat)
+    assert len(merge_blocks(g, pixels, stepped, KS[:1], BlockMerge(), eps2d=EPS2D)) == len(g)
+    assert len(merge_to_budget(g, pixels, stepped, KS[:1], BlockMerge(budget=0.25), eps2d=EPS2D)) <= 0.25 * len(g)
+    # a depth edge (57 % of the depth) through every block: no budget merges it, the result is as close as it gets
     edged = torch.where(torch.arange(W) % 2 == 0, 5.0, 9.0).expand(1, H, W).clone()
     g, pixels = _assemble(edged, flat)
     assert len(merge_to_budget(g, pixels, edged, KS[:1], BlockMerge(budget=0.25), eps2d=EPS2D)) == len(g)
