@@ -257,14 +257,14 @@ def merge_to_budget(
     out = merged(config.color_range, config.levels)
     if len(out) <= target:
         return out
-    levels = max(config.levels, BUDGET_LEVELS)
-    for levels in range(config.levels, levels + 1):
+    top = max(config.levels, BUDGET_LEVELS)
+    for levels in range(config.levels, top + 1):
         loosest = merged(1.0, levels)
         if len(loosest) <= target:
-            lo = config.color_range if levels == config.levels else 1e-3
-            return bisect(max(lo, 1e-3), 1.0, loosest, lambda c, n=levels: merged(c, n))
-        out = loosest if len(loosest) < len(out) else out
-    loosest = merged(1.0, levels, BUDGET_GEOMETRY)
+            lo = max(config.color_range, 1e-3) if levels == config.levels else 1e-3
+            return bisect(lo, 1.0, loosest, lambda c, n=levels: merged(c, n))
+        out = min(out, loosest, key=len)
+    loosest = merged(1.0, top, BUDGET_GEOMETRY)
     if len(loosest) > target:
-        return loosest if len(loosest) < len(out) else out
-    return bisect(1.0, BUDGET_GEOMETRY, loosest, lambda s: merged(1.0, levels, s))
+        return min(out, loosest, key=len)
+    return bisect(1.0, BUDGET_GEOMETRY, loosest, lambda s: merged(1.0, top, s))
