@@ -37,6 +37,7 @@ import torch
 from drivingscene.arguments import positive_int
 from drivingscene.data.atomic import atomic_write_text
 from drivingscene.gaussians.assembly import MAX_FOOTPRINT, NO_FOOTPRINT_RULE, FootprintRule
+from drivingscene.gaussians.parsimony import BlockMerge
 from drivingscene.methods.feedforward import FAR_LAYER
 from drivingscene.render.color_solve import ITERATIONS
 from drivingscene.render.composite import SURFACE_TOLERANCE
@@ -58,8 +59,9 @@ class Variant:
     note: str = ""
     far_layer: float = FAR_LAYER  # InferenceOptions.far_layer
     # InferenceOptions.merge: these rows were measured with one Gaussian per pixel, before the flat
-    # blocks were merged (issue 49, docs/parsimony.md); True: the merge's default (its own row)
-    merge: bool = False
+    # blocks were merged (issue 49, docs/parsimony.md); True: the merge's default (its own row), or
+    # a `BlockMerge` of its own
+    merge: bool | BlockMerge = False
 
 
 BEFORE_CAP = FootprintRule(max_footprint=1.0)  # the cap before 2026-11-28 (two solve iterations)
@@ -90,9 +92,18 @@ VARIANTS = (
     Variant("one iteration of the colour solve", fit_colors=1),
     Variant("eight iterations of the colour solve", fit_colors=8),
     Variant("no far layer (beyond the sky distance: the sky model)", far_layer=0.0),
-    Variant("default + flat 2x2 blocks merged (issue 49; the default since 2026-12-02)", merge=True),
+    Variant(
+        "default + flat 2x2 blocks merged, colours solved over them (the reconstruction's default since 2026-12-02)",
+        merge=True,
+        note="default",
+    ),
+    Variant(
+        "default + flat 2x2 blocks merged as on 2026-12-01 (colour range 0.06, each block its mean colour)",
+        merge=BlockMerge(color_range=0.06, color_test="range", fit_colors=0),
+    ),
 )
-DEFAULT = VARIANTS[8]
+DEFAULT = VARIANTS[8]  # the renderer's default, one Gaussian per pixel: the chain of fixes above ends here
+MERGED = VARIANTS[-2]  # the reconstruction's default (issue 49)
 QUICK = (VARIANTS[0], DEFAULT)
 
 
@@ -113,7 +124,9 @@ class Scores:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="1 small pair, the first and the default variant (a smoke test)")
     p.add_argument(
-        "--default-only", action="store_true", help="score the default variant alone (its figures, not the comparison)"
+        "--default-only",
+        action="store_true",
+        help="score the defaults alone: one Gaussian per pixel and merged (their figures, not the comparison)",
     )
     p.add_argument("--count", type=positive_int, default=4, help="procedural test pairs (default 4)")
     p.add_argument("--start", type=int, default=0, help="skip the split's first seeds")
@@ -172,7 +185,6 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
     import cv2
 
     from drivingscene.bench.views_scoring import area_down
-    from drivingscene.gaussians.parsimony import BlockMerge
     from drivingscene.methods.feedforward import InferenceOptions, reconstruct
     from drivingscene.render.scene import (
         render_eval_frames,
@@ -187,14 +199,14 @@ def score_pair(model, pair, variant: Variant, truth=None, references: dict | Non
         footprints=variant.footprints,
         surface_tolerance=variant.blend.surface_tolerance,
         far_layer=variant.far_layer,
-        merge=BlockMerge() if variant.merge else None,
+        merge=BlockMerge() if variant.merge is True else variant.merge or None,
     )
     times = []
     for _ in range(2):  # the second run is timed warm (kernels built, caches filled)
         start = time.perf_counter()
         recon = reconstruct(model, pair, opts)
         times.append(time.perf_counter() - start)
-    out = {"seconds": times[-1]}
+    out = {"seconds": times[-1], "share": len(recon.gaussians) / recon.meta.get("per_pixel_gaussians", len(recon.gaussians))}
     raster = {"eps2d": variant.eps2d, "layer_blend": variant.blend}
     height, width = pair.image_size
     world = (
@@ -274,7 +286,7 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.synth.render import SynthRenderer
 
     wall = time.perf_counter()
-    variants = (DEFAULT,) if args.default_only else QUICK if args.quick else VARIANTS
+    variants = (DEFAULT, MERGED) if args.default_only else QUICK if args.quick else VARIANTS
     count = 1 if args.quick else args.count
     config = resolve_config("default", **({"height": 64, "width": 112} if args.quick else {}))
     model = load_model(args.weights)
@@ -351,6 +363,14 @@ def _markdown(args, sets, variants, seeds, config, machine, minutes) -> str:
             ) + "; the default variant against the input upsampled bicubically: " + ", ".join(
                 f"{k}x {_cell(default.mean(f'x{k}_vs_bicubic'))} dB" for k in MAGNIFICATIONS
             ) + "."]  # fmt: skip
+        if MERGED.name in rows:
+            merged = rows[MERGED.name]
+            lines += ["", "The reconstruction's default (flat blocks merged, " + f"{100 * merged.mean('share'):.1f} % of the "
+                "per-pixel Gaussians) against " + ("ground truth: " if truth else "the input upsampled bicubically: ") + ", ".join(
+                f"{k}x {_cell(merged.mean(f'x{k}_{ref}'))} dB" for k in MAGNIFICATIONS
+            ) + (" (the input upsampled bicubically: " + ", ".join(
+                f"{k}x {_cell(default.mean(f'x{k}_bicubic_vs_truth'))}" for k in MAGNIFICATIONS[1:]
+            ) + " dB)" if truth else "") + "."]  # fmt: skip
         lines += ["", "The default variant's magnified views averaged back over k x k blocks to the input's size, "
             "against the input (what a magnified view keeps of it; the 1x view itself: " + _cell(default.mean("x1_vs_bicubic"))
             + " dB): " + ", ".join(f"{k}x {_cell(default.mean(f'x{k}_down_vs_input'))}" for k in MAGNIFICATIONS[1:])

@@ -36,11 +36,21 @@ from drivingscene.geometry.camera import project, unproject
 class BlockMerge:
     """When a 2x2 block of Gaussians becomes one (module docstring)."""
 
-    color_range: float = 0.06  # largest range of an RGB channel in the block, in [0, 1]
+    color_range: float = 0.045  # in [0, 1]: the largest colour difference ``color_test`` allows
     planarity: float = 0.03  # |d00 + d11 - d01 - d10| / mean depth
     depth_range: float = 0.1  # (largest - smallest depth) / mean depth: a depth edge is not merged
     flow_range: float = 0.05  # metres: largest range of a flow component in the block
     levels: int = 1  # 1: 2x2 blocks only; 2: merged blocks merge again into 4x4
+    # What ``color_range`` bounds: "range", the block's largest range of a channel; "detail", how far
+    # a pixel's colour is from the block means interpolated bilinearly (what the merged, overlapping
+    # splats draw there: a smooth gradient merges, texture does not)
+    color_test: str = "detail"
+    # Iterations of the colour solve over the merged Gaussians (render.color_solve,
+    # `solve_gaussian_colors`: a merged Gaussian fitted over its block's pixels), in place of the
+    # per-pixel solve; the colour test then reads the input images sharpened (`sharpened`: the
+    # colours are not solved yet). 0: the per-pixel solve, the test on its colours, and each merged
+    # Gaussian the mean of its block's (the default of 2026-12-01, docs/parsimony.md).
+    fit_colors: int = 3
     # A budget: at most this share of the per-pixel Gaussians (`merge_to_budget`); None: the thresholds
     # above decide alone.
     budget: float | None = None
@@ -48,10 +58,30 @@ class BlockMerge:
     def __post_init__(self):
         from drivingscene.errors import InputError
 
-        if self.levels < 1 or min(self.color_range, self.planarity, self.depth_range, self.flow_range) < 0:
-            raise InputError(f"BlockMerge: expected levels >= 1 and non-negative thresholds, found {self}")
+        if self.levels < 1 or self.fit_colors < 0 or min(self.color_range, self.planarity, self.depth_range, self.flow_range) < 0:
+            raise InputError(f"BlockMerge: expected levels >= 1, fit_colors >= 0 and non-negative thresholds, found {self}")
+        if self.color_test not in ("range", "detail"):
+            raise InputError(f"BlockMerge.color_test: expected 'range' or 'detail', found {self.color_test!r}")
         if self.budget is not None and not 0 < self.budget <= 1:
             raise InputError(f"BlockMerge.budget: expected a share of the per-pixel Gaussians in (0, 1], found {self.budget}")
+
+
+# `sharpened`: an unsharp mask, about what the colour solve's deconvolution of the splats' overlap
+# makes of an image (chosen on validation pairs, docs/parsimony.md)
+SHARPEN_SIGMA = 0.8  # px
+SHARPEN_AMOUNT = 1.0
+
+
+def sharpened(images: Tensor) -> Tensor:
+    """``[I, H, W, 3]`` images in [0, 1], unsharp-masked: ``I + SHARPEN_AMOUNT (I - blur(I))``, a
+    Gaussian blur of ``SHARPEN_SIGMA`` px (5x5, borders replicated). What the merge's colour test
+    reads when the colours are solved after it."""
+    import cv2
+    import numpy as np
+
+    x = images.detach().float().cpu().numpy()
+    blur = np.stack([cv2.GaussianBlur(im, (5, 5), SHARPEN_SIGMA, borderType=cv2.BORDER_REPLICATE) for im in x])
+    return torch.from_numpy(x + SHARPEN_AMOUNT * (x - blur)).to(images.device)
 
 
 def _blocks(x: Tensor) -> Tensor:
@@ -64,10 +94,29 @@ def _blocks(x: Tensor) -> Tensor:
     return x.reshape(num, height // 2, width // 2, 4, *tail)
 
 
-def _merge_level(g: Gaussians, ids: Tensor, depth: Tensor, focal: Tensor, config: BlockMerge, side: float, eps2d: float):
-    """One level: the blocks of the id map ``ids`` ``[I, H, W]`` (-1: none) that merge. Returns the
-    merged Gaussians, the ids ``[M, 4]`` they replace, and the next level's id map (into the merged
-    ones, -1 where a block did not merge) and depth map."""
+def _detail(rgb: Tensor, ids: Tensor) -> Tensor:
+    """``[I, h, w]``: each 2x2 block's largest difference (over its pixels and the channels) between
+    a pixel's colour and the block means interpolated bilinearly at that pixel, over the blocks
+    that hold Gaussians (weights normalised: no Gaussian, no weight)."""
+    has = ids >= 0
+    cmap = torch.zeros(*ids.shape, 3, dtype=rgb.dtype, device=rgb.device)
+    cmap[has] = rgb.index_select(0, ids[has])
+    weight = _blocks(has.to(rgb.dtype)).sum(-1)  # [I, h, w]
+    means = _blocks(cmap).sum(-2)  # [I, h, w, 3] sums
+    stack = torch.cat([means, weight[..., None]], -1).permute(0, 3, 1, 2)
+    up = F.interpolate(stack, scale_factor=2, mode="bilinear", align_corners=False).permute(0, 2, 3, 1)
+    smooth = up[..., :3] / up[..., 3:].clamp(min=1e-6)
+    crop = cmap[:, : smooth.shape[1], : smooth.shape[2]]
+    return _blocks((crop - smooth).abs().amax(-1)).amax(-1)
+
+
+def _merge_level(
+    g: Gaussians, ids: Tensor, depth: Tensor, focal: Tensor, config: BlockMerge, side: float, eps2d: float, all_rgb: Tensor
+):
+    """One level: the blocks of the id map ``ids`` ``[I, H, W]`` (-1: none) that merge, by the colours
+    ``all_rgb`` ``[N, 3]`` of ``g``. Returns the merged Gaussians, the ids ``[M, 4]`` they replace, the
+    next level's id map (into the merged ones, -1 where a block did not merge) and depth map, and the
+    merged Gaussians' colours for the tests (their blocks' means)."""
     block_ids = _blocks(ids)  # [I, h, w, 4]
     block_depth = _blocks(depth)
     full = (block_ids >= 0).all(-1)
@@ -77,15 +126,14 @@ def _merge_level(g: Gaussians, ids: Tensor, depth: Tensor, focal: Tensor, config
     planar = ((d[:, 0] + d[:, 3] - d[:, 1] - d[:, 2]).abs() <= config.planarity * mean_depth) & (
         d.amax(-1) - d.amin(-1) <= config.depth_range * mean_depth
     )
-    rgb = sh0_to_rgb(g.sh[:, 0]).index_select(0, cand.flatten()).view(-1, 4, 3)
+    if config.color_test == "detail":
+        color_ok = _detail(all_rgb, ids)[full] <= config.color_range
+    else:
+        rgb = all_rgb.index_select(0, cand.flatten()).view(-1, 4, 3)
+        color_ok = (rgb.amax(1) - rgb.amin(1)).amax(-1) <= config.color_range
     flows = g.flows.index_select(0, cand.flatten()).view(-1, 4, 3)
     bound = g.view_bound.index_select(0, cand.flatten()).view(-1, 4)
-    ok = (
-        planar
-        & ((rgb.amax(1) - rgb.amin(1)).amax(-1) <= config.color_range)
-        & ((flows.amax(1) - flows.amin(1)).amax(-1) <= config.flow_range)
-        & (bound.all(-1) | ~bound.any(-1))
-    )
+    ok = planar & color_ok & ((flows.amax(1) - flows.amin(1)).amax(-1) <= config.flow_range) & (bound.all(-1) | ~bound.any(-1))
     groups = cand[ok]  # [M, 4]
     flat = groups.flatten()
 
@@ -115,7 +163,7 @@ def _merge_level(g: Gaussians, ids: Tensor, depth: Tensor, focal: Tensor, config
     where = full.clone()
     where[full] = ok
     next_ids[where] = torch.arange(len(groups), device=ids.device)
-    return merged, groups, next_ids, block_depth.mean(-1)
+    return merged, groups, next_ids, block_depth.mean(-1), mean(all_rgb)
 
 
 def merge_blocks(
@@ -126,30 +174,56 @@ def merge_blocks(
     config: BlockMerge = BlockMerge(),
     *,
     eps2d: float,  # the renderer's low-pass, px^2 (render.project.EPS2D)
-) -> Gaussians:
+    with_owners: bool = False,
+    colors: Tensor | None = None,  # [N, 3] the colours the colour test reads; None: the Gaussians' own (DC)
+) -> Gaussians | tuple[Gaussians, Tensor]:
     """``g`` with the blocks that qualify merged (module docstring), ordered by image (keyframe,
-    then camera) as assembled: merged Gaussians follow their image's remaining per-pixel ones."""
+    then camera) as assembled: merged Gaussians follow their image's remaining per-pixel ones.
+    ``with_owners``: also ``[N]`` int64, the output Gaussian each of ``g`` became (itself or the
+    block it merged into), so that a merged Gaussian's pixels are known (`render.color_solve`)."""
     num, height, width = depth.shape
     focal = 0.5 * (intrinsics[:, 0, 0] + intrinsics[:, 1, 1]).float()  # [I] pixels per metre at 1 m
     ids = torch.full((num * height * width,), -1, dtype=torch.long, device=pixels.device)
     ids[pixels] = torch.arange(len(g), device=pixels.device)
     ids = ids.view(num, height, width)
     current, current_depth, parts = g, depth.float(), []
+    rgb = sh0_to_rgb(g.sh[:, 0]) if colors is None else colors.to(g.sh)
+    # each input Gaussian's place: in the current level (label) until it lands in a part (owner)
+    label = torch.arange(len(g), device=g.device)
+    owner = torch.full((len(g),), -1, dtype=torch.long, device=g.device)
+    placed = 0
     for level in range(config.levels):
         if min(current_depth.shape[1:]) < 2:
             break
-        merged, groups, ids, current_depth = _merge_level(current, ids, current_depth, focal * 0.5**level, config, 2.0, eps2d)
+        merged, groups, ids, current_depth, rgb = _merge_level(
+            current, ids, current_depth, focal * 0.5**level, config, 2.0, eps2d, rgb
+        )
         alive = torch.ones(len(current), dtype=torch.bool, device=g.device)  # the previous level's that merged give way
         alive[groups.flatten()] = False
+        rank = torch.cumsum(alive, 0) - 1
+        group_of = torch.full((len(current),), -1, dtype=torch.long, device=g.device)
+        group_of[groups.flatten()] = torch.arange(len(groups), device=g.device).repeat_interleave(4)
+        still = (owner < 0).nonzero().squeeze(1)  # not placed yet: label is into `current`
+        at = label[still]
+        stays = alive[at]
+        owner[still[stays]] = placed + rank[at[stays]]
+        label[still[~stays]] = group_of[at[~stays]]
+        placed += int(alive.sum())
         parts.append(current.index(alive))
         current = merged
         if len(merged) == 0:
             break
+    still = owner < 0
+    owner[still] = placed + label[still]
     parts.append(current)
     out = Gaussians.cat(parts)
     image = out.keyframes * (int(out.cameras.max()) + 1 if len(out) else 1) + out.cameras
     order = torch.sort(image, stable=True).indices
-    return out.index(order)
+    if not with_owners:
+        return out.index(order)
+    position = torch.empty_like(order)
+    position[order] = torch.arange(len(order), device=order.device)
+    return out.index(order), position[owner]
 
 
 @dataclass(frozen=True)
@@ -216,8 +290,16 @@ BUDGET_GEOMETRY = 4.0  # depth range 0.4, planarity 0.12: a larger depth step ne
 
 
 def merge_to_budget(
-    g: Gaussians, pixels: Tensor, depth: Tensor, intrinsics: Tensor, config: BlockMerge, *, eps2d: float
-) -> Gaussians:
+    g: Gaussians,
+    pixels: Tensor,
+    depth: Tensor,
+    intrinsics: Tensor,
+    config: BlockMerge,
+    *,
+    eps2d: float,
+    with_owners: bool = False,
+    colors: Tensor | None = None,
+) -> Gaussians | tuple[Gaussians, Tensor]:
     """`merge_blocks` that meets ``config.budget`` (a share of ``len(g)``, the per-pixel Gaussians).
 
     In order, the first that meets it: the configured merge; with the fewest levels (up to
@@ -227,9 +309,9 @@ def merge_to_budget(
     (bisection), so that the blocks across the smallest depth steps merge first. Past that, a depth
     edge is never merged (it would leave a Gaussian floating between the two surfaces), nor are
     moving and static content: where those alone hold more than the budget it is not met, and the
-    result is the fewest Gaussians reached."""
+    result is the fewest Gaussians reached. ``with_owners``, ``colors``: as `merge_blocks`."""
     if config.budget is None:
-        return merge_blocks(g, pixels, depth, intrinsics, config, eps2d=eps2d)
+        return merge_blocks(g, pixels, depth, intrinsics, config, eps2d=eps2d, with_owners=with_owners, colors=colors)
     target = config.budget * len(g)
 
     def merged(color_range: float, levels: int, geometry: float = 1.0) -> Gaussians:
@@ -240,7 +322,10 @@ def merge_to_budget(
             planarity=config.planarity * geometry,
             depth_range=config.depth_range * geometry,
         )
-        return merge_blocks(g, pixels, depth, intrinsics, loosened, eps2d=eps2d)
+        return merge_blocks(g, pixels, depth, intrinsics, loosened, eps2d=eps2d, with_owners=with_owners, colors=colors)
+
+    def size(result) -> int:
+        return len(result[0] if with_owners else result)
 
     def bisect(lo: float, hi: float, best: Gaussians, candidate) -> Gaussians:
         """The smallest parameter in ``[lo, hi]`` (geometric bisection) whose merge meets the target;
@@ -248,23 +333,23 @@ def merge_to_budget(
         for _ in range(BUDGET_STEPS):
             mid = math.sqrt(lo * hi)
             out = candidate(mid)
-            if len(out) <= target:
+            if size(out) <= target:
                 hi, best = mid, out
             else:
                 lo = mid
         return best
 
     out = merged(config.color_range, config.levels)
-    if len(out) <= target:
+    if size(out) <= target:
         return out
     top = max(config.levels, BUDGET_LEVELS)
     for levels in range(config.levels, top + 1):
         loosest = merged(1.0, levels)
-        if len(loosest) <= target:
+        if size(loosest) <= target:
             lo = max(config.color_range, 1e-3) if levels == config.levels else 1e-3
             return bisect(lo, 1.0, loosest, lambda c, n=levels: merged(c, n))
-        out = min(out, loosest, key=len)
+        out = min(out, loosest, key=size)
     loosest = merged(1.0, top, BUDGET_GEOMETRY)
-    if len(loosest) > target:
-        return min(out, loosest, key=len)
+    if size(loosest) > target:
+        return min(out, loosest, key=size)
     return bisect(1.0, BUDGET_GEOMETRY, loosest, lambda s: merged(1.0, top, s))

@@ -9,7 +9,7 @@ from drivingscene.kernels.build import call, compiled
 
 @compiled
 def own_layer_solve(
-    means2d: Tensor,  # [M, 2] float32 the splats, as find_pairs takes them: each at its own pixel
+    means2d: Tensor,  # [M, 2] float32 the splats, as find_pairs takes them
     conics: Tensor,  # [M, 3] float32
     opacities: Tensor,  # [M] float32
     sigma_max: Tensor,  # [M] float32
@@ -19,19 +19,21 @@ def own_layer_solve(
     height: int,
     max_layers: int,
     depths: Tensor,  # [M] float32 the splats' z (surface averaging's front group)
-    pixel: Tensor,  # [M] int64 each splat's own pixel (an index into the B * H * W pixels)
+    member_offsets: Tensor,  # [M + 1] int64: splat i stands for members[member_offsets[i]:member_offsets[i + 1]]
+    members: Tensor,  # [K] int64 pixels (indices into the B * H * W pixels), each stood for by one splat at most
     target: Tensor,  # [B * H * W, C] float32 what each pixel should render
-    start: Tensor,  # [B * H * W, C] float32 the starting colours of the splats at those pixels
+    start: Tensor,  # [M, C] float32 the splats' starting colours
     iterations: int,
     tolerance: float,  # surface averaging, as composite_forward
     max_color: float,  # colours are kept in [0, max_color]
     min_coverage: float,  # a splat's colour moves only where its pixel's accumulated alpha reaches this
 ) -> Tensor:
     """The colour solve of ``drivingscene.render.color_solve``: ``iterations`` Jacobi (Van Cittert)
-    steps ``c_i <- clamp(c_i + target_i - C(p_i) / A(p_i), 0, max_color)``, with ``C`` and ``A``
-    the colour and accumulated alpha that ``find_pairs`` + ``composite_forward`` give over a black
-    background; the pairs are found and their weights formed once, each step is a sparse product.
-    Returns the colours per pixel ``[B * H * W, C]`` float32 (``start`` where no splat sits). CPU tensors. Reference path:
+    steps ``c_i <- clamp(c_i + mean over p in P_i of (target(p) - C(p) / A(p)), 0, max_color)``, with
+    ``P_i`` splat i's pixels where ``A`` reaches ``min_coverage`` (c_i kept where none does), ``C``
+    and ``A`` the colour and accumulated alpha that ``find_pairs`` + ``composite_forward`` give over a
+    black background; the pairs are found and their weights formed once, each step is a sparse
+    product. Returns the splats' colours ``[M, C]`` float32. CPU tensors. Reference path:
     ``solve_pixel_colors(..., backend="torch")`` (a compositing pass per step; equal up to float
     rounding: the pairs' alphas here take the pair finder's float64 exponential)."""
     return call(
@@ -46,7 +48,8 @@ def own_layer_solve(
         height,
         max_layers,
         depths,
-        pixel,
+        member_offsets,
+        members,
         target,
         start,
         int(iterations),

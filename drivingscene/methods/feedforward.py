@@ -28,7 +28,7 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import RAY_EXTENT, FootprintRule
 from drivingscene.gaussians.core import sh0_to_rgb
 from drivingscene.gaussians.ground import fit_ground, road_plane
-from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe, keyframe_duplicates, merge_to_budget
+from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe, keyframe_duplicates, merge_to_budget, sharpened
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
@@ -47,6 +47,7 @@ from drivingscene.models.model import DrivingSceneModel, ModelConfig
 from drivingscene.models.pipeline import assemble, predict_flow, predict_static, with_depth, without_gaussian_head
 from drivingscene.precision import resolve_amp
 from drivingscene.render.color_solve import ITERATIONS as COLOR_ITERATIONS
+from drivingscene.render.color_solve import solve_gaussian_colors
 from drivingscene.render.composite import SURFACE_TOLERANCE
 from drivingscene.render.project import EPS2D
 from drivingscene.render.sky import fit_sky_from_pixels
@@ -367,8 +368,11 @@ def reconstruct(
         layer_sky = sky & ~sky_pixels
         if scene_flow is not None:
             layer_flow = torch.where(sky_pixels[..., None], torch.zeros_like(scene_flow), scene_flow)
+    # a merge that solves the colours over its Gaussians makes the per-pixel solve redundant
+    solve_once = options.merge is not None and options.merge.fit_colors > 0
     gaussians = assemble(
-        layer_static, batch, layer_sky, layer_flow, local_to_world=batch.local_to_world, fit_colors=options.fit_colors,
+        layer_static, batch, layer_sky, layer_flow, local_to_world=batch.local_to_world,
+        fit_colors=0 if solve_once and options.fit_colors > 0 else options.fit_colors,
         footprints=options.footprints, surface_tolerance=options.surface_tolerance, ray_extent=options.ray_extent,
     )  # fmt: skip
     far = sky_pixels[~layer_sky]  # [N]: the far layer's Gaussians (pixel order, as assembled)
@@ -397,7 +401,21 @@ def reconstruct(
         t1 = time.perf_counter()
         per_pixel = len(gaussians)
         depth_maps = layer_static.depth.detach().flatten(0, 1).float()
-        gaussians = merge_to_budget(gaussians, pixels, depth_maps, batch.intrinsics.repeat(2, 1, 1), options.merge, eps2d=EPS2D)
+        refit = options.merge.fit_colors if options.fit_colors > 0 else 0
+        images = batch.images.flatten(0, 1).permute(0, 2, 3, 1)  # [I, H, W, 3]
+        merged = merge_to_budget(
+            gaussians, pixels, depth_maps, batch.intrinsics.repeat(2, 1, 1), options.merge, eps2d=EPS2D, with_owners=refit > 0,
+            # the colours not solved yet: the merge reads the images as the solve will sharpen them
+            colors=sharpened(images).reshape(-1, 3).index_select(0, pixels) if refit > 0 else None,
+        )  # fmt: skip
+        if refit > 0:  # every Gaussian's colour fitted over the pixels it stands for
+            merged, owners = merged
+            merged = solve_gaussian_colors(
+                merged, owners, pixels, images,
+                torch.linalg.inv(world_cameras(batch).flatten(0, 1)).float(), batch.intrinsics.repeat(2, 1, 1), refit,
+                surface_tolerance=options.surface_tolerance,
+            )  # fmt: skip
+        gaussians = merged
         timings["merge_s"] = time.perf_counter() - t1
     sky_sh = fit_sky_from_pixels(batch.images, sky_pixels, world_cameras(batch), batch.intrinsics)
     # the background below the horizon, here so that its cost is timed (Reconstruction fits it otherwise)

@@ -17,17 +17,20 @@ pixel centre at its depth, so the splats are built from the maps without project
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from torch import Tensor
 
 from drivingscene import kernels
 from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import own_view_covariance
+from drivingscene.gaussians.core import SH_C0, Gaussians
 from drivingscene.geometry.camera import unproject
 from drivingscene.render.composite import SURFACE_TOLERANCE, composite, find_pairs_torch, pair_inputs
 from drivingscene.render.project import EPS2D
 from drivingscene.render.rasterize import DEFAULT_MAX_LAYERS, choose_backend
-from drivingscene.render.splats import Splats
+from drivingscene.render.splats import Splats, make_splats
 
 # Iterations of the solve: on the DDAD pair the input views went from 27.9 to 32.5 dB after one and
 # to ~34 after two (composited); with the smaller cap a third sharpens the magnified views, and more
@@ -129,15 +132,18 @@ def solve_pixel_colors(
                 height,
                 DEFAULT_MAX_LAYERS,
                 splats.depths.contiguous(),
+                torch.arange(len(pixel) + 1),
                 pixel,
                 images.reshape(-1, 3).float(),
-                colors.reshape(-1, 3).float(),
+                colors.reshape(-1, 3).float().index_select(0, pixel),
                 iterations,
                 surface_tolerance,
                 MAX_COLOR,
                 MIN_COVERAGE,
             )
-            return out.to(colors.dtype).reshape(colors.shape)
+            solved = colors.reshape(-1, 3).clone()
+            solved.index_copy_(0, pixel, out.to(colors.dtype))
+            return solved.reshape(colors.shape)
         # the reference: a compositing pass per step
         pair_ids = find_pairs_torch(inp, width, height, DEFAULT_MAX_LAYERS)
         target = images.reshape(-1, 3).float().index_select(0, pixel)
@@ -163,3 +169,78 @@ def solve_pixel_colors(
         out = colors.reshape(-1, 3).clone()
         out.index_copy_(0, pixel, solved.to(out.dtype))
     return out.reshape(colors.shape)
+
+
+def solve_gaussian_colors(
+    g: Gaussians,
+    owners: Tensor,  # [P] int64: the Gaussian of ``g`` each of the pixels stands in (`merge_blocks`' owners)
+    pixels: Tensor,  # [P] int64: those pixels, flat indices into the images [I, H, W]
+    images: Tensor,  # [I, H, W, 3] in [0, 1]: image keyframe * V + camera of the Gaussians
+    world_to_cam: Tensor,  # [I, 4, 4] each image's camera
+    intrinsics: Tensor,  # [I, 3, 3]
+    iterations: int = ITERATIONS,
+    eps2d: float = EPS2D,
+    backend: str = "auto",
+    surface_tolerance: float = SURFACE_TOLERANCE,
+) -> Gaussians:
+    """``g`` with its view-independent colours solved so that each image's own layer re-renders the
+    image, a Gaussian fitted over all the pixels it stands for (a merged block's: the mean of their
+    residuals, module docstring), after `merge_blocks` or any other change of the geometry: the
+    splats are projected, not built from the maps. The SH terms above the DC are kept. No gradients."""
+    num, height, width = images.shape[:3]
+    if images.shape[-1] != 3 or owners.shape != pixels.shape or world_to_cam.shape[0] != num or intrinsics.shape[0] != num:
+        raise InputError(
+            f"solve_gaussian_colors: expected images [I, H, W, 3] with I cameras and intrinsics, owners and pixels [P], found "
+            f"images {list(images.shape)}, world_to_cam {list(world_to_cam.shape)}, intrinsics {list(intrinsics.shape)}, "
+            f"owners {list(owners.shape)}, pixels {list(pixels.shape)}"
+        )
+    if iterations <= 0 or len(g) == 0:
+        return g
+    with torch.no_grad():
+        start = (SH_C0 * g.sh[:, 0].float() + 0.5).clamp(min=0.0)
+        views = g.keyframes.long() * (num // 2) + g.cameras.long()
+        s = make_splats(
+            g.means.float(), g.quats.float(), g.scales.float(), g.opacities.float(), start, world_to_cam.float(),
+            intrinsics.float(), width, height, sh_degree=None, near=0.01, far=1e10, eps2d=eps2d, views=views,
+        )  # fmt: skip
+        gids = s.gaussian_ids
+        # each splat's pixels, in splat order (CSR)
+        counts = torch.bincount(owners, minlength=len(g))
+        by_owner = pixels.index_select(0, torch.sort(owners, stable=True).indices)
+        owner_start = torch.cumsum(counts, 0) - counts
+        row_counts = counts.index_select(0, gids)
+        offsets = torch.cat([row_counts.new_zeros(1), torch.cumsum(row_counts, 0)])
+        total = int(offsets[-1])
+        within = torch.arange(total) - torch.repeat_interleave(offsets[:-1], row_counts)
+        members = by_owner.index_select(0, torch.repeat_interleave(owner_start.index_select(0, gids), row_counts) + within)
+        inp = pair_inputs(s, width, height)
+        target = images.reshape(-1, 3).float()
+        colors = start.index_select(0, gids)
+        if choose_backend(backend, g.means) == "cpp":
+            solved = kernels.own_layer_solve(
+                inp.means2d.float().contiguous(), inp.conics.float().contiguous(), inp.opacities.float().contiguous(),
+                inp.sigma_max.float().contiguous(), inp.boxes, inp.camera_offsets, width, height, DEFAULT_MAX_LAYERS,
+                s.depths.float().contiguous(), offsets, members, target, colors.contiguous(), iterations,
+                surface_tolerance, MAX_COLOR, MIN_COVERAGE,
+            )  # fmt: skip
+        else:  # the reference: a compositing pass per step, residuals averaged over each splat's pixels
+            pair_ids = find_pairs_torch(inp, width, height, DEFAULT_MAX_LAYERS)
+            row_of_member = torch.repeat_interleave(torch.arange(len(gids)), row_counts)
+            solved = colors.clamp(0.0, MAX_COLOR)
+            black = torch.zeros(num, 3)
+            for _ in range(iterations):
+                rgb, _, alpha = composite(
+                    pair_ids, inp.means2d, inp.conics, inp.opacities, s.depths, solved, black, width, height, False,
+                    surface_tolerance,
+                )  # fmt: skip
+                rgb, alpha = rgb.reshape(-1, 3).index_select(0, members), alpha.reshape(-1).index_select(0, members)
+                defined = (alpha >= MIN_COVERAGE).float()
+                residual = (target.index_select(0, members) - rgb / alpha.clamp(min=1e-6)[:, None]) * defined[:, None]
+                total_residual = torch.zeros_like(solved).index_add_(0, row_of_member, residual)
+                n = torch.zeros(len(gids)).index_add_(0, row_of_member, defined)
+                solved = (solved + total_residual / n.clamp(min=1)[:, None]).clamp(0.0, MAX_COLOR)
+        change = torch.zeros_like(start)
+        change.index_copy_(0, gids, solved - colors)
+        sh = g.sh.clone()
+        sh[:, 0] = sh[:, 0] + (change / SH_C0).to(sh.dtype)
+    return replace(g, sh=sh)

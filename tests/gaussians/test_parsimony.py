@@ -4,6 +4,7 @@ of the other keyframe left to one copy; what renders before renders after."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -85,8 +86,6 @@ def test_texture_depth_edges_motion_and_view_binding_keep_their_pixels():
     assert len(merged) == len(g) // 4 and int(merged.dynamic.sum()) == 1
     torch.testing.assert_close(merged.flows[merged.dynamic], torch.tensor([[0.5, 0.0, 0.0]]))
     # view-bound Gaussians merge with view-bound ones only
-    from dataclasses import replace
-
     bound = torch.zeros(len(g), 3)
     bound[: W // 2 * 2 : 2, 2] = 1.0  # every other pixel of the first row
     g2 = replace(g, flows=torch.zeros_like(g.flows), view_rays=bound)
@@ -154,9 +153,10 @@ def test_a_budget_loosens_colour_then_small_depth_steps_but_never_merges_across_
     depth = torch.full((1, H, W), 5.0)
     ramp = torch.linspace(0.2, 0.8, W)[None, None, :, None].expand(1, H, W, 3)
     g, pixels = _assemble(depth, ramp)
-    assert len(merge_blocks(g, pixels, depth, KS[:1], BlockMerge(color_range=0.01), eps2d=EPS2D)) == len(g)
+    ranged = BlockMerge(color_range=0.01, color_test="range")
+    assert len(merge_blocks(g, pixels, depth, KS[:1], ranged, eps2d=EPS2D)) == len(g)
     for share in (0.5, 0.25, 0.1):
-        out = merge_to_budget(g, pixels, depth, KS[:1], BlockMerge(color_range=0.01, budget=share), eps2d=EPS2D)
+        out = merge_to_budget(g, pixels, depth, KS[:1], replace(ranged, budget=share), eps2d=EPS2D)
         assert len(out) <= share * len(g)
     # the budget met already: the configured merge as it is
     flat = torch.full((1, H, W, 3), 0.5)
@@ -175,3 +175,55 @@ def test_a_budget_loosens_colour_then_small_depth_steps_but_never_merges_across_
     assert len(merge_to_budget(g, pixels, edged, KS[:1], BlockMerge(budget=0.25), eps2d=EPS2D)) == len(g)
     with pytest.raises(InputError, match="budget"):
         BlockMerge(budget=1.5)
+
+
+def test_a_smooth_gradient_merges_by_detail_and_texture_does_not():
+    """The "detail" test bounds how far a pixel is from its blocks' means interpolated, what the
+    merged splats draw: a gradient far wider than ``color_range`` across a block merges, a fine
+    texture of a smaller range does not; the "range" test refuses both."""
+    depth = torch.full((1, H, W), 5.0)
+    ramp = torch.linspace(0.1, 0.9, W)[None, None, :, None].expand(1, H, W, 3)  # 0.05 across a block
+    g, pixels = _assemble(depth, ramp)
+    detail = BlockMerge(color_range=0.02, color_test="detail", levels=1)
+    assert len(merge_blocks(g, pixels, depth, KS[:1], detail, eps2d=EPS2D)) == len(g) // 4
+    assert len(merge_blocks(g, pixels, depth, KS[:1], replace(detail, color_test="range"), eps2d=EPS2D)) == len(g)
+    checker = ((torch.arange(H)[:, None] + torch.arange(W)[None]) % 2).float()
+    g, pixels = _assemble(depth, (0.5 + 0.06 * checker)[None, :, :, None].expand(1, H, W, 3))
+    assert len(merge_blocks(g, pixels, depth, KS[:1], detail, eps2d=EPS2D)) == len(g)
+    # the colours the test reads can be given: the same texture read as flat merges
+    flat = torch.full((len(g), 3), 0.5)
+    assert len(merge_blocks(g, pixels, depth, KS[:1], detail, eps2d=EPS2D, colors=flat)) == len(g) // 4
+    with pytest.raises(InputError, match="color_test"):
+        BlockMerge(color_test="median")
+
+
+def test_owners_name_the_merged_gaussian_each_pixel_became():
+    """``with_owners``: the output Gaussian each input became, at every level: a merged Gaussian is
+    the mean of the Gaussians that name it, in its image."""
+    depth = torch.full((2, H, W), 5.0)
+    depth[1, :, 20:] = 9.0  # a depth edge in the second image
+    colors = torch.tensor([0.3, 0.5, 0.7]).expand(2, H, W, 3).clone()
+    colors[0, :, :6] = torch.rand(H, 6, 3, generator=torch.Generator().manual_seed(0))  # texture: per pixel
+    g, pixels = _assemble(depth, colors)
+    keep = torch.rand(len(g), generator=torch.Generator().manual_seed(1)) > 0.02  # a few carved
+    g, pixels = g.index(keep), pixels[keep]
+    for levels in (1, 2, 3):
+        out, owners = merge_blocks(g, pixels, depth, KS[:2], BlockMerge(levels=levels), eps2d=EPS2D, with_owners=True)
+        assert torch.equal(out.means, merge_blocks(g, pixels, depth, KS[:2], BlockMerge(levels=levels), eps2d=EPS2D).means)
+        counts = torch.bincount(owners, minlength=len(out))
+        assert int(counts.min()) == 1 and int(counts.max()) == 4**levels
+        mean = torch.zeros(len(out), 3).index_add_(0, owners, g.means) / counts[:, None]
+        torch.testing.assert_close(mean, out.means, rtol=0, atol=1e-5)
+        assert torch.equal(out.cameras[owners], g.cameras) and torch.equal(out.keyframes[owners], g.keyframes)
+
+
+def test_the_image_is_sharpened_as_the_solve_would_and_flat_regions_stay_flat():
+    from drivingscene.gaussians.parsimony import sharpened
+
+    flat = torch.full((2, 8, 10, 3), 0.4)
+    torch.testing.assert_close(sharpened(flat), flat)
+    edge = flat.clone()
+    edge[:, :, 5:] = 0.8
+    out = sharpened(edge)
+    assert float(out[0, 4, 4, 0]) < 0.4 and float(out[0, 4, 5, 0]) > 0.8  # an overshoot each side of the edge
+    torch.testing.assert_close(out[:, :, [0, 9]], edge[:, :, [0, 9]])  # away from the edge: unchanged

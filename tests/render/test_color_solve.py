@@ -108,3 +108,101 @@ def test_the_compiled_solve_equals_the_compositing_reference(compiled_kernels, t
         )
         torch.testing.assert_close(got, expected, rtol=0, atol=2e-5)
         assert torch.equal(got[:, :3], start[:, :3]) and float((got[:, 5:] - start[:, 5:]).abs().mean()) > 0.05
+
+
+def _merged_scene(height: int = 24, width: int = 40):
+    """The slanted road of `_slanted_scene` as per-pixel Gaussians (two images: both keyframes of one
+    camera at the origin), smooth colour on its left half and texture on its right, merged by
+    `merge_blocks` (the smooth half merges): the merged Gaussians, each input's owner and pixel."""
+    from drivingscene.gaussians.assembly import gaussians_from_pixels, pixel_footprints, surfel_frames
+    from drivingscene.gaussians.parsimony import BlockMerge, merge_blocks
+    from drivingscene.render.project import EPS2D
+
+    depth, k, image = _slanted_scene(height, width)
+    noise = torch.rand(1, height, width // 2, 3, generator=torch.Generator().manual_seed(3))
+    image[:, :, width // 2 :] = 0.2 + 0.6 * noise  # texture: stays per pixel
+    u = torch.linspace(0.0, 1.0, width // 2)
+    image[:, :, : width // 2] = torch.stack([0.3 + 0.3 * u, 0.5 - 0.2 * u, 0.4 + 0.1 * u], -1)  # a smooth gradient: merges
+    depth, image, k = depth.expand(2, -1, -1), image.expand(2, -1, -1, -1).contiguous(), k.expand(2, 3, 3)
+    quats, log_scales = surfel_frames(depth, k, backend="torch")
+    log_scales = pixel_footprints(depth, k, quats, log_scales)
+    g = gaussians_from_pixels(
+        depth, k, torch.eye(4).expand(2, 4, 4), image, keyframe=torch.arange(2), camera_ids=torch.zeros(2, dtype=torch.long),
+        log_scales=log_scales, quats=quats, footprints=None,
+    )  # fmt: skip
+    pixels = torch.arange(2 * height * width)
+    merged, owners = merge_blocks(g, pixels, depth, k, BlockMerge(levels=2), eps2d=EPS2D, with_owners=True)
+    return merged, owners, pixels, image, k
+
+
+def _own_layers(g, k, height, width, tolerance):
+    """Each image's own layer, ``C / alpha`` ``[I, H, W, 3]``, through the general rasterizer."""
+    from drivingscene.render.rasterize import rasterize
+
+    views = g.keyframes.long() + g.cameras.long()  # one camera per keyframe
+    out = rasterize(
+        g.means, g.quats, g.scales, g.opacities, g.colors(), torch.eye(4).expand(len(k), 4, 4), k, width, height,
+        views=views, surface_tolerance=tolerance, backend="torch",
+    )  # fmt: skip
+    return out.colors / out.alphas[..., None].clamp(min=1e-6)
+
+
+def test_merged_gaussians_solved_over_their_pixels_re_render_the_image_better_than_their_means():
+    from drivingscene.render.color_solve import solve_gaussian_colors
+
+    height, width = 24, 40
+    merged, owners, pixels, image, k = _merged_scene(height, width)
+    assert len(merged) < 0.7 * len(pixels)  # the smooth half merged, at two levels
+    counts = torch.bincount(owners, minlength=len(merged))
+    assert int(counts.max()) == 16 and int(counts.min()) == 1
+    solved = solve_gaussian_colors(merged, owners, pixels, image, torch.eye(4).expand(2, 4, 4), k, 4, backend="torch")
+    before, after = (_own_layers(x, k, height, width, 0.2) for x in (merged, solved))
+    smooth = (slice(None), slice(2, -2), slice(2, width // 2 - 2))  # the merged gradient, away from the borders
+    assert _rmse(after[smooth], image[smooth]) < 0.5 * _rmse(before[smooth], image[smooth])
+    assert _rmse(after, image) < 0.8 * _rmse(before, image)  # the texture too (white noise: the hardest to re-render)
+    # what moves is the DC colour only, and the geometry not at all
+    assert torch.equal(solved.means, merged.means) and torch.equal(solved.log_scales, merged.log_scales)
+
+
+def test_the_compiled_solve_over_merged_gaussians_equals_the_compositing_reference(compiled_kernels):
+    from drivingscene.render.color_solve import solve_gaussian_colors
+
+    merged, owners, pixels, image, k = _merged_scene(30, 44)
+    eye = torch.eye(4).expand(2, 4, 4)
+    for iterations in (1, 3):
+        got, expected = (
+            solve_gaussian_colors(merged, owners, pixels, image, eye, k, iterations, backend=backend)
+            for backend in ("cpp", "torch")
+        )
+        torch.testing.assert_close(got.sh, expected.sh, rtol=0, atol=1e-4)
+        assert float((got.sh - merged.sh).abs().mean()) > 0.01
+
+
+def test_per_pixel_gaussians_solved_as_their_own_owners_match_the_map_solve():
+    """A Gaussian that stands for its own pixel alone is the per-pixel solve: projected splats and
+    splats built from the maps give the same colours."""
+    from drivingscene.gaussians.assembly import gaussians_from_pixels
+    from drivingscene.render.color_solve import solve_gaussian_colors
+
+    depth, k, image = _slanted_scene()
+    quats, log_scales = surfel_maps(depth, k)
+    valid = torch.ones_like(depth, dtype=torch.bool)
+    opacities = torch.full_like(depth, DEFAULT_OPACITY)
+    start = torch.full_like(image, 0.4)
+    maps = solve_pixel_colors(depth, k, quats, log_scales, opacities, start, image, valid, 3, backend="torch")
+    g = gaussians_from_pixels(
+        depth, k, torch.eye(4)[None], start, keyframe=torch.zeros(1, dtype=torch.long), camera_ids=torch.zeros(1, dtype=torch.long),
+        log_scales=log_scales, quats=quats, footprints=None,
+    )  # fmt: skip
+    pixels = torch.arange(depth.numel())
+    solved = solve_gaussian_colors(g, pixels, pixels, image, torch.eye(4)[None], k, 3, backend="torch")
+    torch.testing.assert_close(solved.colors(), maps.reshape(-1, 3), rtol=0, atol=2e-3)
+
+
+def test_the_general_solve_names_what_it_expected():
+    from drivingscene.errors import InputError
+    from drivingscene.render.color_solve import solve_gaussian_colors
+
+    merged, owners, pixels, image, k = _merged_scene(12, 20)
+    with pytest.raises(InputError, match="owners and pixels"):
+        solve_gaussian_colors(merged, owners[:-1], pixels, image, torch.eye(4).expand(2, 4, 4), k)
