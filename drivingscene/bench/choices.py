@@ -75,6 +75,8 @@ class Variant:
     omotion: float | None = None  # ObjectMotionConfig.min_motion; None: the default
     odetect: str | None = None  # ObjectMotionConfig.detect: "rigid" or "fallback"; None: the default
     merge: float | None = None  # BlockMerge.color_range (gaussians/parsimony.py); -1: no merge; None: the default
+    mtest: str | None = None  # BlockMerge.color_test: "detail" or "range"; None: the default
+    mfit: int | None = None  # BlockMerge.fit_colors (0: per-pixel solve, block means); None: the default
     dedupe: bool | None = None  # InferenceOptions.dedupe on (KeyframeDedupe()) or off; None: the default
 
     def options(self, base):
@@ -134,6 +136,12 @@ class Variant:
         merge = base.merge
         if self.merge is not None:
             merge = None if self.merge < 0 else replace(merge or BlockMerge(), color_range=self.merge)
+        if merge is not None and (self.mtest is not None or self.mfit is not None):
+            merge = replace(
+                merge,
+                color_test=merge.color_test if self.mtest is None else self.mtest,
+                fit_colors=merge.fit_colors if self.mfit is None else self.mfit,
+            )
         dedupe = base.dedupe if self.dedupe is None else (KeyframeDedupe() if self.dedupe else None)
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
@@ -182,7 +190,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, merge, dedupe."""
+    residual, osplit, omotion, odetect, merge, mtest, mfit, dedupe."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -210,6 +218,10 @@ def parse_variant(text: str) -> Variant:
             values["odetect"] = value
         elif key == "merge" and (value == "off" or (_is_number(value) and float(value) >= 0)):
             values["merge"] = -1.0 if value == "off" else float(value)
+        elif key == "mtest" and value in ("detail", "range"):
+            values["mtest"] = value
+        elif key == "mfit" and value.isdigit():
+            values["mfit"] = int(value)
         elif key in ("photo", "parallax", "head", "rig", "replace", "residual", "osplit", "dedupe") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
@@ -239,7 +251,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

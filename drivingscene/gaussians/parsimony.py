@@ -1,22 +1,28 @@
 """No more Gaussians than an image needs: per-pixel Gaussians merged into blocks where one does.
 
 Per-pixel assembly gives every input pixel a Gaussian, whatever the pixel shows. Where a 2x2 block
-of an image's pixels is one flat piece of surface of one colour that moves as one, four Gaussians
-draw what one Gaussian twice their size draws: the block's Gaussians become one, at their mean,
-with their mean colour, opacity and flow, and their shape scaled by the block's side (2: the
-pixel grid of the block's Gaussians is twice as coarse, so a merged Gaussian overlaps its
-neighbours as a per-pixel one does and the surface stays closed at any magnification). Repeated
-on the merged blocks (``levels`` > 1), flat regions (road, walls, sky at the far layer) end up
-with one Gaussian per 4x4 pixels.
+of an image's pixels is one flat piece of surface whose colour the merged splats can draw and
+that moves as one, four Gaussians draw what one Gaussian twice their size draws: the block's
+Gaussians become one, at their mean, with their mean colour, opacity and flow, and their shape
+scaled by the block's side (2: the pixel grid of the block's Gaussians is twice as coarse, so a
+merged Gaussian overlaps its neighbours as a per-pixel one does and the surface stays closed at
+any magnification). Repeated on the merged blocks (``levels`` > 1), flat regions (road, walls,
+sky at the far layer) end up with one Gaussian per 4x4 pixels.
 
 A block merges only when its Gaussians are all there (no sky, no ego body, none carved), come
-from one image, are all view-bound or none, agree in colour (the largest range of a channel is at
-most ``color_range``), lie on one plane (the block's depths span at most ``depth_range`` of
-their mean and are bilinear within ``planarity`` of it: a depth edge or a fold is not merged) and move alike (flows within
-``flow_range`` metres): nothing that moves is merged with what does not, and a merged Gaussian
-keeps its image's layer (keyframe and camera), so the layered blends draw it as before. The
-thresholds were chosen on validation pairs (docs/parsimony.md); the per-pixel output stays
-selectable (``InferenceOptions.merge = None``).
+from one image, are all view-bound or none, agree in colour (``color_test``: by default no pixel
+is more than ``color_range`` from the block means interpolated bilinearly, what the merged,
+overlapping splats draw between their centres, so a smooth gradient merges and texture does not;
+or the block's range of a channel), lie on one plane (the block's depths span at most
+``depth_range`` of their mean and are bilinear within ``planarity`` of it: a depth edge or a fold
+is not merged) and move alike (flows within ``flow_range`` metres): nothing that moves is merged
+with what does not, and a merged Gaussian keeps its image's layer (keyframe and camera), so the
+layered blends draw it as before. With ``fit_colors`` the reconstruction then solves every
+Gaussian's colour over the pixels it stands for (`render.color_solve.solve_gaussian_colors`,
+``merge_blocks(..., with_owners=True)`` says which), in place of the per-pixel solve, and the colour
+test reads the input images sharpened as that solve will (`sharpened`). The thresholds were chosen
+on validation pairs (docs/parsimony.md); the per-pixel output stays selectable
+(``InferenceOptions.merge = None``).
 """
 
 from __future__ import annotations

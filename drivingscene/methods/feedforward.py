@@ -92,7 +92,9 @@ class InferenceOptions:
     # None: D's depth as it is.
     match: MatchedDepthConfig | None = MatchedDepthConfig()
     # Iterations of the colour solve that makes each input image's own Gaussians re-render it
-    # (render/color_solve.py, docs/magnification.md); 0: P's colours as they are.
+    # (render/color_solve.py, docs/magnification.md); 0: P's colours as they are. With a merge that
+    # solves over its Gaussians (``merge.fit_colors`` > 0, the default) that solve runs instead,
+    # with its own iterations, and this is only on (> 0) or off.
     fit_colors: int = COLOR_ITERATIONS
     # The surface tolerance the colour solve fits each image's own layer for: the layered blends'
     # (render.scene.LayerBlend.surface_tolerance); 0: front-to-back compositing.
@@ -107,8 +109,9 @@ class InferenceOptions:
     # at most this many (> 1) times the sky distance away, static and view-bound
     # (docs/magnification.md, *Far layer*); 0: none, the sky model alone draws them.
     far_layer: float = FAR_LAYER
-    # 2x2 blocks of an image's Gaussians that are one flat piece of surface of one colour moving as
-    # one become one Gaussian (gaussians/parsimony.py, docs/parsimony.md); None: one per pixel.
+    # 2x2 blocks of an image's Gaussians that are one flat piece of surface of smooth colour moving
+    # as one become one Gaussian, and the colours are solved over them (gaussians/parsimony.py,
+    # docs/parsimony.md); None: one per pixel.
     merge: BlockMerge | None = BlockMerge()
     # Static Gaussians whose surface point the same camera's image at the other keyframe also holds
     # left to that copy (gaussians/parsimony.py); None (default): both kept. Lost on validation pairs:

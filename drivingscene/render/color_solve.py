@@ -11,8 +11,12 @@ pixel, by projected Richardson (Van Cittert) iterations ``c <- clip(c + I(p) - C
 with the pairs (which Gaussians touch which pixel, in order) found once: the deconvolution of the
 splatting blur, exact where depth order makes it irregular.
 
-It works on the per-pixel maps before assembly: in its own view a pixel's Gaussian projects to the
-pixel centre at its depth, so the splats are built from the maps without projecting anything.
+``solve_pixel_colors`` works on the per-pixel maps before assembly: in its own view a pixel's
+Gaussian projects to the pixel centre at its depth, so the splats are built from the maps without
+projecting anything. ``solve_gaussian_colors`` works on assembled Gaussians of any geometry, each
+standing for a set of its image's pixels (a merged block's, ``gaussians.parsimony``): the splats
+are projected, and a Gaussian's step is the mean of its pixels' residuals; a Gaussian standing for
+its own pixel alone is the per-pixel solve.
 """
 
 from __future__ import annotations

@@ -22,6 +22,17 @@ def test_variants_parse_and_bad_ones_are_named():
         parse_variant("carve=maybe")
     with pytest.raises(InputError, match="'bonus=-1'"):
         parse_variant("bonus=-1")
+    with pytest.raises(InputError, match="'mtest=median'"):
+        parse_variant("mtest=median")
+
+
+def test_the_merge_of_2026_12_01_is_a_variant_and_off_stays_off():
+    from drivingscene.methods.feedforward import InferenceOptions
+
+    old = parse_variant("merge=0.06,mtest=range,mfit=0").options(InferenceOptions()).merge
+    assert (old.color_range, old.color_test, old.fit_colors) == (0.06, "range", 0)
+    assert parse_variant("merge=off,mfit=2").options(InferenceOptions()).merge is None
+    assert parse_variant("mfit=1").options(InferenceOptions()).merge.color_range == InferenceOptions().merge.color_range
 
 
 def test_sign_test_is_the_exact_binomial_tail():
