@@ -34,7 +34,7 @@ def own_layer_solve(
     and ``A`` the colour and accumulated alpha that ``find_pairs`` + ``composite_forward`` give over a
     black background; the pairs are found and their weights formed once, each step is a sparse
     product. Returns the splats' colours ``[M, C]`` float32. CPU tensors. Reference path:
-    ``solve_pixel_colors(..., backend="torch")`` (a compositing pass per step; equal up to float
+    ``solve_pixel_colors`` or ``solve_gaussian_colors`` with ``backend="torch"`` (a compositing pass per step; equal up to float
     rounding: the pairs' alphas here take the pair finder's float64 exponential)."""
     return call(
         "own_layer_solve",

@@ -371,11 +371,12 @@ def reconstruct(
         layer_sky = sky & ~sky_pixels
         if scene_flow is not None:
             layer_flow = torch.where(sky_pixels[..., None], torch.zeros_like(scene_flow), scene_flow)
-    # a merge that solves the colours over its Gaussians makes the per-pixel solve redundant
-    solve_once = options.merge is not None and options.merge.fit_colors > 0
+    # a merge that solves the colours over its Gaussians (when colours are solved at all) runs the
+    # only solve: the per-pixel one before it would be redone
+    refit = options.merge.fit_colors if options.merge is not None and options.fit_colors > 0 else 0
     gaussians = assemble(
         layer_static, batch, layer_sky, layer_flow, local_to_world=batch.local_to_world,
-        fit_colors=0 if solve_once and options.fit_colors > 0 else options.fit_colors,
+        fit_colors=0 if refit > 0 else options.fit_colors,
         footprints=options.footprints, surface_tolerance=options.surface_tolerance, ray_extent=options.ray_extent,
     )  # fmt: skip
     far = sky_pixels[~layer_sky]  # [N]: the far layer's Gaussians (pixel order, as assembled)
@@ -404,10 +405,10 @@ def reconstruct(
         t1 = time.perf_counter()
         per_pixel = len(gaussians)
         depth_maps = layer_static.depth.detach().flatten(0, 1).float()
-        refit = options.merge.fit_colors if options.fit_colors > 0 else 0
         images = batch.images.flatten(0, 1).permute(0, 2, 3, 1)  # [I, H, W, 3]
+        intrinsics = batch.intrinsics.repeat(2, 1, 1)  # [I, 3, 3]
         merged = merge_to_budget(
-            gaussians, pixels, depth_maps, batch.intrinsics.repeat(2, 1, 1), options.merge, eps2d=EPS2D, with_owners=refit > 0,
+            gaussians, pixels, depth_maps, intrinsics, options.merge, eps2d=EPS2D, with_owners=refit > 0,
             # the colours not solved yet: the merge reads the images as the solve will sharpen them
             colors=sharpened(images).reshape(-1, 3).index_select(0, pixels) if refit > 0 else None,
         )  # fmt: skip
@@ -415,7 +416,7 @@ def reconstruct(
             merged, owners = merged
             merged = solve_gaussian_colors(
                 merged, owners, pixels, images,
-                torch.linalg.inv(world_cameras(batch).flatten(0, 1)).float(), batch.intrinsics.repeat(2, 1, 1), refit,
+                torch.linalg.inv(world_cameras(batch).flatten(0, 1)).float(), intrinsics, refit,
                 surface_tolerance=options.surface_tolerance,
             )  # fmt: skip
         gaussians = merged

@@ -123,56 +123,58 @@ def solve_pixel_colors(
     height, width = depth.shape[1:]
     with torch.no_grad():
         splats, pixel = own_view_splats(depth, intrinsics, quats, log_scales, opacities, valid, eps2d)
-        inp = pair_inputs(splats, width, height)
-        if choose_backend(backend, depth) == "cpp":  # pairs and weights once, then sparse products
-            out = kernels.own_layer_solve(
-                inp.means2d.float().contiguous(),
-                inp.conics.float().contiguous(),
-                inp.opacities.float().contiguous(),
-                inp.sigma_max.float().contiguous(),
-                inp.boxes,
-                inp.camera_offsets,
-                width,
-                height,
-                DEFAULT_MAX_LAYERS,
-                splats.depths.contiguous(),
-                torch.arange(len(pixel) + 1),
-                pixel,
-                images.reshape(-1, 3).float(),
-                colors.reshape(-1, 3).float().index_select(0, pixel),
-                iterations,
-                surface_tolerance,
-                MAX_COLOR,
-                MIN_COVERAGE,
-            )
-            solved = colors.reshape(-1, 3).clone()
-            solved.index_copy_(0, pixel, out.to(colors.dtype))
-            return solved.reshape(colors.shape)
-        # the reference: a compositing pass per step
-        pair_ids = find_pairs_torch(inp, width, height, DEFAULT_MAX_LAYERS)
-        target = images.reshape(-1, 3).float().index_select(0, pixel)
-        solved = colors.reshape(-1, 3).float().index_select(0, pixel).clamp(0.0, MAX_COLOR)
-        black = torch.zeros(depth.shape[0], 3)
-        for _ in range(iterations):
-            rgb, _, alpha = composite(
-                pair_ids,
-                inp.means2d,
-                inp.conics,
-                inp.opacities,
-                splats.depths,
-                solved,
-                black,
-                width,
-                height,
-                False,
-                surface_tolerance,
-            )
-            rgb, alpha = rgb.reshape(-1, 3).index_select(0, pixel), alpha.reshape(-1).index_select(0, pixel)
-            covered = (alpha >= MIN_COVERAGE)[:, None]
-            solved = torch.where(covered, solved + target - rgb / alpha.clamp(min=1e-6)[:, None], solved).clamp(0.0, MAX_COLOR)
+        solved = _solve_splats(
+            splats, width, height, torch.arange(len(pixel) + 1), pixel, images.reshape(-1, 3).float(),
+            colors.reshape(-1, 3).float().index_select(0, pixel), iterations, surface_tolerance,
+            choose_backend(backend, depth) == "cpp",
+        )  # fmt: skip
         out = colors.reshape(-1, 3).clone()
         out.index_copy_(0, pixel, solved.to(out.dtype))
     return out.reshape(colors.shape)
+
+
+def _solve_splats(
+    splats: Splats,
+    width: int,
+    height: int,
+    member_offsets: Tensor,  # [M + 1]: splat i stands for members[member_offsets[i]:member_offsets[i + 1]]
+    members: Tensor,  # [K] flat pixel indices into the images
+    target: Tensor,  # [I * H * W, 3] what each pixel should render
+    start: Tensor,  # [M, 3] the splats' starting colours
+    iterations: int,
+    surface_tolerance: float,
+    compiled: bool,
+) -> Tensor:
+    """The solve over the splats' own layers (module docstring): their colours ``[M, 3]``, each
+    moved by the mean residual over the pixels it stands for. Compiled: pairs and weights formed
+    once, then sparse products (`kernels.own_layer_solve`); else the reference, a compositing pass
+    per step."""
+    inp = pair_inputs(splats, width, height)
+    if compiled:
+        return kernels.own_layer_solve(
+            inp.means2d.float().contiguous(), inp.conics.float().contiguous(), inp.opacities.float().contiguous(),
+            inp.sigma_max.float().contiguous(), inp.boxes, inp.camera_offsets, width, height, DEFAULT_MAX_LAYERS,
+            splats.depths.float().contiguous(), member_offsets, members, target, start.contiguous(), iterations,
+            surface_tolerance, MAX_COLOR, MIN_COVERAGE,
+        )  # fmt: skip
+    pair_ids = find_pairs_torch(inp, width, height, DEFAULT_MAX_LAYERS)
+    member_counts = member_offsets[1:] - member_offsets[:-1]
+    row_of_member = torch.repeat_interleave(torch.arange(len(start)), member_counts)
+    member_target = target.index_select(0, members)
+    solved = start.clamp(0.0, MAX_COLOR)
+    black = torch.zeros(len(splats.camera_offsets) - 1, 3)
+    for _ in range(iterations):
+        rgb, _, alpha = composite(
+            pair_ids, inp.means2d, inp.conics, inp.opacities, splats.depths, solved, black, width, height, False,
+            surface_tolerance,
+        )  # fmt: skip
+        rgb, alpha = rgb.reshape(-1, 3).index_select(0, members), alpha.reshape(-1).index_select(0, members)
+        defined = (alpha >= MIN_COVERAGE).float()
+        residual = (member_target - rgb / alpha.clamp(min=1e-6)[:, None]) * defined[:, None]
+        total = torch.zeros_like(solved).index_add_(0, row_of_member, residual)
+        count = torch.zeros(len(solved)).index_add_(0, row_of_member, defined)
+        solved = (solved + total / count.clamp(min=1)[:, None]).clamp(0.0, MAX_COLOR)
+    return solved
 
 
 def solve_gaussian_colors(
@@ -217,32 +219,11 @@ def solve_gaussian_colors(
         total = int(offsets[-1])
         within = torch.arange(total) - torch.repeat_interleave(offsets[:-1], row_counts)
         members = by_owner.index_select(0, torch.repeat_interleave(owner_start.index_select(0, gids), row_counts) + within)
-        inp = pair_inputs(s, width, height)
-        target = images.reshape(-1, 3).float()
         colors = start.index_select(0, gids)
-        if choose_backend(backend, g.means) == "cpp":
-            solved = kernels.own_layer_solve(
-                inp.means2d.float().contiguous(), inp.conics.float().contiguous(), inp.opacities.float().contiguous(),
-                inp.sigma_max.float().contiguous(), inp.boxes, inp.camera_offsets, width, height, DEFAULT_MAX_LAYERS,
-                s.depths.float().contiguous(), offsets, members, target, colors.contiguous(), iterations,
-                surface_tolerance, MAX_COLOR, MIN_COVERAGE,
-            )  # fmt: skip
-        else:  # the reference: a compositing pass per step, residuals averaged over each splat's pixels
-            pair_ids = find_pairs_torch(inp, width, height, DEFAULT_MAX_LAYERS)
-            row_of_member = torch.repeat_interleave(torch.arange(len(gids)), row_counts)
-            solved = colors.clamp(0.0, MAX_COLOR)
-            black = torch.zeros(num, 3)
-            for _ in range(iterations):
-                rgb, _, alpha = composite(
-                    pair_ids, inp.means2d, inp.conics, inp.opacities, s.depths, solved, black, width, height, False,
-                    surface_tolerance,
-                )  # fmt: skip
-                rgb, alpha = rgb.reshape(-1, 3).index_select(0, members), alpha.reshape(-1).index_select(0, members)
-                defined = (alpha >= MIN_COVERAGE).float()
-                residual = (target.index_select(0, members) - rgb / alpha.clamp(min=1e-6)[:, None]) * defined[:, None]
-                total_residual = torch.zeros_like(solved).index_add_(0, row_of_member, residual)
-                n = torch.zeros(len(gids)).index_add_(0, row_of_member, defined)
-                solved = (solved + total_residual / n.clamp(min=1)[:, None]).clamp(0.0, MAX_COLOR)
+        solved = _solve_splats(
+            s, width, height, offsets, members, images.reshape(-1, 3).float(), colors, iterations, surface_tolerance,
+            choose_backend(backend, g.means) == "cpp",
+        )  # fmt: skip
         change = torch.zeros_like(start)
         change.index_copy_(0, gids, solved - colors)
         sh = g.sh.clone()

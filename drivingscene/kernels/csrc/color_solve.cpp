@@ -13,7 +13,7 @@
 // (c_i kept where it is defined at none of them): each step one sparse product over memory that
 // neighbours the pixel, no Gaussian evaluated again. A splat that stands for its own pixel alone
 // is the per-pixel solve.
-// The reference is the torch path of solve_pixel_colors (a compositing pass per step).
+// The reference is the torch path of render.color_solve._solve_splats (a compositing pass per step).
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
