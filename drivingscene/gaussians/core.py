@@ -201,7 +201,19 @@ class Gaussians:
 
     def index(self, selector: Tensor | slice | Sequence[int]) -> Gaussians:
         """A subset by bool mask or integer indices."""
-        return Gaussians(**{f.name: getattr(self, f.name)[selector] for f in fields(self)})
+        if isinstance(selector, slice):
+            return Gaussians(**{f.name: getattr(self, f.name)[selector] for f in fields(self)})
+        ids = torch.as_tensor(selector, device=self.means.device)
+        if ids.dtype == torch.bool:
+            if ids.shape != (len(self),):
+                raise IndexError(f"Gaussians.index: a mask of {len(self)} entries expected, found shape {list(ids.shape)}")
+            ids = ids.nonzero().squeeze(1)  # once, not once per field
+        elif ids.numel() == 0:
+            ids = ids.long()
+        # index_select: a plain gather (its backward an index_add), several times faster on a CPU
+        # than advanced indexing; negative indices count from the end as with indexing
+        ids = torch.where(ids < 0, ids + len(self), ids).long()
+        return Gaussians(**{f.name: getattr(self, f.name).index_select(0, ids) for f in fields(self)})
 
     def split(self, sizes: Sequence[int]) -> list[Gaussians]:
         """Consecutive runs of ``sizes`` Gaussians (``torch.split`` of every field: differentiable,

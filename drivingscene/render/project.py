@@ -148,23 +148,6 @@ def cull_bound(
     return _cull(p_cam, max_scales, Ks[:, None], width, height, near, far, eps2d, project(p_cam, Ks)[0])
 
 
-def cull_bound_pairs(
-    means: Tensor,  # [M, 3] world
-    max_scales: Tensor,  # [M]
-    viewmats: Tensor,  # [M, 4, 4] the camera of each pair
-    Ks: Tensor,  # [M, 3, 3]
-    width: int,
-    height: int,
-    *,
-    near: float,
-    far: float,
-    eps2d: float,
-) -> Tensor:
-    """`cull_bound` ``[M]`` of given (camera, Gaussian) pairs."""
-    p_cam = (viewmats[:, :3, :3] @ means[:, :, None])[..., 0] + viewmats[:, :3, 3]
-    return _cull(p_cam, max_scales, Ks, width, height, near, far, eps2d, project(p_cam[:, None], Ks)[0][:, 0])
-
-
 def _cull(
     p_cam: Tensor, max_scales: Tensor, k: Tensor, width: int, height: int, near: float, far: float, eps2d: float, means2d: Tensor
 ) -> Tensor:

@@ -11,12 +11,12 @@ by Gaussian index (a stable sort): the compositing order.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
 
-from drivingscene.render.project import covariances_3d, cull_bound, cull_bound_pairs, project_covariances
+from drivingscene.render.project import Projection, covariances_3d, cull_bound, project_covariances
 from drivingscene.render.sh import sh_to_color
 
 MIN_ALPHA = 1.0 / 255.0
@@ -79,20 +79,34 @@ def make_splats(
         else:  # one camera per Gaussian: only those pairs (listed camera by camera, Gaussians ascending)
             views = views.to(means.device)
             gs_ids = ((views >= 0) & (views < num_cams) & (opacities.detach() >= MIN_ALPHA)).nonzero().squeeze(1)
-            gs_ids = gs_ids[torch.sort(views[gs_ids], stable=True).indices]
-            cam_ids = views[gs_ids]
-            keep = cull_bound_pairs(
-                means.detach()[gs_ids],
-                scales.detach()[gs_ids].amax(-1),
-                viewmats[cam_ids],
-                Ks[cam_ids],
-                width,
-                height,
-                near=near,
-                far=far,
-                eps2d=eps2d,
+            cam_ids = views.index_select(0, gs_ids)
+            if len(cam_ids) > 1 and not bool((cam_ids[1:] >= cam_ids[:-1]).all()):  # already by camera: no sort
+                by_camera = torch.sort(cam_ids, stable=True).indices
+                gs_ids, cam_ids = gs_ids.index_select(0, by_camera), cam_ids.index_select(0, by_camera)
+            # camera by camera (cull_bound of one camera), not one gathered [M, 4, 4] matrix per pair
+            bounds = torch.cat([cam_ids.new_zeros(1), torch.bincount(cam_ids, minlength=num_cams).cumsum(0)]).tolist()
+            pair_means = means.detach().index_select(0, gs_ids)
+            pair_scales = scales.detach().index_select(0, gs_ids).amax(-1)
+            keep = torch.cat(
+                [pair_scales.new_zeros(0, dtype=torch.bool)]
+                + [
+                    cull_bound(
+                        pair_means[lo:hi],
+                        pair_scales[lo:hi],
+                        viewmats[b : b + 1],
+                        Ks[b : b + 1],
+                        width,
+                        height,
+                        near=near,
+                        far=far,
+                        eps2d=eps2d,
+                    )[0]
+                    for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))
+                    if hi > lo
+                ]
             )
-            cam_ids, gs_ids = cam_ids[keep], gs_ids[keep]
+            keep = keep.nonzero().squeeze(1)
+            cam_ids, gs_ids = cam_ids.index_select(0, keep), gs_ids.index_select(0, keep)
         if pair_opacity is not None:
             faded = opacities.detach()[gs_ids] * pair_opacity(cam_ids, gs_ids).detach()
             keep = faded >= MIN_ALPHA
@@ -100,27 +114,53 @@ def make_splats(
         # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a
         # fronto-parallel wall, a ground-plane row) does not depend on float32 rounding.
         rot_z = viewmats[:, 2, :3].double()
-        z64 = (means.detach()[gs_ids].double() * rot_z[cam_ids]).sum(-1) + viewmats[cam_ids, 2, 3].double()
+        z64 = (means.detach().index_select(0, gs_ids).double() * rot_z.index_select(0, cam_ids)).sum(-1) + viewmats[
+            :, 2, 3
+        ].double().index_select(0, cam_ids)
         counts = torch.bincount(cam_ids, minlength=num_cams)
         offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
         bounds = offsets.tolist()  # nonzero() lists pairs camera by camera, Gaussians ascending
         order = torch.cat([lo + torch.sort(z64[lo:hi], stable=True).indices for lo, hi in zip(bounds[:-1], bounds[1:])])
-        cam_ids, gs_ids = cam_ids[order], gs_ids[order]
+        cam_ids, gs_ids = cam_ids.index_select(0, order), gs_ids.index_select(0, order)
+    # index_select: a plain gather (and its backward an index_add), several times faster than
+    # advanced indexing on a CPU
     covars = covariances_3d(quats, scales)  # [N, 3, 3]
-    proj = project_covariances(
-        means[gs_ids], covars[gs_ids], viewmats[cam_ids], Ks[cam_ids], width, height, near=near, far=far, eps2d=eps2d
+    pair_means, pair_covars = means.index_select(0, gs_ids), covars.index_select(0, gs_ids)
+    # camera by camera (the pairs are grouped by camera), its matrices broadcast rather than
+    # gathered into one [M, 4, 4] copy per pair
+    parts = [
+        project_covariances(
+            pair_means[lo:hi],
+            pair_covars[lo:hi],
+            viewmats[b : b + 1],
+            Ks[b : b + 1],
+            width,
+            height,
+            near=near,
+            far=far,
+            eps2d=eps2d,
+        )
+        for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))
+        if hi > lo
+    ]
+    proj = (
+        parts[0]
+        if len(parts) == 1
+        else Projection(*(torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Projection)))
+        if parts
+        else project_covariances(pair_means, pair_covars, viewmats[:1], Ks[:1], width, height, near=near, far=far, eps2d=eps2d)
     )
     if sh_degree is None:
-        splat_colors = colors[gs_ids]
+        splat_colors = colors.index_select(0, gs_ids)
     else:
-        dirs = means[gs_ids] - camera_centres(viewmats)[cam_ids]  # [M, 3]
-        splat_colors = sh_to_color(sh_degree, colors[gs_ids], dirs)
+        dirs = means.index_select(0, gs_ids) - camera_centres(viewmats).index_select(0, cam_ids)  # [M, 3]
+        splat_colors = sh_to_color(sh_degree, colors.index_select(0, gs_ids), dirs)
     return Splats(
         means2d=proj.means2d,
         conics=proj.conics,
         depths=proj.depths,
         radii=proj.radii,
-        opacities=opacities[gs_ids] if pair_opacity is None else opacities[gs_ids] * pair_opacity(cam_ids, gs_ids),
+        opacities=opacities.index_select(0, gs_ids) * (1.0 if pair_opacity is None else pair_opacity(cam_ids, gs_ids)),
         colors=splat_colors,
         camera_ids=cam_ids,
         gaussian_ids=gs_ids,
