@@ -124,15 +124,35 @@ def _detail(rgb: Tensor, ids: Tensor) -> Tensor:
     return _blocks((crop - smooth).abs().amax(-1)).amax(-1)
 
 
-def _merge_level(
-    g: Gaussians, ids: Tensor, depth: Tensor, focal: Tensor, config: BlockMerge, side: float, eps2d: float, all_rgb: Tensor
-):
-    """One level: the blocks of the id map ``ids`` ``[I, H, W]`` (-1: none) that merge, by the colours
-    ``all_rgb`` ``[N, 3]`` of ``g``. Returns the merged Gaussians, the ids ``[M, 4]`` they replace, the
-    next level's id map (into the merged ones, -1 where a block did not merge) and depth map, and the
-    merged Gaussians' colours for the tests (their blocks' means)."""
-    block_ids = _blocks(ids)  # [I, h, w, 4]
-    block_depth = _blocks(depth)
+@dataclass(frozen=True)
+class _Level:
+    """What a level's tests read: the id map ``[I, H, W]`` of the current Gaussians (-1: none),
+    their depth map, and per Gaussian ``[n, ...]`` the colours for the colour test, the flows and
+    whether they are view-bound."""
+
+    ids: Tensor
+    depth: Tensor
+    rgb: Tensor
+    flows: Tensor
+    bound: Tensor
+    detail: Tensor | None = None  # `_detail` of ``rgb`` over ``ids``, when known (the first level's, kept over a budget's tries)
+
+
+def _first_level(g: Gaussians, pixels: Tensor, depth: Tensor, colors: Tensor | None, config: BlockMerge) -> _Level:
+    num, height, width = depth.shape
+    ids = torch.full((num * height * width,), -1, dtype=torch.long, device=pixels.device)
+    ids[pixels] = torch.arange(len(g), device=pixels.device)
+    rgb = sh0_to_rgb(g.sh[:, 0]) if colors is None else colors.to(g.sh)
+    ids = ids.view(num, height, width)
+    return _Level(ids, depth.float(), rgb, g.flows, g.view_bound, _detail(rgb, ids) if config.color_test == "detail" else None)
+
+
+def _decide(level: _Level, config: BlockMerge) -> tuple[Tensor, Tensor, Tensor, _Level]:
+    """Which blocks of ``level`` merge: their ids ``[M, 4]``, their flat indices into the blocks
+    ``[I, h, w]``, their mean depths ``[M]``, and the next level's tests (its id map into the merged
+    ones, -1 where a block did not merge; its depth map; the merged blocks' mean colours and flows)."""
+    block_ids = _blocks(level.ids)  # [I, h, w, 4]
+    block_depth = _blocks(level.depth)
     full = (block_ids >= 0).all(-1)
     # flat indices and index_select throughout: plain gathers, several times faster on a CPU than
     # boolean indexing
@@ -143,44 +163,76 @@ def _merge_level(
     planar = ((d[:, 0] + d[:, 3] - d[:, 1] - d[:, 2]).abs() <= config.planarity * mean_depth) & (
         d.amax(-1) - d.amin(-1) <= config.depth_range * mean_depth
     )
+    flat_cand = cand.flatten()
     if config.color_test == "detail":
-        color_ok = _detail(all_rgb, ids).flatten().index_select(0, full_at) <= config.color_range
+        detail = _detail(level.rgb, level.ids) if level.detail is None else level.detail
+        color_ok = detail.flatten().index_select(0, full_at) <= config.color_range
     else:
-        rgb = all_rgb.index_select(0, cand.flatten()).view(-1, 4, 3)
+        rgb = level.rgb.index_select(0, flat_cand).view(-1, 4, 3)
         color_ok = (rgb.amax(1) - rgb.amin(1)).amax(-1) <= config.color_range
-    flows = g.flows.index_select(0, cand.flatten()).view(-1, 4, 3)
-    bound = g.view_bound.index_select(0, cand.flatten()).view(-1, 4)
+    flows = level.flows.index_select(0, flat_cand).view(-1, 4, 3)
+    bound = level.bound.index_select(0, flat_cand).view(-1, 4)
     ok = planar & color_ok & ((flows.amax(1) - flows.amin(1)).amax(-1) <= config.flow_range) & (bound.all(-1) | ~bound.any(-1))
     ok_at = ok.nonzero().squeeze(1)
     groups = cand.index_select(0, ok_at)  # [M, 4]
+    merged_at = full_at.index_select(0, ok_at)
+    next_ids = torch.full(block_ids.shape[:3], -1, dtype=torch.long, device=level.ids.device)
+    next_ids.view(-1).index_copy_(0, merged_at, torch.arange(len(groups), device=level.ids.device))
     flat = groups.flatten()
+    following = _Level(
+        next_ids,
+        block_depth.mean(-1),
+        _group_mean(level.rgb, flat),
+        _group_mean(level.flows, flat),
+        level.bound.index_select(0, groups[:, 0]),
+    )
+    return groups, merged_at, mean_depth.index_select(0, ok_at), following
 
-    def mean(x: Tensor) -> Tensor:
-        return x.index_select(0, flat).view(len(groups), 4, *x.shape[1:]).mean(1)
 
+def _group_mean(x: Tensor, flat: Tensor) -> Tensor:
+    """``[M, ...]``: the mean of ``x`` ``[n, ...]`` over each group of four of the flat ids ``[4 M]``."""
+    return x.index_select(0, flat).view(len(flat) // 4, 4, *x.shape[1:]).mean(1)
+
+
+def _merged_gaussians(
+    g: Gaussians, groups: Tensor, merged_at: Tensor, mean_depth: Tensor, blocks_per_image: int, focal: Tensor,
+    side: float, eps2d: float,
+) -> Gaussians:  # fmt: skip
+    """The Gaussians ``groups`` ``[M, 4]`` of ``g`` merge into (module docstring): their mean,
+    colour, opacity and flow, their shape scaled by ``side``."""
+    flat = groups.flatten()
     first = groups[:, 0]
     # The renderer adds its low-pass ``eps2d`` (px^2) to every splat: scaling the 3D shape by ``side``
     # scales the splat's own variance by side^2 but not the low-pass, so (side^2 - 1) eps2d more,
     # isotropic at the block's depth, make the merged splat exactly ``side`` times a pixel's.
-    merged_at = full_at.index_select(0, ok_at)  # [M] each merged block's flat index into [I, h, w]
-    image = merged_at // (full.shape[1] * full.shape[2])  # [M] each block's image
-    low_pass = (side**2 - 1) * eps2d * (mean_depth.index_select(0, ok_at) / focal.to(mean_depth).index_select(0, image)) ** 2
-    log_scales = 0.5 * torch.log(torch.exp(2 * (mean(g.log_scales) + math.log(side))) + low_pass[:, None])
-    view_rays = F.normalize(mean(g.view_rays), dim=-1)  # zero stays zero
-    merged = Gaussians(
-        means=mean(g.means),
+    image = merged_at // blocks_per_image  # [M] each block's image
+    low_pass = (side**2 - 1) * eps2d * (mean_depth / focal.to(mean_depth).index_select(0, image)) ** 2  # m^2
+    log_scales = 0.5 * torch.log(torch.exp(2 * (_group_mean(g.log_scales, flat) + math.log(side))) + low_pass[:, None])
+    return Gaussians(
+        means=_group_mean(g.means, flat),
         quats=g.quats.index_select(0, first),
         log_scales=log_scales,
-        opacity_logits=torch.logit(mean(g.opacities[:, None])[:, 0].clamp(1e-6, 1 - 1e-6)),
-        sh=mean(g.sh),
-        flows=mean(g.flows),
+        opacity_logits=torch.logit(_group_mean(g.opacities[:, None], flat)[:, 0].clamp(1e-6, 1 - 1e-6)),
+        sh=_group_mean(g.sh, flat),
+        flows=_group_mean(g.flows, flat),
         keyframes=g.keyframes.index_select(0, first),
         cameras=g.cameras.index_select(0, first),
-        view_rays=view_rays,
+        view_rays=F.normalize(_group_mean(g.view_rays, flat), dim=-1),  # zero stays zero
     )
-    next_ids = torch.full(block_ids.shape[:3], -1, dtype=torch.long, device=ids.device)
-    next_ids.view(-1).index_copy_(0, merged_at, torch.arange(len(groups), device=ids.device))
-    return merged, groups, next_ids, block_depth.mean(-1), mean(all_rgb)
+
+
+def _merged_count(level: _Level, config: BlockMerge) -> int:
+    """How many Gaussians `merge_blocks` leaves, from the tests alone (no Gaussian is built): each
+    block that merges turns four into one."""
+    count = int((level.ids >= 0).sum())
+    for _ in range(config.levels):
+        if min(level.depth.shape[1:]) < 2:
+            break
+        groups, _, _, level = _decide(level, config)
+        count -= 3 * len(groups)
+        if len(groups) == 0:
+            break
+    return count
 
 
 def merge_blocks(
@@ -198,23 +250,19 @@ def merge_blocks(
     then camera) as assembled: merged Gaussians follow their image's remaining per-pixel ones.
     ``with_owners``: also ``[N]`` int64, the output Gaussian each of ``g`` became (itself or the
     block it merged into), so that a merged Gaussian's pixels are known (`render.color_solve`)."""
-    num, height, width = depth.shape
     focal = 0.5 * (intrinsics[:, 0, 0] + intrinsics[:, 1, 1]).float()  # [I] pixels per metre at 1 m
-    ids = torch.full((num * height * width,), -1, dtype=torch.long, device=pixels.device)
-    ids[pixels] = torch.arange(len(g), device=pixels.device)
-    ids = ids.view(num, height, width)
-    current, current_depth, parts = g, depth.float(), []
-    rgb = sh0_to_rgb(g.sh[:, 0]) if colors is None else colors.to(g.sh)
+    level = _first_level(g, pixels, depth, colors, config)
+    current, parts = g, []
     # each input Gaussian's place: in the current level (label) until it lands in a part (owner)
     label = torch.arange(len(g), device=g.device)
     owner = torch.full((len(g),), -1, dtype=torch.long, device=g.device)
     placed = 0
-    for level in range(config.levels):
-        if min(current_depth.shape[1:]) < 2:
+    for step in range(config.levels):
+        if min(level.depth.shape[1:]) < 2:
             break
-        merged, groups, ids, current_depth, rgb = _merge_level(
-            current, ids, current_depth, focal * 0.5**level, config, 2.0, eps2d, rgb
-        )
+        blocks_per_image = (level.depth.shape[1] // 2) * (level.depth.shape[2] // 2)
+        groups, merged_at, mean_depth, level = _decide(level, config)
+        merged = _merged_gaussians(current, groups, merged_at, mean_depth, blocks_per_image, focal * 0.5**step, 2.0, eps2d)
         alive = torch.ones(len(current), dtype=torch.bool, device=g.device)  # the previous level's that merged give way
         alive[groups.flatten()] = False
         rank = torch.cumsum(alive, 0) - 1
@@ -330,43 +378,51 @@ def merge_to_budget(
     if config.budget is None:
         return merge_blocks(g, pixels, depth, intrinsics, config, eps2d=eps2d, with_owners=with_owners, colors=colors)
     target = config.budget * len(g)
+    first = _first_level(g, pixels, depth, colors, config)
 
-    def merged(color_range: float, levels: int, geometry: float = 1.0) -> Gaussians:
-        loosened = replace(
+    def loosened(color_range: float, levels: int, geometry: float = 1.0) -> BlockMerge:
+        return replace(
             config,
             color_range=color_range,
             levels=levels,
             planarity=config.planarity * geometry,
             depth_range=config.depth_range * geometry,
         )
-        return merge_blocks(g, pixels, depth, intrinsics, loosened, eps2d=eps2d, with_owners=with_owners, colors=colors)
 
-    def size(result) -> int:
-        return len(result[0] if with_owners else result)
+    sizes: dict[BlockMerge, int] = {}
 
-    def bisect(lo: float, hi: float, best: Gaussians, candidate) -> Gaussians:
+    def size(setting: BlockMerge) -> int:  # from the tests alone: the Gaussians are built once, at the end
+        if setting not in sizes:
+            sizes[setting] = _merged_count(first, setting)
+        return sizes[setting]
+
+    def bisect(lo: float, hi: float, candidate) -> BlockMerge:
         """The smallest parameter in ``[lo, hi]`` (geometric bisection) whose merge meets the target;
-        ``best`` is the merge at ``hi``, which does."""
+        the merge at ``hi`` does."""
+        best = candidate(hi)
         for _ in range(BUDGET_STEPS):
             mid = math.sqrt(lo * hi)
-            out = candidate(mid)
-            if size(out) <= target:
-                hi, best = mid, out
+            setting = candidate(mid)
+            if size(setting) <= target:
+                hi, best = mid, setting
             else:
                 lo = mid
         return best
 
-    out = merged(config.color_range, config.levels)
-    if size(out) <= target:
-        return out
-    top = max(config.levels, BUDGET_LEVELS)
-    for levels in range(config.levels, top + 1):
-        loosest = merged(1.0, levels)
-        if size(loosest) <= target:
-            lo = max(config.color_range, 1e-3) if levels == config.levels else 1e-3
-            return bisect(lo, 1.0, loosest, lambda c, n=levels: merged(c, n))
-        out = min(out, loosest, key=size)
-    loosest = merged(1.0, top, BUDGET_GEOMETRY)
-    if size(loosest) > target:
-        return min(out, loosest, key=size)
-    return bisect(1.0, BUDGET_GEOMETRY, loosest, lambda s: merged(1.0, top, s))
+    def chosen() -> BlockMerge:
+        if size(config) <= target:
+            return config
+        out = config
+        top = max(config.levels, BUDGET_LEVELS)
+        for levels in range(config.levels, top + 1):
+            loosest = loosened(1.0, levels)
+            if size(loosest) <= target:
+                lo = max(config.color_range, 1e-3) if levels == config.levels else 1e-3
+                return bisect(lo, 1.0, lambda c, n=levels: loosened(c, n))
+            out = min(out, loosest, key=size)
+        loosest = loosened(1.0, top, BUDGET_GEOMETRY)
+        if size(loosest) > target:
+            return min(out, loosest, key=size)
+        return bisect(1.0, BUDGET_GEOMETRY, lambda f: loosened(1.0, top, f))
+
+    return merge_blocks(g, pixels, depth, intrinsics, chosen(), eps2d=eps2d, with_owners=with_owners, colors=colors)

@@ -177,6 +177,34 @@ def test_a_budget_loosens_colour_then_small_depth_steps_but_never_merges_across_
         BlockMerge(budget=1.5)
 
 
+def test_the_budget_counts_a_merge_from_its_tests_as_the_merge_itself_comes_out():
+    """`merge_to_budget` bisects on `_merged_count` (the tests alone, no Gaussian built): on a scene
+    with texture, a gradient, a depth step, sky holes and a moving patch it must equal the length of
+    the merge it stands for at every setting tried."""
+    from drivingscene.gaussians.parsimony import _first_level, _merged_count
+
+    gen = torch.Generator().manual_seed(3)
+    depth = torch.full((2, H, W), 5.0)
+    depth[:, :, W // 2 :] = 5.6  # a step of 11 %: merges only with the depth tests loosened
+    ramp = torch.linspace(0.2, 0.8, W)[None, None, :, None].expand(2, H, W, 3).clone()
+    ramp[:, : H // 3] += 0.05 * torch.rand(2, H // 3, W, 3, generator=gen)  # texture along the top
+    flows = torch.zeros(2, H, W, 3)
+    flows[:, H // 2 :, : W // 4] = torch.tensor([0.5, 0.0, 0.0])  # a moving patch
+    g, pixels = _assemble(depth, ramp, flows)
+    keep = torch.rand(len(g), generator=gen) > 0.05  # holes: sky, carved
+    g, pixels = g.index(keep), pixels[keep]
+    for test in ("detail", "range"):
+        for levels in (1, 2, 3):
+            for color_range in (0.005, 0.02, 0.1, 1.0):
+                for geometry in (1.0, 4.0):
+                    config = BlockMerge(
+                        color_range=color_range, color_test=test, levels=levels,
+                        planarity=0.03 * geometry, depth_range=0.1 * geometry,
+                    )  # fmt: skip
+                    merged = merge_blocks(g, pixels, depth, KS[:2], config, eps2d=EPS2D)
+                    assert _merged_count(_first_level(g, pixels, depth, None, config), config) == len(merged), config
+
+
 def test_a_smooth_gradient_merges_by_detail_and_texture_does_not():
     """The "detail" test bounds how far a pixel is from its blocks' means interpolated, what the
     merged splats draw: a gradient far wider than ``color_range`` across a block merges, a fine
