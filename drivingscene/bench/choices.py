@@ -77,6 +77,7 @@ class Variant:
     merge: float | None = None  # BlockMerge.color_range (gaussians/parsimony.py); -1: no merge; None: the default
     mtest: str | None = None  # BlockMerge.color_test: "detail" or "range"; None: the default
     mfit: int | None = None  # BlockMerge.fit_colors (0: per-pixel solve, block means); None: the default
+    mbudget: float | None = None  # BlockMerge.budget (a share of the per-pixel Gaussians); None: the default
     dedupe: bool | None = None  # InferenceOptions.dedupe on (KeyframeDedupe()) or off; None: the default
 
     def options(self, base):
@@ -136,11 +137,12 @@ class Variant:
         merge = base.merge
         if self.merge is not None:
             merge = None if self.merge < 0 else replace(merge or BlockMerge(), color_range=self.merge)
-        if merge is not None and (self.mtest is not None or self.mfit is not None):
+        if merge is not None and (self.mtest is not None or self.mfit is not None or self.mbudget is not None):
             merge = replace(
                 merge,
                 color_test=merge.color_test if self.mtest is None else self.mtest,
                 fit_colors=merge.fit_colors if self.mfit is None else self.mfit,
+                budget=merge.budget if self.mbudget is None else self.mbudget,
             )
         dedupe = base.dedupe if self.dedupe is None else (KeyframeDedupe() if self.dedupe else None)
         return replace(
@@ -190,7 +192,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, merge, mtest, mfit, dedupe."""
+    residual, osplit, omotion, odetect, merge, mtest, mfit, mbudget, dedupe."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -222,6 +224,8 @@ def parse_variant(text: str) -> Variant:
             values["mtest"] = value
         elif key == "mfit" and value.isdigit():
             values["mfit"] = int(value)
+        elif key == "mbudget" and _is_number(value) and 0 < float(value) <= 1:
+            values["mbudget"] = float(value)
         elif key in ("photo", "parallax", "head", "rig", "replace", "residual", "osplit", "dedupe") and value in ("on", "off"):
             values[key] = value == "on"
         elif key == "match" and value in MATCHES:
@@ -251,7 +255,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

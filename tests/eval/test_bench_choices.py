@@ -33,6 +33,11 @@ def test_the_merge_of_2026_12_01_is_a_variant_and_off_stays_off():
     assert (old.color_range, old.color_test, old.fit_colors) == (0.06, "range", 0)
     assert parse_variant("merge=off,mfit=2").options(InferenceOptions()).merge is None
     assert parse_variant("mfit=1").options(InferenceOptions()).merge.color_range == InferenceOptions().merge.color_range
+    budget = parse_variant("mbudget=0.5").options(InferenceOptions()).merge
+    assert (budget.budget, budget.color_range) == (0.5, InferenceOptions().merge.color_range)
+    for bad in ("mbudget=0", "mbudget=1.5"):
+        with pytest.raises(InputError, match=f"'{bad}'"):
+            parse_variant(bad)
 
 
 def test_sign_test_is_the_exact_binomial_tail():
