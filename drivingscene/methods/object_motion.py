@@ -62,6 +62,11 @@ class ObjectMotionConfig:
     # flow and its photometric cost is at most ``ratio`` times the rigid flow's over the try.
     min_motion: float = 3.0
     ratio: float = 0.6
+    # Uniqueness (Lowe's ratio test for a template): the match is kept only if its masked SSD is at
+    # most this times the best one elsewhere in the search window (outside half the template's size
+    # around it, at the same scale): a repeated texture (a row of windows, paving) matches several
+    # places alike, and the wrong one makes a static surface an object. 1: off.
+    unique: float = 1.0
     # True: a blob is also tried as its near and far parts (where its depth spans ``split_ratio``)
     # and as two halves across its longer side, for an object merged with the background it
     # uncovers or with a neighbour. Off: on validation pairs the extra tries found more static
@@ -80,6 +85,8 @@ class ObjectMotionConfig:
             raise ValueError(f"ObjectMotionConfig.elsewhere: expected 'search' or 'rigid', found {self.elsewhere!r}")
         if self.detect not in ("rigid", "fallback"):
             raise ValueError(f"ObjectMotionConfig.detect: expected 'rigid' or 'fallback', found {self.detect!r}")
+        if not 0 < self.unique <= 1:
+            raise ValueError(f"ObjectMotionConfig.unique: expected a ratio in (0, 1], found {self.unique}")
         for name in ("box", "min_pixels"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ObjectMotionConfig.{name}: expected >= 1, found {getattr(self, name)}")
@@ -131,10 +138,12 @@ def match_region(
     window: tuple[float, float, float, float],
     config: ObjectMotionConfig,
     scales: tuple[float, ...] | None = None,
-) -> tuple[float, np.ndarray] | None:
-    """Best (masked SSD per pixel, 2x3 warp) placing ``mask``'s pixels of grey ``image`` in grey
-    ``other``: scaled by each of ``scales`` (default ``config.scales``) and searched over ``window``
-    (x0, x1, y0, y1: the box to cover, widened by the margins). None where no scale fits."""
+) -> tuple[float, np.ndarray, float] | None:
+    """Best (masked SSD per pixel, 2x3 warp, the best SSD elsewhere in the window at that scale:
+    outside half the template's size around the match, inf where there is no elsewhere) placing
+    ``mask``'s pixels of grey ``image`` in grey ``other``: scaled by each of ``scales`` (default
+    ``config.scales``) and searched over ``window`` (x0, x1, y0, y1: the box to cover, widened by
+    the margins). None where no scale fits."""
     height, width = image.shape
     x0, x1, y0, y1 = _box(mask)
     template, weights = image[y0:y1, x0:x1], mask[y0:y1, x0:x1].astype(np.uint8)
@@ -159,7 +168,10 @@ def match_region(
             continue
         fx, fy = _subpixel(res, lx, ly)
         ax, ay = w / (x1 - x0), h / (y1 - y0)
-        best = (value, np.array([[ax, 0, sx0 + fx - ax * x0], [0, ay, sy0 + fy - ay * y0]], np.float32))
+        elsewhere = res.copy()
+        elsewhere[max(0, ly - h // 2) : ly + h // 2 + 1, max(0, lx - w // 2) : lx + w // 2 + 1] = np.inf
+        second = float(elsewhere.min()) if np.isfinite(elsewhere).any() else np.inf
+        best = (value, np.array([[ax, 0, sx0 + fx - ax * x0], [0, ay, sy0 + fy - ay * y0]], np.float32), second)
     return best
 
 
@@ -188,7 +200,7 @@ def track_region(
     height, width = image.shape
     x0, x1, y0, y1 = _box(mask)
     found = match_region(image, other, mask, _search_window(mask, rigid), config)
-    if found is None:
+    if found is None or (config.unique < 1 and found[0] >= config.unique * found[2]):
         return None
     warp = found[1]
     moved = cv2.warpAffine(mask.astype(np.uint8), warp, (width, height), flags=cv2.INTER_NEAREST) > 0

@@ -131,3 +131,21 @@ def test_reconstruct_with_objects(synth_pair):
     recon = reconstruct(model, synth_pair, InferenceOptions(objects=ObjectMotionConfig(elsewhere="rigid", min_pixels=20)))
     assert "objects_s" in recon.meta["timings"]
     assert recon.moving is not None and recon.gaussians.means.isfinite().all()
+
+
+def test_a_match_repeated_elsewhere_in_the_window_is_not_an_object_with_the_uniqueness_test():
+    """A patch whose copy also stands elsewhere in the other image (a row of windows): the track
+    finds one of the two places, the uniqueness ratio refuses both, and a patch found once passes."""
+    from drivingscene.methods.object_motion import track_region
+
+    images, mask0, _, warp = _scene((17.0, 2.0))
+    grey = images[..., 1].astype(np.float32)[:, 0] / 255
+    rigid = np.zeros((H, W, 2), np.float32)
+    assert track_region(grey[0], grey[1], mask0, rigid, ObjectMotionConfig(unique=0.8)) is not None
+    x, y, w, h = 40, 30, 28, 18
+    twice = grey[1].copy()
+    twice[y + 2 : y + 2 + h, x + 17 + w + 12 : x + 17 + 2 * w + 12] = grey[0][y : y + h, x : x + w]
+    assert track_region(grey[0], twice, mask0, rigid, ObjectMotionConfig()) is not None
+    assert track_region(grey[0], twice, mask0, rigid, ObjectMotionConfig(unique=0.8)) is None
+    with pytest.raises(ValueError, match="unique"):
+        ObjectMotionConfig(unique=0.0)
