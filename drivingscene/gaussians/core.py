@@ -208,8 +208,6 @@ class Gaussians:
             if ids.shape != (len(self),):
                 raise IndexError(f"Gaussians.index: a mask of {len(self)} entries expected, found shape {list(ids.shape)}")
             ids = ids.nonzero().squeeze(1)  # once, not once per field
-        elif ids.numel() == 0:
-            ids = ids.long()
         # index_select: a plain gather (its backward an index_add), several times faster on a CPU
         # than advanced indexing; negative indices count from the end as with indexing
         ids = torch.where(ids < 0, ids + len(self), ids).long()

@@ -44,6 +44,18 @@ def camera_centres(viewmats: Tensor) -> Tensor:
     return -(rot.transpose(-1, -2) @ viewmats[:, :3, 3:]).squeeze(-1)
 
 
+def _camera_offsets(cam_ids: Tensor, num_cams: int) -> tuple[Tensor, list[int]]:
+    """Row offsets ``[B + 1]`` of pairs grouped by camera (``cam_ids`` ``[M]`` ascending), and as a list."""
+    counts = torch.bincount(cam_ids, minlength=num_cams)
+    offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    return offsets, offsets.tolist()
+
+
+def _by_camera(bounds: list[int], fn: Callable[[int, int, int], Tensor | Projection]) -> list:
+    """``fn(b, lo, hi)`` for each camera ``b`` whose pairs are rows ``lo:hi`` (none: skipped)."""
+    return [fn(b, lo, hi) for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:])) if hi > lo]
+
+
 def make_splats(
     means: Tensor,  # [N, 3]
     quats: Tensor,  # [N, 4]
@@ -84,27 +96,16 @@ def make_splats(
                 by_camera = torch.sort(cam_ids, stable=True).indices
                 gs_ids, cam_ids = gs_ids.index_select(0, by_camera), cam_ids.index_select(0, by_camera)
             # camera by camera (cull_bound of one camera), not one gathered [M, 4, 4] matrix per pair
-            bounds = torch.cat([cam_ids.new_zeros(1), torch.bincount(cam_ids, minlength=num_cams).cumsum(0)]).tolist()
             pair_means = means.detach().index_select(0, gs_ids)
             pair_scales = scales.detach().index_select(0, gs_ids).amax(-1)
-            keep = torch.cat(
-                [pair_scales.new_zeros(0, dtype=torch.bool)]
-                + [
-                    cull_bound(
-                        pair_means[lo:hi],
-                        pair_scales[lo:hi],
-                        viewmats[b : b + 1],
-                        Ks[b : b + 1],
-                        width,
-                        height,
-                        near=near,
-                        far=far,
-                        eps2d=eps2d,
-                    )[0]
-                    for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))
-                    if hi > lo
-                ]
-            )
+            culled = _by_camera(
+                _camera_offsets(cam_ids, num_cams)[1],
+                lambda b, lo, hi: cull_bound(
+                    pair_means[lo:hi], pair_scales[lo:hi], viewmats[b : b + 1], Ks[b : b + 1], width, height,
+                    near=near, far=far, eps2d=eps2d,
+                )[0],
+            )  # fmt: skip
+            keep = torch.cat([pair_scales.new_zeros(0, dtype=torch.bool), *culled])
             keep = keep.nonzero().squeeze(1)
             cam_ids, gs_ids = cam_ids.index_select(0, keep), gs_ids.index_select(0, keep)
         if pair_opacity is not None:
@@ -113,13 +114,10 @@ def make_splats(
             cam_ids, gs_ids = cam_ids[keep], gs_ids[keep]
         # Sort key: camera z in float64, so that the order of nearly tied Gaussians (e.g. a
         # fronto-parallel wall, a ground-plane row) does not depend on float32 rounding.
-        rot_z = viewmats[:, 2, :3].double()
-        z64 = (means.detach().index_select(0, gs_ids).double() * rot_z.index_select(0, cam_ids)).sum(-1) + viewmats[
-            :, 2, 3
-        ].double().index_select(0, cam_ids)
-        counts = torch.bincount(cam_ids, minlength=num_cams)
-        offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
-        bounds = offsets.tolist()  # nonzero() lists pairs camera by camera, Gaussians ascending
+        rot_z, t_z = viewmats[:, 2, :3].double(), viewmats[:, 2, 3].double()
+        z64 = (means.detach().index_select(0, gs_ids).double() * rot_z.index_select(0, cam_ids)).sum(-1)
+        z64 = z64 + t_z.index_select(0, cam_ids)
+        offsets, bounds = _camera_offsets(cam_ids, num_cams)  # nonzero() lists pairs camera by camera, Gaussians ascending
         order = torch.cat([lo + torch.sort(z64[lo:hi], stable=True).indices for lo, hi in zip(bounds[:-1], bounds[1:])])
         cam_ids, gs_ids = cam_ids.index_select(0, order), gs_ids.index_select(0, order)
     # index_select: a plain gather (and its backward an index_add), several times faster than
@@ -128,39 +126,33 @@ def make_splats(
     pair_means, pair_covars = means.index_select(0, gs_ids), covars.index_select(0, gs_ids)
     # camera by camera (the pairs are grouped by camera), its matrices broadcast rather than
     # gathered into one [M, 4, 4] copy per pair
-    parts = [
-        project_covariances(
-            pair_means[lo:hi],
-            pair_covars[lo:hi],
-            viewmats[b : b + 1],
-            Ks[b : b + 1],
-            width,
-            height,
-            near=near,
-            far=far,
-            eps2d=eps2d,
-        )
-        for b, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))
-        if hi > lo
-    ]
-    proj = (
-        parts[0]
-        if len(parts) == 1
-        else Projection(*(torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Projection)))
-        if parts
-        else project_covariances(pair_means, pair_covars, viewmats[:1], Ks[:1], width, height, near=near, far=far, eps2d=eps2d)
-    )
+    parts = _by_camera(
+        bounds,
+        lambda b, lo, hi: project_covariances(
+            pair_means[lo:hi], pair_covars[lo:hi], viewmats[b : b + 1], Ks[b : b + 1], width, height,
+            near=near, far=far, eps2d=eps2d,
+        ),
+    )  # fmt: skip
+    if len(parts) == 1:
+        proj = parts[0]
+    elif parts:
+        proj = Projection(*(torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Projection)))
+    else:  # no pair: the empty fields, shaped as the projection makes them
+        proj = project_covariances(pair_means, pair_covars, viewmats[:1], Ks[:1], width, height, near=near, far=far, eps2d=eps2d)
     if sh_degree is None:
         splat_colors = colors.index_select(0, gs_ids)
     else:
         dirs = means.index_select(0, gs_ids) - camera_centres(viewmats).index_select(0, cam_ids)  # [M, 3]
         splat_colors = sh_to_color(sh_degree, colors.index_select(0, gs_ids), dirs)
+    pair_opacities = opacities.index_select(0, gs_ids)
+    if pair_opacity is not None:
+        pair_opacities = pair_opacities * pair_opacity(cam_ids, gs_ids)
     return Splats(
         means2d=proj.means2d,
         conics=proj.conics,
         depths=proj.depths,
         radii=proj.radii,
-        opacities=opacities.index_select(0, gs_ids) * (1.0 if pair_opacity is None else pair_opacity(cam_ids, gs_ids)),
+        opacities=pair_opacities,
         colors=splat_colors,
         camera_ids=cam_ids,
         gaussian_ids=gs_ids,
