@@ -15,8 +15,9 @@ splatting blur, exact where depth order makes it irregular.
 Gaussian projects to the pixel centre at its depth, so the splats are built from the maps without
 projecting anything. ``solve_gaussian_colors`` works on assembled Gaussians of any geometry, each
 standing for a set of its image's pixels (a merged block's, ``gaussians.parsimony``): the splats
-are projected, and a Gaussian's step is the mean of its pixels' residuals; a Gaussian standing for
-its own pixel alone is the per-pixel solve.
+are projected into their own image alone (``own_view_splats_of``: what the renderer projects, image
+by image without its per-camera cull), and a Gaussian's step is the mean of its pixels' residuals;
+a Gaussian standing for its own pixel alone is the per-pixel solve.
 """
 
 from __future__ import annotations
@@ -31,10 +32,11 @@ from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import own_view_covariance
 from drivingscene.gaussians.core import SH_C0, Gaussians
 from drivingscene.geometry.camera import unproject
+from drivingscene.geometry.se3 import matrix_to_quat, matvec, quat_left_matrix
 from drivingscene.render.composite import SURFACE_TOLERANCE, composite, find_pairs_torch, pair_inputs
 from drivingscene.render.project import EPS2D
 from drivingscene.render.rasterize import DEFAULT_MAX_LAYERS, choose_backend
-from drivingscene.render.splats import Splats, make_splats
+from drivingscene.render.splats import MIN_ALPHA, Splats
 
 # Iterations of the solve: on the DDAD pair the input views went from 27.9 to 32.5 dB after one and
 # to ~34 after two (composited); with the smaller cap a third sharpens the magnified views, and more
@@ -71,29 +73,99 @@ def own_view_splats(
     # The footprints on the whole maps (contiguous, focal lengths broadcast), then one gather.
     k = intrinsics.float()
     points = unproject(depth.float().clamp(min=1e-3), k)
-    a, b, c = own_view_covariance(
-        points, quats.float(), log_scales.float(), k[:, None, None, [0, 1], [0, 1]], k[:, 0, 1, None, None]
-    )
+    fields = _own_fields(
+        points, quats.float(), log_scales.float(), opacities.float(), k[:, None, None, [0, 1], [0, 1]],
+        k[:, 0, 1, None, None], eps2d,
+    ).reshape(-1, 5).index_select(0, idx)  # fmt: skip
+    u = (idx % width).float()
+    v = ((idx // width) % height).float()
+    return _splats(torch.stack([u, v], -1), fields, z, image, idx, num), idx
+
+
+def _own_fields(
+    points: Tensor, quats: Tensor, log_scales: Tensor, opacities: Tensor, focal: Tensor, skew: Tensor, eps2d: float
+) -> Tensor:
+    """``[..., 5]``: the conic (3), the 3-sigma radius and the opacity of Gaussians drawn into the
+    camera whose axes ``points`` and ``quats`` are given in (`own_view_covariance`, the renderer's
+    low-pass added)."""
+    a, b, c = own_view_covariance(points, quats, log_scales, focal, skew)
     a, c = a + eps2d, c + eps2d
     det = (a * c - b * b).clamp(min=1e-12)
     largest = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
-    fields = torch.stack([c / det, -b / det, a / det, 3.0 * torch.sqrt(largest), opacities.float()], -1)
-    fields = fields.reshape(-1, 5).index_select(0, idx)
-    u = (idx % width).float()
-    v = ((idx // width) % height).float()
+    return torch.stack([c / det, -b / det, a / det, 3.0 * torch.sqrt(largest), opacities], -1)
+
+
+def _splats(means2d: Tensor, fields: Tensor, depths: Tensor, image: Tensor, ids: Tensor, num: int) -> Splats:
+    """`Splats` of rows already in compositing order (image, then depth), fields from `_own_fields`."""
     counts = torch.bincount(image, minlength=num)
-    splats = Splats(
-        means2d=torch.stack([u, v], -1),
+    return Splats(
+        means2d=means2d,
         conics=fields[:, :3],
-        depths=z,
+        depths=depths,
         radii=fields[:, 3],
         opacities=fields[:, 4],
-        colors=torch.zeros(len(idx), 3),
+        colors=torch.zeros(len(ids), 3),
         camera_ids=image,
-        gaussian_ids=idx,
+        gaussian_ids=ids,
         camera_offsets=torch.cat([counts.new_zeros(1), counts.cumsum(0)]),
     )
-    return splats, idx
+
+
+def own_view_splats_of(
+    g: Gaussians,
+    views: Tensor,  # [N] int64: the image each Gaussian stands in (its pixels')
+    world_to_cam: Tensor,  # [I, 4, 4]
+    intrinsics: Tensor,  # [I, 3, 3]
+    width: int,
+    height: int,
+    eps2d: float = EPS2D,
+    near: float = 0.01,
+) -> Splats:
+    """Each Gaussian of ``g`` drawn into its own image alone, in compositing order (image, then
+    depth): what ``render.splats.make_splats(..., views=views)`` projects, for Gaussians that stand
+    on their image's pixels (a per-pixel Gaussian, a merged block), so that its per-camera cull and
+    batched products are not needed (0.10 -> 0.04 s on a validation pair's merged Gaussians).
+    Gaussians behind ``near`` or fainter than the renderer draws are left out; a splat that misses
+    the image gets radius 0. Colours are left empty."""
+    num = world_to_cam.shape[0]
+    views = views.long()
+    ids = torch.arange(len(g), device=views.device)
+    sorted_views = len(views) < 2 or bool((views[1:] >= views[:-1]).all())  # as assembled: by image already
+    if not sorted_views:
+        ids = torch.sort(views, stable=True).indices
+        views = views.index_select(0, ids)
+    rot, trans = world_to_cam[:, :3, :3].float(), world_to_cam[:, :3, 3].float()
+    to_cam = quat_left_matrix(matrix_to_quat(rot))  # [I, 4, 4]: world axes' quaternions to the camera's
+    k = intrinsics.float()
+    means, quats, log_scales, opacities = g.means.float(), g.quats.float(), g.log_scales.float(), g.opacities.float()
+    if not sorted_views:
+        means, quats, log_scales, opacities = (x.index_select(0, ids) for x in (means, quats, log_scales, opacities))
+    counts = torch.bincount(views, minlength=num).tolist()
+    parts, lo = [], 0
+    for b, n in enumerate(counts):  # image by image, its matrices broadcast: no [N, 3, 3] gather
+        if n == 0:
+            continue
+        p_cam = matvec(rot[b], means[lo : lo + n], trans[b])
+        z = p_cam[:, 2].clamp(min=near)
+        x, y = p_cam[:, 0] / z, p_cam[:, 1] / z
+        fields = _own_fields(
+            p_cam, matvec(to_cam[b], quats[lo : lo + n]), log_scales[lo : lo + n], opacities[lo : lo + n],
+            k[b, [0, 1], [0, 1]], k[b, 0, 1], eps2d,
+        )  # fmt: skip
+        u, v = k[b, 0, 0] * x + k[b, 0, 1] * y + k[b, 0, 2], k[b, 1, 1] * y + k[b, 1, 2]
+        radius = fields[:, 3]
+        touches = (u + radius >= 0) & (u - radius <= width - 1) & (v + radius >= 0) & (v - radius <= height - 1)
+        fields[:, 3] = torch.where(touches, radius, 0.0)
+        parts.append(torch.cat([fields, u[:, None], v[:, None], p_cam[:, 2:]], -1))
+        lo += n
+    rows = torch.cat([torch.zeros(0, 8), *parts])  # [N, 8]: conic, radius, opacity, u, v, z
+    z = rows[:, 7]
+    keep = ((z >= near) & (rows[:, 4] >= MIN_ALPHA)).nonzero().squeeze(1)
+    # one sort by (image, depth, Gaussian): a positive float's bits order like the float
+    key = (views.index_select(0, keep) << 32) | z.index_select(0, keep).view(torch.int32).long()
+    order = keep.index_select(0, torch.sort(key, stable=True).indices)
+    rows = rows.index_select(0, order)
+    return _splats(rows[:, 5:7], rows[:, :5], rows[:, 7], views.index_select(0, order), ids.index_select(0, order), num)
 
 
 def solve_pixel_colors(
@@ -192,7 +264,8 @@ def solve_gaussian_colors(
     """``g`` with its view-independent colours solved so that each image's own layer re-renders the
     image, a Gaussian fitted over all the pixels it stands for (a merged block's: the mean of their
     residuals, module docstring), after `merge_blocks` or any other change of the geometry: the
-    splats are projected, not built from the maps. The SH terms above the DC are kept. No gradients."""
+    splats are projected (`own_view_splats_of`), not built from the maps. The SH terms above the DC
+    are kept. No gradients."""
     num, height, width = images.shape[:3]
     if images.shape[-1] != 3 or owners.shape != pixels.shape or world_to_cam.shape[0] != num or intrinsics.shape[0] != num:
         raise InputError(
@@ -205,10 +278,7 @@ def solve_gaussian_colors(
     with torch.no_grad():
         start = (SH_C0 * g.sh[:, 0].float() + 0.5).clamp(min=0.0)
         views = g.keyframes.long() * (num // 2) + g.cameras.long()
-        s = make_splats(
-            g.means.float(), g.quats.float(), g.scales.float(), g.opacities.float(), start, world_to_cam.float(),
-            intrinsics.float(), width, height, sh_degree=None, near=0.01, far=1e10, eps2d=eps2d, views=views,
-        )  # fmt: skip
+        s = own_view_splats_of(g, views, world_to_cam, intrinsics, width, height, eps2d)
         gids = s.gaussian_ids
         # each splat's pixels, in splat order (CSR)
         counts = torch.bincount(owners, minlength=len(g))

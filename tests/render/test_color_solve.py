@@ -206,3 +206,58 @@ def test_the_general_solve_names_what_it_expected():
     merged, owners, pixels, image, k = _merged_scene(12, 20)
     with pytest.raises(InputError, match="owners and pixels"):
         solve_gaussian_colors(merged, owners[:-1], pixels, image, torch.eye(4).expand(2, 4, 4), k)
+
+
+def test_own_view_splats_of_assembled_gaussians_are_what_the_renderer_projects():
+    """Gaussians that stand on their own image's pixels (rotated, moved cameras with skew; views out of
+    order; some behind the camera or too faint to draw): the splats built image by image equal
+    ``make_splats(..., views=...)``, pair for pair and in compositing order."""
+    from drivingscene.gaussians.core import Gaussians
+    from drivingscene.render.color_solve import own_view_splats_of
+    from drivingscene.render.project import EPS2D
+    from drivingscene.render.splats import make_splats
+
+    gen = torch.Generator().manual_seed(3)
+    num, n, width, height = 3, 400, 48, 32
+    angles = torch.tensor([0.3, -1.1, 2.0])
+    rot = torch.zeros(num, 3, 3)
+    rot[:, 0, 0], rot[:, 0, 2], rot[:, 1, 1], rot[:, 2, 0], rot[:, 2, 2] = (
+        angles.cos(),
+        angles.sin(),
+        1.0,
+        -angles.sin(),
+        angles.cos(),
+    )
+    world_to_cam = torch.eye(4).repeat(num, 1, 1)
+    world_to_cam[:, :3, :3] = rot
+    world_to_cam[:, :3, 3] = torch.randn(num, 3, generator=gen)
+    k = torch.tensor([[40.0, 0.5, 23.5], [0.0, 38.0, 15.5], [0.0, 0.0, 1.0]]).repeat(num, 1, 1)
+    k[1, 0, 0] = 55.0
+    views = torch.randint(0, num, (n,), generator=gen)
+    uv = torch.rand(n, 2, generator=gen) * torch.tensor([width - 1.0, height - 1.0])
+    z = 2.0 + 20.0 * torch.rand(n, generator=gen)
+    z[:5] = -1.0  # behind its camera: never drawn
+    kv = k[views]
+    y = (uv[:, 1] - kv[:, 1, 2]) / kv[:, 1, 1]
+    x = (uv[:, 0] - kv[:, 0, 2] - kv[:, 0, 1] * y) / kv[:, 0, 0]
+    p_cam = torch.stack([x * z, y * z, z], -1)
+    rv, tv = world_to_cam[views, :3, :3], world_to_cam[views, :3, 3]
+    means = ((p_cam - tv)[:, None, :] @ rv)[:, 0]  # R^T (p - t)
+    opacity = 0.05 + 0.9 * torch.rand(n, generator=gen)
+    opacity[5:9] = 1e-3  # fainter than the renderer draws
+    g = Gaussians(
+        means=means, quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=gen), dim=-1),
+        log_scales=torch.log(0.02 + 0.1 * torch.rand(n, 3, generator=gen)) + torch.log(z.abs())[:, None] - 3.0,
+        opacity_logits=torch.logit(opacity), sh=torch.zeros(n, 1, 3), flows=torch.zeros(n, 3),
+        keyframes=torch.zeros(n, dtype=torch.long), cameras=views, view_rays=torch.zeros(n, 3),
+    )  # fmt: skip
+    got = own_view_splats_of(g, views, world_to_cam, k, width, height, EPS2D)
+    expected = make_splats(
+        g.means, g.quats, g.scales, g.opacities, torch.zeros(n, 3), world_to_cam, k, width, height,
+        sh_degree=None, near=0.01, far=1e10, eps2d=EPS2D, views=views,
+    )  # fmt: skip
+    assert len(got.gaussian_ids) == n - 9
+    assert torch.equal(got.gaussian_ids, expected.gaussian_ids) and torch.equal(got.camera_ids, expected.camera_ids)
+    assert torch.equal(got.camera_offsets, expected.camera_offsets)
+    for name in ("means2d", "conics", "depths", "radii", "opacities"):
+        torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=1e-4, atol=1e-4)
