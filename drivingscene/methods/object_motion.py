@@ -29,6 +29,8 @@ inference (`InferenceOptions.objects`, ``drivingscene reconstruct --objects``), 
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -52,6 +54,8 @@ class ObjectMotionConfig:
     split_ratio: float = 1.3
     # Template scales tried, and the search window's margins (pixels) around the blob's box and the
     # box the rigid flow carries it to: objects cross the image faster sideways than up and down.
+    # The sideways margin goes no further than ``max_motion`` allows (and 16 px): a match beyond
+    # it would be refused.
     scales: tuple[float, ...] = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.17, 1.25)
     margin_x: int = 96
     margin_y: int = 24
@@ -62,6 +66,11 @@ class ObjectMotionConfig:
     # flow and its photometric cost is at most ``ratio`` times the rigid flow's over the try.
     min_motion: float = 3.0
     ratio: float = 0.6
+    # ... and at most this share of the image's width (median, off the rigid flow): on the ten
+    # validation pairs every accepted match that moved its pixels further than 46 px of 320 but one
+    # was a static surface carried onto another (a ghost at t = 0.5), every true object moved less
+    # (docs/moving-objects.md). 1: no bound beyond the search window.
+    max_motion: float = 0.15
     # Uniqueness (Lowe's ratio test for a template): the match is kept only if its masked SSD is at
     # most this times the best one elsewhere in the search window (outside half the template's size
     # around it, at the same scale): a repeated texture (a row of windows, paving) matches several
@@ -85,6 +94,8 @@ class ObjectMotionConfig:
             raise ValueError(f"ObjectMotionConfig.elsewhere: expected 'search' or 'rigid', found {self.elsewhere!r}")
         if self.detect not in ("rigid", "fallback"):
             raise ValueError(f"ObjectMotionConfig.detect: expected 'rigid' or 'fallback', found {self.detect!r}")
+        if not 0 < self.max_motion <= 1:
+            raise ValueError(f"ObjectMotionConfig.max_motion: expected a share of the width in (0, 1], found {self.max_motion}")
         if not 0 < self.unique <= 1:
             raise ValueError(f"ObjectMotionConfig.unique: expected a ratio in (0, 1], found {self.unique}")
         for name in ("box", "min_pixels"):
@@ -147,6 +158,7 @@ def match_region(
     height, width = image.shape
     x0, x1, y0, y1 = _box(mask)
     template, weights = image[y0:y1, x0:x1], mask[y0:y1, x0:x1].astype(np.uint8)
+    margin_x = min(config.margin_x, config.max_motion * width + 16)
     best = None
     for a in config.scales if scales is None else scales:
         w, h = max(3, round((x1 - x0) * a)), max(3, round((y1 - y0) * a))
@@ -155,8 +167,8 @@ def match_region(
         if m.sum() < 5:
             continue
         grow_x, grow_y = (w - (x1 - x0)) / 2, (h - (y1 - y0)) / 2
-        sx0 = int(max(0, np.floor(window[0] - config.margin_x - grow_x)))
-        sx1 = int(min(width, np.ceil(window[1] + config.margin_x + grow_x)))
+        sx0 = int(max(0, np.floor(window[0] - margin_x - grow_x)))
+        sx1 = int(min(width, np.ceil(window[1] + margin_x + grow_x)))
         sy0 = int(max(0, np.floor(window[2] - config.margin_y - grow_y)))
         sy1 = int(min(height, np.ceil(window[3] + config.margin_y + grow_y)))
         if sx1 - sx0 < w or sy1 - sy0 < h:
@@ -265,9 +277,10 @@ def object_flows(
     owned = np.zeros(rigid.shape[:-1], bool)
     opening = np.ones((2 * config.open_radius + 1,) * 2, np.uint8)
     closing = np.ones((2 * config.close_radius + 1,) * 2, np.uint8)
-    for k in (0, 1):
-        o = 1 - k
-        for v in range(num_views):
+
+    def camera(v: int) -> None:  # a camera's two keyframes; cameras share nothing, so they run side by side
+        for k in (0, 1):
+            o = 1 - k
             static_cost, outside = warp_cost(rgb[k, v], rgb[o, v], base[k, v], config.box, grid)
             candidates = ((static_cost > config.threshold) & ~excluded[k, v] & ~outside & ~owned[k, v]).astype(np.uint8)
             candidates = cv2.morphologyEx(cv2.morphologyEx(candidates, cv2.MORPH_OPEN, opening), cv2.MORPH_CLOSE, closing)
@@ -286,6 +299,16 @@ def object_flows(
                         _track_and_paint(
                             flow, owned, rgb, grey, rigid, base_cost, k, v, region, blob & ~owned[k, v], grid, config
                         )
+
+    # OpenCV releases the GIL in its calls (the template matches are most of the time): one thread
+    # per core, each camera's results written to its own slices (the same as one after the other)
+    workers = max(1, min(num_views, cv2.getNumThreads(), os.cpu_count() or 1))
+    if workers == 1:
+        for v in range(num_views):
+            camera(v)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(camera, range(num_views)))
     return flow, owned
 
 
@@ -330,13 +353,14 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
     dense, cost, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, base_cost, grid)
     if keep.sum() < config.min_pixels // 2:
         return False
-    if np.median(np.linalg.norm(dense[keep] - rigid[k, v][keep], axis=-1)) < config.min_motion:
+    height, width = region.shape
+    motion = float(np.median(np.linalg.norm(dense[keep] - rigid[k, v][keep], axis=-1)))
+    if motion < config.min_motion or motion > config.max_motion * width:
         return False
     if cost[region].mean() > config.ratio * base_cost[region].mean():
         return False
     flow[k, v][keep] = dense[keep]
     owned[k, v] |= keep
-    height, width = region.shape
     there = cv2.warpAffine(keep.astype(np.uint8), warp, (width, height), flags=cv2.INTER_NEAREST) > 0
     there &= ~owned[o, v]
     ys, xs = np.nonzero(there)

@@ -3,6 +3,8 @@ is the motion it was given (both directions, consistent), and a static world fin
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -76,6 +78,30 @@ def test_a_moved_object_is_tracked_both_ways(shift, scale, split):
     assert (owned[0, 0] & world).mean() < 0.01 and np.abs(flow[0, 0][~owned[0, 0]]).max() == 0
 
 
+def test_a_match_that_moves_further_than_max_motion_is_not_an_object():
+    """A patch carried 40 px (0.23 of the width): tracked with no bound, refused at the default
+    0.15 of the width (a static surface matched onto another, docs/moving-objects.md)."""
+    images, mask0, _, _ = _scene((40.0, 2.0))
+    _, unbounded = _run(images, ObjectMotionConfig(max_motion=1.0))
+    assert (unbounded[0, 0] & mask0).sum() >= 0.6 * mask0.sum()
+    _, owned = _run(images)
+    assert (owned[0, 0] & mask0).sum() < 0.1 * mask0.sum()
+    with pytest.raises(ValueError, match="max_motion"):
+        ObjectMotionConfig(max_motion=0.0)
+
+
+def test_cameras_tracked_side_by_side_are_tracked_as_alone():
+    """object_flows runs the cameras in threads: three cameras with objects moved differently give
+    each camera's result alone, to the bit."""
+    scenes = [_scene(shift)[0] for shift in ((17.0, 2.0), (-12.0, 1.0), (8.0, -1.5))]
+    together = _run(np.concatenate(scenes, axis=1))
+    for v, images in enumerate(scenes):
+        alone = _run(images)
+        np.testing.assert_array_equal(together[0][:, v], alone[0][:, 0])
+        np.testing.assert_array_equal(together[1][:, v], alone[1][:, 0])
+        assert alone[1].any()
+
+
 def test_a_static_world_has_no_objects():
     images, _, _, _ = _scene()
     images[1] = images[0]
@@ -141,11 +167,12 @@ def test_a_match_repeated_elsewhere_in_the_window_is_not_an_object_with_the_uniq
     images, mask0, _, warp = _scene((17.0, 2.0))
     grey = images[..., 1].astype(np.float32)[:, 0] / 255
     rigid = np.zeros((H, W, 2), np.float32)
-    assert track_region(grey[0], grey[1], mask0, rigid, ObjectMotionConfig(unique=0.8)) is not None
+    wide = ObjectMotionConfig(max_motion=1.0)  # the search window at its full margins: the copy is inside
+    assert track_region(grey[0], grey[1], mask0, rigid, replace(wide, unique=0.8)) is not None
     x, y, w, h = 40, 30, 28, 18
     twice = grey[1].copy()
     twice[y + 2 : y + 2 + h, x + 17 + w + 12 : x + 17 + 2 * w + 12] = grey[0][y : y + h, x : x + w]
-    assert track_region(grey[0], twice, mask0, rigid, ObjectMotionConfig()) is not None
-    assert track_region(grey[0], twice, mask0, rigid, ObjectMotionConfig(unique=0.8)) is None
+    assert track_region(grey[0], twice, mask0, rigid, wide) is not None
+    assert track_region(grey[0], twice, mask0, rigid, replace(wide, unique=0.8)) is None
     with pytest.raises(ValueError, match="unique"):
         ObjectMotionConfig(unique=0.0)
