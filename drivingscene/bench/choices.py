@@ -69,7 +69,9 @@ class Variant:
     replace: bool | None = None  # MatchedDepthConfig.replace: determined pixels take the triangulated depth
     pdepth: str | None = None  # LiftConfig.epipolar_depth
     ptex: float | None = None  # LiftConfig.epipolar_min_texture
-    objects: str = "off"  # InferenceOptions.objects: "off", or tracked with "search" or "rigid" flow elsewhere
+    objects: str | None = (
+        None  # InferenceOptions.objects: "off", or tracked with "search" or "rigid" flow elsewhere; None: the default
+    )
     residual: bool = True  # InferenceOptions.use_residual (False: static-only)
     osplit: bool | None = None  # ObjectMotionConfig.split; None: the default
     omotion: float | None = None  # ObjectMotionConfig.min_motion; None: the default
@@ -139,9 +141,14 @@ class Variant:
             "max_motion": self.omax,
             "margin_x": self.omargin,
         }  # None: the default
-        objects = None
-        if self.objects != "off":
-            objects = ObjectMotionConfig(elsewhere=self.objects, **{k: v for k, v in chosen.items() if v is not None})
+        chosen = {k: v for k, v in chosen.items() if v is not None}
+        objects = base.objects
+        if self.objects == "off":
+            objects = None
+        elif self.objects is not None:
+            objects = replace(objects or ObjectMotionConfig(), elsewhere=self.objects, **chosen)
+        elif objects is not None and chosen:
+            objects = replace(objects, **chosen)
         from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe
 
         merge = base.merge

@@ -399,9 +399,21 @@ def _stability_panel(ax, axis: dict, styles: dict, to_family: dict[str, str]) ->
     labels += _draw_failures(ax, failures)
     ax.set_title(axis.get("name", axis.get("knob", "")))
     ax.set_xlabel(f"{axis.get('knob', '')}")
-    ax.set_ylabel("in-between PSNR (dB)")
+    ax.set_ylabel(axis.get("ylabel", "in-between PSNR (dB)"))
     ax.grid(alpha=0.3)
     return labels
+
+
+def _moving_pixels_axis(axes_data: list[dict]) -> dict | None:
+    """The object-speed axis again over its moving pixels alone (``psnr_dyn``: where moving objects
+    are a few percent of the pixels, all pixels hide what the dynamics do), or None without them."""
+    for axis in axes_data:
+        curves = axis["curves"]
+        if axis.get("knob") == "object_speed_scale" and any(_finite(v) for c in curves.values() for v in c.get("psnr_dyn") or []):
+            moving = {m: {"psnr": c.get("psnr_dyn") or [], "error": c.get("error")} for m, c in curves.items()}
+            return {**axis, "name": f"{axis.get('name', '')}: moving pixels", "curves": moving, "breaks": {},
+                    "ylabel": "in-between PSNR, moving pixels (dB)"}  # fmt: skip
+    return None
 
 
 def _draw_failures(ax, failures: list[tuple[float, str]]) -> list[tuple]:
@@ -423,7 +435,8 @@ def _draw_failures(ax, failures: list[tuple[float, str]]) -> list[tuple]:
 
 def stability_chart(report: dict, path: str | os.PathLike) -> Path:
     """One panel per stability axis: each method's PSNR along the knob, the easiest setting dashed,
-    each method's break marked with an X, settings that raised drawn in red along the bottom.
+    each method's break marked with an X, settings that raised drawn in red along the bottom; and
+    the object-speed axis again over its moving pixels (`_moving_pixels_axis`).
 
     Raises:
         InputError: the report has no stability axis.
@@ -431,6 +444,8 @@ def stability_chart(report: dict, path: str | os.PathLike) -> Path:
     axes_data = [a for a in report.get("stability", {}).get("axes", []) if a.get("values") and a.get("curves")]
     if not axes_data:
         raise InputError("benchmark report: no stability axis with values and curves")
+    moving = _moving_pixels_axis(axes_data)
+    axes_data = axes_data + ([moving] if moving else [])
     ncols = 2 if len(axes_data) == 4 else min(3, len(axes_data))
     nrows = math.ceil(len(axes_data) / ncols)
     styles, to_family = report_styles(report), method_families(report)

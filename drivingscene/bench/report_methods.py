@@ -24,6 +24,7 @@ FULL = "DrivingScene"
 STATIC = "DrivingScene, static-only"
 R_ALONE = "DrivingScene, R alone (no search)"
 SEARCH_ALONE = "DrivingScene, search alone (no R)"
+NO_OBJECTS = "no object tracking"
 SINGLE = "DrivingScene, single-stage"
 TWO_STAGE = "DrivingScene, two-stage (ablation pair)"
 BUDGETED = "DrivingScene + Gaussian budget"
@@ -159,14 +160,17 @@ def benchmark_methods(model, args, profile: Profile, real: bool) -> list[Method]
     # D's depth as it is (no classical matching at inference), and matching guided by D alone (no
     # road-plane fallback): the same model, faster
     out.append(Method(FULL, "no matching", FULL, lambda p: reconstruct(model, p, InferenceOptions(match=None))))
+    # R and the search alone on moving objects (no tracking, methods/object_motion.py)
+    out.append(Method(FULL, NO_OBJECTS, FULL, lambda p: reconstruct(model, p, InferenceOptions(objects=None))))
     over_time = InferenceOptions(match=match_mode("time"))
     out.append(Method(FULL, "matching over time only", FULL, lambda p: reconstruct(model, p, over_time)))
     depth_guided = InferenceOptions(match=match_mode("depth"))
     out.append(Method(FULL, "matching guided by D only", FULL, lambda p: reconstruct(model, p, depth_guided)))
     out.append(Method(STATIC, "native", STATIC, lambda p: reconstruct(model, p, InferenceOptions(use_residual=False))))
     if not real:
-        out.append(Method(R_ALONE, "native", R_ALONE, lambda p: reconstruct(model, p, InferenceOptions(search=None))))
-        search = InferenceOptions(search=MotionSearchConfig(use_network=False))
+        r_alone = InferenceOptions(search=None, objects=None)
+        out.append(Method(R_ALONE, "native", R_ALONE, lambda p: reconstruct(model, p, r_alone)))
+        search = InferenceOptions(search=MotionSearchConfig(use_network=False), objects=None)
         out.append(Method(SEARCH_ALONE, "native", SEARCH_ALONE, lambda p: reconstruct(model, p, search)))
     if args.joint_weights is not None and not real:
         joint = load_model(args.joint_weights)

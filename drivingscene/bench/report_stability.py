@@ -25,6 +25,9 @@ class Axis:
     unit: str = ""
 
 
+# What each method's curve holds per setting: the in-between PSNR over the pixels that see the
+# world and over the moving ones, depth AbsRel, the error a setting raised.
+FIELDS = ("psnr", "abs_rel", "error", "psnr_dyn")
 AXES = (
     Axis("object speed", "object_speed_scale", (0.0, 1.0, 2.0, 4.0), 0, "x"),
     Axis("ego speed", "ego_speed", (0.0, 4.0, 8.0, 16.0, 24.0), 0, "m/s"),
@@ -73,27 +76,26 @@ def stability(methods: list, size: tuple[int, int], seeds: int, ends_only: bool 
     done: dict[tuple[str, str], tuple] = {}
     for axis in AXES:
         values = (axis.values[axis.easiest], axis.values[-1]) if ends_only else axis.values
-        curves = {m.name: {"psnr": [], "abs_rel": [], "error": []} for m in methods}
+        curves = {m.name: {field: [] for field in FIELDS} for m in methods}
         for value in values:
             config = _axis_config(axis, value, size)
             scored_without = axis.knob == "blackout_camera" and value != "none"  # `_live_cameras`
             key = repr(config) + (f" scored without camera {value}" if scored_without else "")
             if all((key, m.name) in done for m in methods):
                 for m in methods:
-                    for field, result in zip(("psnr", "abs_rel", "error"), done[key, m.name]):
+                    for field, result in zip(FIELDS, done[key, m.name]):
                         curves[m.name][field].append(result)
                 continue
             pairs = [generate_pair(config, s, renderer) for s in seed_list]
             for m in methods:
-                scores, depths, error = [], [], None
+                scores, moving, depths, error = [], [], [], None
                 for pair in pairs:
                     target = _live_cameras(pair, axis, value)
                     try:
                         result = m.run(pair)
-                        psnr = (score_frames(result, target, None) if m.frames else score_novel_views(result, target, None))[
-                            "psnr"
-                        ]
-                        scores.append(psnr)
+                        frame = score_frames(result, target, None) if m.frames else score_novel_views(result, target, None)
+                        scores.append(frame["psnr"])
+                        moving.append(frame.get("psnr_dyn", math.nan))
                         if not m.frames and result.depth is not None and pair.gt_depth is not None:
                             depths.append(score_depth(result, pair)["depth_abs_rel"])
                     except Exception as e:  # a method that raises breaks here: recorded, not fatal
@@ -107,7 +109,10 @@ def stability(methods: list, size: tuple[int, int], seeds: int, ends_only: bool 
                 finite = [d for d in depths if math.isfinite(d)]
                 curves[m.name]["abs_rel"].append(sum(finite) / len(finite) if finite and not error else None)
                 curves[m.name]["error"].append(error)
-                done[key, m.name] = tuple(curves[m.name][field][-1] for field in ("psnr", "abs_rel", "error"))
+                # the moving pixels' PSNR (the object-speed axis: what the dynamics are for, issue 46)
+                finite = [x for x in moving if math.isfinite(x)]
+                curves[m.name]["psnr_dyn"].append(sum(finite) / len(finite) if finite and not error else None)
+                done[key, m.name] = tuple(curves[m.name][field][-1] for field in FIELDS)
         easiest = 0
         breaks = {name: breaks_at(c["psnr"], c["error"], easiest) for name, c in curves.items()}
         out.append(

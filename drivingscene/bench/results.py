@@ -33,6 +33,7 @@ from drivingscene.machine import machine_description
 NVS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("lpips", "{lpips}", "{:.3f}")]
 FULL, STATIC = "DrivingScene (two-stage)", "static-only (no residual flow)"
 R_ALONE = "DrivingScene, R alone (no search)"
+NO_OBJECTS = "DrivingScene, no object tracking"
 NO_MATCH = "DrivingScene, D's depth unmatched (no matching at inference)"
 SEARCH_ALONE = "diagnostic: the search without R"
 GT_FLOW = "diagnostic: DrivingScene depth + GT flow"
@@ -93,7 +94,8 @@ def _methods(args):
     methods = [
         (FULL, lambda pair: reconstruct(model, pair)),
         (NO_MATCH, lambda pair: reconstruct(model, pair, InferenceOptions(match=None))),
-        (R_ALONE, lambda pair: reconstruct(model, pair, InferenceOptions(search=None))),
+        (NO_OBJECTS, lambda pair: reconstruct(model, pair, InferenceOptions(objects=None))),
+        (R_ALONE, lambda pair: reconstruct(model, pair, InferenceOptions(search=None, objects=None))),
         (STATIC, lambda pair: reconstruct(model, pair, InferenceOptions(use_residual=False))),
     ]
     if args.joint_weights:
@@ -103,7 +105,7 @@ def _methods(args):
         extra = load_model(path)
         methods.append((name, lambda pair, m=extra: reconstruct(m, pair)))
     if args.diagnostics:
-        search_alone = InferenceOptions(search=MotionSearchConfig(use_network=False))
+        search_alone = InferenceOptions(search=MotionSearchConfig(use_network=False), objects=None)
         methods.append((SEARCH_ALONE, lambda pair: reconstruct(model, pair, search_alone)))
         methods.append((GT_FLOW, lambda pair: _with_gt_flow(model, pair)))
         methods.append((GT_FLOW_QUARTER, lambda pair: _with_gt_flow(model, pair, error_share=0.25)))

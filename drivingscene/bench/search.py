@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         name = name or "defaults"
         scores, seconds = [], []
         for pair in pairs:
-            recon = reconstruct(model, pair, InferenceOptions(search=search))
+            recon = reconstruct(model, pair, InferenceOptions(search=search, objects=None))  # the search alone
             scores.append(score_reconstruction(recon, pair))
             seconds.append(recon.meta["timings"]["flow_s"])
         dyn = np.array([s["psnr_dyn"] - b["psnr_dyn"] for s, b in zip(scores, static)])

@@ -131,11 +131,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="every pixel R and the search move stays dynamic, also where a static surface at another depth "
         "explains its flow (docs/depth.md, parallax before motion)",
     )
-    p.add_argument(
+    objects = p.add_mutually_exclusive_group()
+    objects.add_argument(
         "--objects",
         action="store_true",
-        help="track moving objects as wholes between the keyframes (methods/object_motion.py; a few seconds "
-        "more per pair, docs/moving-objects.md)",
+        help="track moving objects as wholes between the keyframes (the default; methods/object_motion.py, "
+        "docs/moving-objects.md)",
+    )
+    objects.add_argument(
+        "--no-objects",
+        action="store_true",
+        help="R's and the search's flow alone on moving objects, no tracking (ablation: faster, moving objects "
+        "worse; docs/moving-objects.md)",
     )
     p.add_argument(
         "--per-pixel",
@@ -301,10 +308,8 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
         options = replace(options, merge=replace(options.merge, budget=args.budget))
     if args.no_parallax:
         options = replace(options, lift=replace(options.lift, epipolar_static=False))
-    if args.objects and not args.static_only:
-        from drivingscene.methods.object_motion import ObjectMotionConfig
-
-        options = replace(options, objects=ObjectMotionConfig())
+    if args.no_objects:
+        options = replace(options, objects=None)
     options = replace(options, match=match_mode(args.match))
     progress.stage(f"reconstructing {pair.num_views} cameras at {pair.image_size[1]}x{pair.image_size[0]}")
     recon = reconstruct(model, pair, options, progress=progress)

@@ -19,7 +19,7 @@ def validate(model: DrivingSceneModel, files: list[Path], config) -> dict[str, f
     """Mean of the headline scores over ``files`` (no perceptual term, to stay cheap). The networks
     alone: without the inference-time search along the rigid flow, which training does not change."""
     model.eval()
-    options = InferenceOptions(use_residual=config.stage not in ("static", "depth"), amp=config.amp, search=None)
+    options = InferenceOptions(use_residual=config.stage not in ("static", "depth"), amp=config.amp, search=None, objects=None)
     sums: dict[str, list[float]] = {k: [] for k in KEYS}
     for path in files:
         pair = load_frame_pair(path)

@@ -116,7 +116,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     proposal level) or a multiple of the rigid flow on the search's grid (--no-parallax: the rigid
     flow as D's depth makes it); --no-search keeps R's (every level); --static-only moves nothing;
     by default parallax explains some of the moving pixels (fewer dynamic Gaussians); --no-match
-    keeps D's depth, which matching the keyframes otherwise corrects; --objects tracks moving objects;
+    keeps D's depth, which matching the keyframes otherwise corrects; moving objects are tracked unless --no-objects;
     --per-pixel keeps a Gaussian per pixel."""
     import numpy as np
 
@@ -128,12 +128,12 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     scene = save_frame_pair(synth_pair, tmp_path / "scene.npz")
     recons = {}
     runs = (
-        ("full", ["--no-parallax"]),
-        ("r_alone", ["--no-search", "--no-parallax"]),
+        ("full", ["--no-parallax", "--no-objects"]),  # the search's flow alone: R's or on its grid (below)
+        ("r_alone", ["--no-search", "--no-parallax", "--no-objects"]),
         ("static", ["--static-only", "--file-precision", "float32", "--deflate"]),
         ("default", []),
         ("no_match", ["--no-match"]),
-        ("objects", ["--objects"]),
+        ("no_objects", ["--no-objects"]),
         ("per_pixel", ["--per-pixel"]),
         ("budget", ["--budget", "0.25"]),
     )
@@ -143,7 +143,7 @@ def test_reconstruct_search_and_ablations_from_the_command_line(tmp_path, synth_
     assert not recons["static"].gaussians.dynamic.any() and recons["full"].gaussians.dynamic.any()
     assert recons["default"].gaussians.dynamic.sum() < recons["full"].gaussians.dynamic.sum()
     assert "match_s" in recons["default"].meta["timings"] and "match_s" not in recons["no_match"].meta["timings"]
-    assert "objects_s" in recons["objects"].meta["timings"] and "objects_s" not in recons["default"].meta["timings"]
+    assert "objects_s" in recons["default"].meta["timings"] and "objects_s" not in recons["no_objects"].meta["timings"]
     # flat blocks merged by default (gaussians/parsimony.py); --per-pixel keeps one Gaussian per world pixel
     per_pixel = recons["per_pixel"]
     world = np.broadcast_to(True if per_pixel.valid_mask is None else per_pixel.valid_mask, per_pixel.depth.shape)

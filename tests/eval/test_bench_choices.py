@@ -78,11 +78,14 @@ def test_variant_options_change_only_what_they_name():
             parse_variant(bad)
     with pytest.raises(InputError, match="'unseenpx=-1'"):
         parse_variant("unseenpx=-1")
-    assert base.objects is None and parse_variant("").options(base).objects is None
+    assert base.objects is not None and parse_variant("").options(base).objects == base.objects  # tracked by default
+    assert parse_variant("objects=off").options(base).objects is None
     objects = parse_variant("objects=rigid,osplit=on,omotion=2,odetect=fallback").options(base).objects
     assert (objects.elsewhere, objects.split, objects.min_motion, objects.detect) == ("rigid", True, 2.0, "fallback")
+    # the default's choices changed one at a time, the rest kept
+    assert parse_variant("omax=0.3,omargin=40").options(base).objects == replace(base.objects, max_motion=0.3, margin_x=40)
     assert not parse_variant("residual=off").options(base).use_residual
-    for bad in ("objects=maybe", "omotion=-1", "osplit=maybe", "odetect=maybe"):
+    for bad in ("objects=maybe", "omotion=-1", "osplit=maybe", "odetect=maybe", "omax=0", "omargin=-3"):
         with pytest.raises(InputError, match=f"'{bad}'"):
             parse_variant(bad)
 

@@ -71,6 +71,8 @@ def test_bench_report_quick(synth_pair, tmp_path):
         # depth at the keyframes for the methods that reconstruct, the still ego (speed 0) included
         assert all(v is not None and 0 < v < 5 for v in axis["curves"][FULL]["abs_rel"]), axis["name"]
         assert all(v is None for v in axis["curves"][BLEND]["abs_rel"])
+    speed = next(a for a in axes if a["knob"] == "object_speed_scale")  # moving pixels where objects move
+    assert all(v is not None and math.isfinite(v) for v in speed["curves"][FULL]["psnr_dyn"][1:]), speed["curves"][FULL]
     ego = next(a for a in axes if a["knob"] == "ego_speed")
     assert ego["values"][0] == 0.0
     par = report["parsimony"]

@@ -93,6 +93,30 @@ def test_stability_chart_categorical_knob(tmp_path):
     assert "new method" in report_styles(report)  # a method outside the sets is its own family
 
 
+def test_the_object_speed_axis_is_drawn_again_over_its_moving_pixels(tmp_path):
+    from drivingscene.bench.report_charts import _moving_pixels_axis
+
+    axis = {
+        "name": "object speed",
+        "knob": "object_speed_scale",
+        "values": [0.0, 1.0, 2.0],
+        "easiest": 0,
+        "curves": {
+            "DrivingScene": {"psnr": [22.0, 21.5, 21.0], "psnr_dyn": [None, 18.0, 16.5], "error": [None] * 3},
+            "static-only": {"psnr": [22.0, 21.4, 20.9], "psnr_dyn": [None, 16.0, 14.0], "error": [None] * 3},
+        },
+    }
+    moving = _moving_pixels_axis([axis])
+    assert moving["curves"]["DrivingScene"]["psnr"] == [None, 18.0, 16.5] and "moving pixels" in moving["name"]
+    assert moving["curves"]["static-only"]["psnr"] == [None, 16.0, 14.0] and axis["curves"]["static-only"]["psnr"][1] == 21.4
+    # no moving pixels (older reports, other knobs): no extra panel
+    assert _moving_pixels_axis([{**axis, "curves": {"DrivingScene": {"psnr": [22.0] * 3}}}]) is None
+    assert _moving_pixels_axis([{**axis, "knob": "noise_std"}]) is None
+    report = example_report()
+    report["stability"]["axes"] = [axis]
+    _check_png(stability_chart(report, tmp_path / "stability.png"))
+
+
 def test_family_styles_deterministic_and_distinct():
     names = ["DrivingScene", "DrivingScene + refine", "static-only", "baselines", "MVSplat", "pixelSplat", "DrivingForward"]
     a, b = family_styles(names), family_styles(list(reversed(names)))
