@@ -79,6 +79,7 @@ class Variant:
     ounique: float | None = None  # ObjectMotionConfig.unique (a ratio in (0, 1]); None: the default
     omax: float | None = None  # ObjectMotionConfig.max_motion (a share of the width in (0, 1]); None: the default
     omargin: int | None = None  # ObjectMotionConfig.margin_x (pixels); None: the default
+    oscales: tuple[float, ...] | None = None  # ObjectMotionConfig.scales; None: the default
     merge: float | None = None  # BlockMerge.color_range (gaussians/parsimony.py); -1: no merge; None: the default
     mtest: str | None = None  # BlockMerge.color_test: "detail" or "range"; None: the default
     mfit: int | None = None  # BlockMerge.fit_colors (0: per-pixel solve, block means); None: the default
@@ -140,6 +141,7 @@ class Variant:
             "unique": self.ounique,
             "max_motion": self.omax,
             "margin_x": self.omargin,
+            "scales": self.oscales,
         }  # None: the default
         chosen = {k: v for k, v in chosen.items() if v is not None}
         objects = base.objects
@@ -209,7 +211,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, ounique, omax, omargin, merge, mtest, mfit, mbudget, dedupe."""
+    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, merge, mtest, mfit, mbudget, dedupe."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -241,6 +243,8 @@ def parse_variant(text: str) -> Variant:
             values["omax"] = float(value)
         elif key == "omargin" and value.isdigit():
             values["omargin"] = int(value)
+        elif key == "oscales" and value and all(_is_number(a) and float(a) > 0 for a in value.split("+")):
+            values["oscales"] = tuple(float(a) for a in value.split("+"))
         elif key == "merge" and (value == "off" or (_is_number(value) and float(value) >= 0)):
             values["merge"] = -1.0 if value == "off" else float(value)
         elif key == "mtest" and value in ("detail", "range"):
@@ -278,7 +282,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
