@@ -50,6 +50,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "drivingscene.bench.motion",
         "how moving objects move in a set of pairs: flow and its non-rigid part per camera (ground truth only)",
     ),
+    "objects": (
+        "drivingscene.bench.objects",
+        "what the object tracking accepts on pairs with ground truth, by how far its matches move (docs/moving-objects.md)",
+    ),
     "search": (
         "drivingscene.bench.search",
         "choose the search along the rigid flow on validation pairs: PSNR change over static-only per setting",

@@ -23,20 +23,56 @@ object found in one keyframe need not be found again in the other. The warp is a
 scale and a translation: a vehicle crossing or turning, which a multiple of the rigid flow (the
 search, models/lift.py) cannot express.
 
-Measured in docs/moving-objects.md: what it gains, what it costs, and what lost. An option of the
-inference (`InferenceOptions.objects`, ``drivingscene reconstruct --objects``), not the default.
+Accepted matches move their pixels at most ``max_motion`` of the image's width off the rigid flow
+(further, on validation pairs, they were static surfaces carried onto others), and the cameras are
+tracked side by side in threads (OpenCV releases the GIL). Measured in docs/moving-objects.md: what
+it gains, what it costs, and what lost. On by default (`InferenceOptions.objects`; ``drivingscene
+reconstruct --no-objects`` for the ablation).
 """
 
 from __future__ import annotations
 
 import os
+import threading
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
+
+
+@dataclass(frozen=True)
+class AcceptedObject:
+    """One object `object_flows` accepted (diagnostics: `recording`, ``drivingscene bench objects``)."""
+
+    keyframe: int
+    camera: int
+    pixels: np.ndarray  # [H, W] bool: where its flow was written at its keyframe
+    warp: np.ndarray  # [2, 3]: keyframe pixel -> the other keyframe's
+    motion: float  # median distance (pixels) of its flow from the rigid flow over ``pixels``
+
+
+_recorded: list[AcceptedObject] | None = None
+_recorded_lock = threading.Lock()
+
+
+@contextmanager
+def recording() -> Iterator[list[AcceptedObject]]:
+    """Every object `object_flows` accepts inside the block, appended to the list it yields (from
+    any thread): what the tracking decided, for diagnostics against ground truth."""
+    global _recorded
+    with _recorded_lock:
+        _recorded = []
+        out = _recorded
+    try:
+        yield out
+    finally:
+        with _recorded_lock:
+            _recorded = None
 
 
 @dataclass(frozen=True)
@@ -361,6 +397,9 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
         return False
     flow[k, v][keep] = dense[keep]
     owned[k, v] |= keep
+    with _recorded_lock:
+        if _recorded is not None:
+            _recorded.append(AcceptedObject(k, v, keep, warp, motion))
     there = cv2.warpAffine(keep.astype(np.uint8), warp, (width, height), flags=cv2.INTER_NEAREST) > 0
     there &= ~owned[o, v]
     ys, xs = np.nonzero(there)
