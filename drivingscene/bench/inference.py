@@ -39,6 +39,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     add_amp_arguments(p)  # default: bf16 autocast where the CPU/GPU does bf16 natively, else float32
     p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
+    p.add_argument("--no-objects", action="store_true", help="no object tracking (methods/object_motion.py)")
+    p.add_argument(
+        "--per-pixel", action="store_true", help="one Gaussian per pixel: flat blocks not merged (gaussians/parsimony.py)"
+    )
     from drivingscene.arguments import add_match_arguments
 
     add_match_arguments(p)
@@ -69,7 +73,8 @@ def _pair(size: str):
 
 
 def _options(amp: bool, threads: int, without: tuple[str, ...] = (), match: str = "fallback"):
-    """Default inference options with the ``--match`` mode, less the steps named in ``without`` ("search")."""
+    """Default inference options with the ``--match`` mode, less the steps named in ``without`` ("search",
+    "objects", "merge")."""
     from drivingscene.methods.feedforward import InferenceOptions
     from drivingscene.methods.matched_depth import match_mode
 
@@ -221,7 +226,9 @@ def run(args: argparse.Namespace) -> int:
     from drivingscene.precision import cpu_flags_summary, describe_precision, resolve_amp
 
     amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
-    without = ("search",) if args.no_search else ()
+    without = tuple(
+        step for step, off in (("search", args.no_search), ("objects", args.no_objects), ("merge", args.per_pixel)) if off
+    )
     with Progress("drivingscene bench inference") as progress:  # on stderr once it takes more than a second
         rows = measure(
             model,
@@ -244,6 +251,7 @@ def run(args: argparse.Namespace) -> int:
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)}"
         f"{' --scenes ' + ' '.join(str(p) for p in args.scenes) if args.scenes else ''} --runs {args.runs}"
         f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}"
+        f"{' --no-objects' if args.no_objects else ''}{' --per-pixel' if args.per_pixel else ''}"
         f"{'' if args.match == 'fallback' else ' --match ' + args.match}"
         f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}"
         f"{' --profile ' + str(args.profile) if args.profile else ''}`"

@@ -124,7 +124,9 @@ def score_flow(recon: Reconstruction, pair: FramePair) -> dict[str, float]:
     if pair.valid_mask is not None:
         valid = valid & torch.from_numpy(pair.valid_mask).repeat(2, 1, 1)
     out = {}
-    for name, flow in (("rigid", recon.rigid_flow), ("total", recon.total_flow)):
+    # total: rigid + the residual as proposed (R and the search, also where the lift keeps a pixel
+    # static); applied: rigid + the residual where the pixel's Gaussian moves (what it does)
+    for name, flow in (("rigid", recon.rigid_flow), ("total", recon.total_flow), ("applied", recon.applied_total_flow)):
         pred = torch.from_numpy(np.ascontiguousarray(flow)).flatten(0, 1)
         # Pool pixels over all images (images without dynamic pixels give NaN and are skipped).
         errs = (pred.double() - gt.double()).norm(dim=-1)
