@@ -66,7 +66,7 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     methods += ["diagnostic: DrivingScene depth + GT flow", "diagnostic: oracle without scene flow"]
     methods += ["diagnostic: DrivingScene depth + GT flow + 1/4 of R's flow error"]
     methods += ["DrivingScene, R alone (no search)", "diagnostic: the search without R"]
-    methods += ["DrivingScene, D's depth unmatched (no matching at inference)"]
+    methods += ["DrivingScene, D's depth unmatched (no matching at inference)", "DrivingScene, no object tracking"]
     methods += ["baseline: copy the nearest keyframe", "baseline: blend the two keyframes"]
     for heading in ("all pixels", "dynamic pixels", "Depth at the keyframes", "end-point error", "ST-LPIPS"):
         assert heading in text
@@ -75,7 +75,7 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     assert "Full model vs static-only on dynamic pixels" in text and "lowers the dynamic-pixel flow error" in text
     assert "AbsRel, moving objects" in text
     assert "R alone (no search) vs static-only on dynamic pixels" in text and "R's residual alone lowers" in text
-    assert len(scores) == 13 and all(len(rows) == 1 for rows in scores.values())
+    assert len(scores) == 14 and all(len(rows) == 1 for rows in scores.values())
     # a method below the better trivial baseline (all pixels) is said so in bold, and only such a
     # method; the oracle is above it
     trivial = max(scores[b][0]["psnr"] for b in ("baseline: copy the nearest keyframe", "baseline: blend the two keyframes"))
@@ -98,7 +98,7 @@ def test_results_report_json_and_figure(synth_pair, tiny_weights, tmp_path):
     assert 0.2 * r_alone["epe_dyn_total"] < quarter["epe_dyn_total"] < 0.3 * r_alone["epe_dyn_total"]
     image = cv2.imread(str(png))
     height, width = synth_pair.image_size
-    assert image.shape[0] > 2 * height and 9 * width > image.shape[1] > 7 * width  # 2 rows; frame + 6 methods (no diagnostics)
+    assert image.shape[0] > 2 * height and 10 * width > image.shape[1] > 8 * width  # 2 rows; frame + 7 methods (no diagnostics)
 
 
 def test_checks_compare_pair_by_pair_with_a_sign_test():
