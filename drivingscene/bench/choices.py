@@ -85,6 +85,8 @@ class Variant:
     mfit: int | None = None  # BlockMerge.fit_colors (0: per-pixel solve, block means); None: the default
     mbudget: float | None = None  # BlockMerge.budget (a share of the per-pixel Gaussians); None: the default
     dedupe: bool | None = None  # InferenceOptions.dedupe on (KeyframeDedupe()) or off; None: the default
+    edges: int | None = None  # InferenceOptions.edges: EdgeSharpen(radius=edges), 0: off; None: the default
+    esigma: float | None = None  # EdgeSharpen.sigma; None: the default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -164,9 +166,16 @@ class Variant:
                 budget=merge.budget if self.mbudget is None else self.mbudget,
             )
         dedupe = base.dedupe if self.dedupe is None else (KeyframeDedupe() if self.dedupe else None)
+        from drivingscene.methods.depth_edges import EdgeSharpen
+
+        edges = base.edges
+        if self.edges is not None:
+            edges = None if self.edges == 0 else replace(edges or EdgeSharpen(), radius=self.edges)
+        if edges is not None and self.esigma is not None:
+            edges = replace(edges, sigma=self.esigma)
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
-            use_residual=self.residual, merge=merge, dedupe=dedupe,
+            use_residual=self.residual, merge=merge, dedupe=dedupe, edges=edges,
         )  # fmt: skip
 
 
@@ -211,7 +220,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, merge, mtest, mfit, mbudget, dedupe."""
+    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, merge, mtest, mfit, mbudget, dedupe, edges, esigma."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -251,6 +260,10 @@ def parse_variant(text: str) -> Variant:
             values["mtest"] = value
         elif key == "mfit" and value.isdigit():
             values["mfit"] = int(value)
+        elif key == "edges" and (value == "off" or (value.isdigit() and int(value) >= 1)):
+            values["edges"] = 0 if value == "off" else int(value)
+        elif key == "esigma" and _is_number(value) and float(value) > 0:
+            values["esigma"] = float(value)
         elif key == "mbudget" and _is_number(value) and 0 < float(value) <= 1:
             values["mbudget"] = float(value)
         elif key in ("photo", "parallax", "head", "rig", "replace", "residual", "osplit", "dedupe") and value in ("on", "off"):
@@ -282,7 +295,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

@@ -31,6 +31,7 @@ from drivingscene.gaussians.ground import fit_ground, road_plane
 from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe, keyframe_duplicates, merge_to_budget, sharpened
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
+from drivingscene.methods.depth_edges import EdgeSharpen, sharpen_depth_edges
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
 from drivingscene.methods.memory import check_reconstruct_memory
 from drivingscene.methods.object_motion import ObjectMotionConfig, object_flows
@@ -117,6 +118,8 @@ class InferenceOptions:
     # 3 % fewer Gaussians for 0.04 dB at the in-between frame and 1-2 dB in the input views
     # (docs/parsimony.md).
     dedupe: KeyframeDedupe | None = None
+    # depth edges made steps where the image has its edges (methods/depth_edges.py); None: off
+    edges: EdgeSharpen | None = None
 
 
 def resolve_device(name: str) -> torch.device:
@@ -314,6 +317,11 @@ def reconstruct(
         static = with_depth(static, depth)
         _sync(device)
         timings["match_s"] = time.perf_counter() - t0
+    if options.edges is not None:
+        t0 = time.perf_counter()
+        depth = sharpen_depth_edges(depth, batch.images, sky, options.edges)
+        static = with_depth(static, depth)
+        timings["edges_s"] = time.perf_counter() - t0
     report("flow")
     t0 = time.perf_counter()
     search = options.search if flow_predictor is None else None
