@@ -446,3 +446,37 @@ def test_the_gradient_steps_run_on_the_threads_their_timing_chose(synth_pair, st
             assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(threads_before)
+
+
+def test_residual_flow_maps_have_no_pixel_for_a_point_behind_the_other_camera(synth_pair, start):
+    """A dynamic Gaussian whose flow takes it to the other keyframe's camera centre has no residual
+    flow there (it was 1e9 px after refinement on a test pair: docs/benchmark-notes.md); every
+    residual stays within the image's size on every side, as the rigid flow's destinations."""
+    from drivingscene.geometry.se3 import invert_rigid
+    from drivingscene.methods.refine.loop import _residual_flow_maps
+
+    inputs = refine_inputs(synth_pair)
+    local = start.gaussians.transform(inputs.world_to_local)
+    rays = gaussian_rays(local, inputs.cam_to_local, torch.from_numpy(synth_pair.intrinsics), synth_pair.image_size)
+    params = RefineParams(local, rays, ())
+    moving = params.dynamic[rays.has_ray[params.dynamic]]
+    assert moving.numel() > 1
+    shape = (2, synth_pair.num_views, *synth_pair.image_size)
+    before = _residual_flow_maps(params, params.gaussians(), inputs, shape).view(-1, 2)
+    i = int(moving[0])
+    g = params.gaussians()
+    other = int((1 - g.keyframes[i]) * synth_pair.num_views + g.cameras[i])
+    centre = inputs.cam_to_local.flatten(0, 1)[other][:3, 3]
+    assert torch.allclose(invert_rigid(inputs.cam_to_local.flatten(0, 1))[other][:3, :3] @ centre + invert_rigid(
+        inputs.cam_to_local.flatten(0, 1))[other][:3, 3], torch.zeros(3), atol=1e-4)  # fmt: skip
+    flows = g.flows.clone()
+    flows[i] = centre.to(flows) - g.means[i]
+    behind = replace(g, flows=flows)
+    after = _residual_flow_maps(params, behind, inputs, shape).view(-1, 2)
+    pixel = int(rays.pixels[i])
+    height, width = synth_pair.image_size
+    assert torch.isfinite(after).all() and after.abs().max() <= 3 * width
+    assert before[pixel].abs().sum() > 0 and (after[pixel] == 0).all()
+    others = torch.ones(len(after), dtype=torch.bool)
+    others[pixel] = False
+    assert torch.equal(after[others], before[others])

@@ -273,7 +273,9 @@ def _rigid_flow_maps(depth: Tensor, inputs: RefineInputs) -> Tensor:
 
 def _residual_flow_maps(params: RefineParams, gaussians, inputs: RefineInputs, shape) -> Tensor:
     """``[2, V, H, W, 2]``: at each dynamic Gaussian's pixel, where its flow takes it in the other
-    keyframe's image minus where a static point would land; 0 elsewhere."""
+    keyframe's image minus where a static point would land; 0 elsewhere, and where either point is
+    nearer than ``NEAR_Z`` to the other camera or behind it (no pixel there), both destinations
+    clamped to the image's size on every side (as the rigid flow)."""
     out = torch.zeros(int(np.prod(shape)), 2)
     index = params.dynamic[params.rays.has_ray[params.dynamic]]
     if index.numel():
@@ -281,9 +283,14 @@ def _residual_flow_maps(params: RefineParams, gaussians, inputs: RefineInputs, s
         other = (1 - g.keyframes[index]) * inputs.num_views + g.cameras[index]
         to_cam = invert_rigid(inputs.cam_to_local.flatten(0, 1))[other]
         k = inputs.intrinsics[g.cameras[index]]
-        moved, _ = project(transform_points(to_cam, (g.means[index] + g.flows[index])[:, None]), k)
-        still, _ = project(transform_points(to_cam, g.means[index][:, None]), k)
-        out[params.rays.pixels[index]] = (moved - still)[:, 0]
+        moved_cam = transform_points(to_cam, (g.means[index] + g.flows[index])[:, None])
+        still_cam = transform_points(to_cam, g.means[index][:, None])
+        height, width = shape[-2:]
+        low, high = moved_cam.new_tensor([-width, -height]), moved_cam.new_tensor([2 * width - 1, 2 * height - 1])
+        moved = torch.minimum(torch.maximum(project(moved_cam, k)[0], low), high)  # as the rigid flow's destinations
+        still = torch.minimum(torch.maximum(project(still_cam, k)[0], low), high)
+        seen = (moved_cam[..., 2] >= NEAR_Z) & (still_cam[..., 2] >= NEAR_Z)
+        out[params.rays.pixels[index]] = torch.where(seen[..., None], moved - still, torch.zeros_like(moved))[:, 0]
     return out.view(*shape, 2)
 
 
