@@ -87,6 +87,7 @@ class Variant:
     dedupe: bool | None = None  # InferenceOptions.dedupe on (KeyframeDedupe()) or off; None: the default
     edges: int | None = None  # InferenceOptions.edges: EdgeSharpen(radius=edges), 0: off; None: the default
     esigma: float | None = None  # EdgeSharpen.sigma; None: the default
+    mdepth: str | None = None  # InferenceOptions.moving_depth: "matched" or "prior"; None: the default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -176,6 +177,7 @@ class Variant:
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
             use_residual=self.residual, merge=merge, dedupe=dedupe, edges=edges,
+            moving_depth=base.moving_depth if self.mdepth is None else self.mdepth,
         )  # fmt: skip
 
 
@@ -220,7 +222,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, merge, mtest, mfit, mbudget, dedupe, edges, esigma."""
+    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
@@ -262,6 +264,8 @@ def parse_variant(text: str) -> Variant:
             values["mfit"] = int(value)
         elif key == "edges" and (value == "off" or (value.isdigit() and int(value) >= 1)):
             values["edges"] = 0 if value == "off" else int(value)
+        elif key == "mdepth" and value in ("matched", "prior"):
+            values["mdepth"] = value
         elif key == "esigma" and _is_number(value) and float(value) > 0:
             values["esigma"] = float(value)
         elif key == "mbudget" and _is_number(value) and 0 < float(value) <= 1:
@@ -295,7 +299,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth=matched|prior, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

@@ -60,6 +60,7 @@ DEFAULT_WEIGHTS = "weights/drivingscene.safetensors"
 # `InferenceOptions.far_layer`: the far layer's depth cap, in sky distances (1.5, 10 and 100 drew the
 # same pictures on the test pairs measured; docs/magnification.md).
 FAR_LAYER = 10.0
+MOVING_DEPTHS = ("matched", "prior")  # `InferenceOptions.moving_depth` (docs/moving-objects.md)
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,13 @@ class InferenceOptions:
     dedupe: KeyframeDedupe | None = None
     # depth edges made steps where the image has its edges (methods/depth_edges.py); None: off
     edges: EdgeSharpen | None = None
+    # the depth of the pixels whose Gaussians move: "matched" (the matching's, as every pixel) or
+    # "prior" (D's own, from one instant: the matching over time reads an object's motion as depth)
+    moving_depth: str = "matched"
+
+    def __post_init__(self) -> None:
+        if self.moving_depth not in MOVING_DEPTHS:
+            raise ValueError(f"InferenceOptions.moving_depth: expected one of {MOVING_DEPTHS}, got {self.moving_depth!r}")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -309,6 +317,7 @@ def reconstruct(
     if batch.valid_mask is not None:
         sky = sky | ~batch.valid_mask
     matched = None  # pixels whose depth the matching triangulated
+    prior_depth = depth  # D's own
     if options.match is not None:
         report("match")
         t0 = time.perf_counter()
@@ -365,6 +374,13 @@ def reconstruct(
         # threshold, inconsistent, explained by parallax) it was a proposal of R and the search that
         # nothing follows (issue 21: 90 px proposed on cameras where nothing moves).
         applied = dynamic
+        if options.moving_depth == "prior" and bool(applied.any()):
+            depth = torch.where(applied, prior_depth, depth)
+            static = with_depth(static, depth)
+            lifted, _ = lift_scene_flow(
+                depth, flow.total, flow.residual, sky, batch, options.lift, net_width, rigid=flow.rigid, behind=flow.behind
+            )
+            scene_flow = torch.where(applied[..., None], lifted, scene_flow)
     rigid = flow.rigid if flow is not None else None
     _sync(device)
     timings["flow_s"] = time.perf_counter() - t0
