@@ -32,6 +32,10 @@ def method_styles(methods) -> dict[str, tuple[tuple, str]]:
     return {m: (fams[_FAMILY.get(m, m)][0], _MARKERS.get(m, fams[_FAMILY.get(m, m)][1])) for m in methods}
 
 
+# entries per legend row: six methods' names in one row ran past the figure's edges
+LEGEND_COLUMNS = 3
+
+
 def _figure(nrows: int, ncols: int, height_in: float):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -78,7 +82,7 @@ def classes_chart(report: dict, path: Path) -> Path | None:
                 if finite:
                     ax.set_ylim(max(0.0, min(finite) - 3.0), max(finite) + 1.0)
     fig.suptitle(f"Procedural pairs: quality per viewpoint class ({report['settings']['procedural']})")
-    fig.legend(loc="outside lower center", ncols=len(methods), frameon=False)
+    fig.legend(loc="outside lower center", ncols=min(len(methods), LEGEND_COLUMNS), frameon=False)
     return _save(fig, path)
 
 
@@ -122,7 +126,7 @@ def magnification_chart(report: dict, path: Path) -> Path | None:
             if label not in labels:
                 handles.append(h)
                 labels.append(label)
-    fig.legend(handles, labels, loc="outside lower center", ncols=len(labels), frameon=False)
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), LEGEND_COLUMNS), frameon=False)
     return _save(fig, path)
 
 

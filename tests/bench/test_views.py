@@ -259,3 +259,23 @@ def test_bench_views_quick(synth_pair, tmp_path, capsys):
     assert main(["bench", "views", "--quick", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "--force" in err and "views.md" in err
+
+
+@pytest.mark.parametrize("chart", ["classes_chart", "magnification_chart"])
+def test_chart_legends_stay_inside_the_figure(chart, tmp_path, monkeypatch):
+    """Drawn from the committed report (docs/views/views.json): every legend entry is on the picture
+    (six methods' names in one row ran past both edges)."""
+    from pathlib import Path
+
+    from drivingscene.bench import views_charts
+
+    report = json.loads((Path(__file__).parents[2] / "docs" / "views" / "views.json").read_text())
+    figures = []
+    monkeypatch.setattr(views_charts, "_save", lambda fig, path: figures.append(fig) or path)
+    assert getattr(views_charts, chart)(report, tmp_path / "chart.png") is not None
+    fig = figures[0]
+    renderer = fig.canvas.get_renderer()
+    fig.draw(renderer)
+    for legend in fig.legends:
+        box = legend.get_window_extent(renderer)
+        assert box.x0 >= 0 and box.x1 <= fig.bbox.x1 and box.y0 >= 0, (box, fig.bbox)
