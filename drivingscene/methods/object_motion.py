@@ -37,7 +37,7 @@ import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -112,6 +112,11 @@ class ObjectMotionConfig:
     # around it, at the same scale): a repeated texture (a row of windows, paving) matches several
     # places alike, and the wrong one makes a static surface an object. 1: off.
     unique: float = 1.0
+    # > 0: the core's scales are searched only this many pixels around where the blob's first match
+    # (scale 1, the whole window) put it, not over the whole window again; 0: the whole window at
+    # every scale. Measured (docs/moving-objects.md): 20-35 % less tracking time, 0.05 dB less on
+    # moving pixels: off.
+    local_px: int = 0
     # True: a blob is also tried as its near and far parts (where its depth spans ``split_ratio``)
     # and as two halves across its longer side, for an object merged with the background it
     # uncovers or with a neighbour. Off: on validation pairs the extra tries found more static
@@ -137,6 +142,8 @@ class ObjectMotionConfig:
         for name in ("box", "min_pixels"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ObjectMotionConfig.{name}: expected >= 1, found {getattr(self, name)}")
+        if self.local_px < 0:
+            raise ValueError(f"ObjectMotionConfig.local_px: expected pixels >= 0, found {self.local_px}")
         if not self.scales or min(self.scales) <= 0:
             raise ValueError(f"ObjectMotionConfig.scales: expected positive scales, found {self.scales}")
 
@@ -241,13 +248,23 @@ def _search_window(mask: np.ndarray, rigid: np.ndarray) -> tuple[float, float, f
 
 
 def track_region(
-    image: np.ndarray, other: np.ndarray, mask: np.ndarray, rigid: np.ndarray, config: ObjectMotionConfig
+    image: np.ndarray,
+    other: np.ndarray,
+    mask: np.ndarray,
+    rigid: np.ndarray,
+    config: ObjectMotionConfig,
+    guess: np.ndarray | None = None,  # 2x3: the first match's translation at scale 1 (`ObjectMotionConfig.local_px`)
 ) -> np.ndarray | None:
     """The 2x3 warp carrying ``mask``'s pixels of grey ``image`` into grey ``other``, or None where
     the match is not found again backwards (`ObjectMotionConfig.back_px`)."""
     height, width = image.shape
     x0, x1, y0, y1 = _box(mask)
-    found = match_region(image, other, mask, _search_window(mask, rigid), config)
+    if guess is not None and config.local_px > 0:  # around where the first match put it
+        tx, ty = float(guess[0, 2]), float(guess[1, 2])
+        near = replace(config, margin_x=config.local_px, margin_y=config.local_px)
+        found = match_region(image, other, mask, (x0 + tx, x1 + tx, y0 + ty, y1 + ty), near)
+    else:
+        found = match_region(image, other, mask, _search_window(mask, rigid), config)
     if found is None or (config.unique < 1 and found[0] >= config.unique * found[2]):
         return None
     warp = found[1]
@@ -383,7 +400,7 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
     _, _, core = _explained(rgb[k, v], rgb[o, v], region, first[1], base_cost, grid)
     if core.sum() < config.min_pixels // 2:
         return False
-    warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config)
+    warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config, first[1])
     if warp is None:
         return False
     dense, cost, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, base_cost, grid)

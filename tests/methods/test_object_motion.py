@@ -176,3 +176,25 @@ def test_a_match_repeated_elsewhere_in_the_window_is_not_an_object_with_the_uniq
     assert track_region(grey[0], twice, mask0, rigid, replace(wide, unique=0.8)) is None
     with pytest.raises(ValueError, match="unique"):
         ObjectMotionConfig(unique=0.0)
+
+
+def test_local_scales_search_around_the_guess_only():
+    """``local_px``: the scales are searched around the first match's translation: the object's
+    warp is found from a guess near it, and not from a guess far from it; 0 ignores the guess."""
+    from drivingscene.methods.object_motion import track_region
+
+    images, mask0, _, _ = _scene((12.0, 0.0), 1.1)
+    grey = images[..., 1].astype(np.float32)[:, 0] / 255
+    rigid = np.zeros((H, W, 2), np.float32)
+    config = ObjectMotionConfig(max_motion=1.0, local_px=4)
+    corner, moved = [40, 30, 1], [52.0, 30.0]  # the box's top-left (`_scene`) and where it goes
+    near = np.array([[1, 0, 11.0], [0, 1, 1.0]], np.float32)  # about the true shift
+    far = np.array([[1, 0, -30.0], [0, 1, 10.0]], np.float32)
+    found = track_region(grey[0], grey[1], mask0, rigid, config, near)
+    assert found is not None and np.allclose(found @ corner, moved, atol=1.0)
+    away = track_region(grey[0], grey[1], mask0, rigid, config, far)
+    assert away is None or not np.allclose(away @ corner, moved, atol=3.0)
+    whole = track_region(grey[0], grey[1], mask0, rigid, replace(config, local_px=0), far)
+    assert whole is not None and np.allclose(whole @ corner, moved, atol=1.0)
+    with pytest.raises(ValueError, match="local_px"):
+        ObjectMotionConfig(local_px=-1)
