@@ -226,6 +226,7 @@ def parse_variant(text: str) -> Variant:
     windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
     residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
+    from drivingscene.methods.feedforward import MOVING_DEPTHS
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
     from drivingscene.models.lift import EPIPOLAR_DEPTHS
 
@@ -268,7 +269,7 @@ def parse_variant(text: str) -> Variant:
             values["mfit"] = int(value)
         elif key == "edges" and (value == "off" or (value.isdigit() and int(value) >= 1)):
             values["edges"] = 0 if value == "off" else int(value)
-        elif key == "mdepth" and value in ("matched", "prior"):
+        elif key == "mdepth" and value in MOVING_DEPTHS:
             values["mdepth"] = value
         elif key == "esigma" and _is_number(value) and float(value) > 0:
             values["esigma"] = float(value)
@@ -303,7 +304,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth=matched|prior, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

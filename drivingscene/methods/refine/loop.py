@@ -255,6 +255,12 @@ def local_axes(recon, inputs: RefineInputs) -> Tensor:
     return source_axes(recon) @ rotation.T
 
 
+def _clamped_destinations(points: Tensor, height: int, width: int) -> Tensor:
+    """Pixel positions ``[..., 2]`` clamped to the image's size beyond each side (-W .. 2W - 1, -H .. 2H - 1)."""
+    low, high = points.new_tensor([-width, -height]), points.new_tensor([2 * width - 1, 2 * height - 1])
+    return torch.minimum(torch.maximum(points, low), high)
+
+
 def _rigid_flow_maps(depth: Tensor, inputs: RefineInputs) -> Tensor:
     """``[2, V, H, W, 2]`` rigid flow of each keyframe's depth into the other keyframe, 0 where a
     static point would pass behind the other camera (as the model's) and where the depth is 0."""
@@ -264,9 +270,7 @@ def _rigid_flow_maps(depth: Tensor, inputs: RefineInputs) -> Tensor:
     for k in (0, 1):
         flow, z = rigid_flow(depth[k], inputs.intrinsics, c2l[k], c2l[1 - k])
         grid = pixel_grid(height, width)
-        dest = torch.minimum(
-            torch.maximum(grid + flow, flow.new_tensor([-width, -height])), flow.new_tensor([2 * width - 1, 2 * height - 1])
-        )
+        dest = _clamped_destinations(grid + flow, height, width)
         flows.append(torch.where(((z < NEAR_Z) | (depth[k] <= 0))[..., None], torch.zeros_like(flow), dest - grid))
     return torch.stack(flows)
 
@@ -285,10 +289,8 @@ def _residual_flow_maps(params: RefineParams, gaussians, inputs: RefineInputs, s
         k = inputs.intrinsics[g.cameras[index]]
         moved_cam = transform_points(to_cam, (g.means[index] + g.flows[index])[:, None])
         still_cam = transform_points(to_cam, g.means[index][:, None])
-        height, width = shape[-2:]
-        low, high = moved_cam.new_tensor([-width, -height]), moved_cam.new_tensor([2 * width - 1, 2 * height - 1])
-        moved = torch.minimum(torch.maximum(project(moved_cam, k)[0], low), high)  # as the rigid flow's destinations
-        still = torch.minimum(torch.maximum(project(still_cam, k)[0], low), high)
+        moved = _clamped_destinations(project(moved_cam, k)[0], *shape[-2:])  # as the rigid flow's
+        still = _clamped_destinations(project(still_cam, k)[0], *shape[-2:])
         seen = (moved_cam[..., 2] >= NEAR_Z) & (still_cam[..., 2] >= NEAR_Z)
         out[params.rays.pixels[index]] = torch.where(seen[..., None], moved - still, torch.zeros_like(moved))[:, 0]
     return out.view(*shape, 2)
