@@ -170,7 +170,13 @@ def _clamped_cost(image: np.ndarray, other: np.ndarray, flow: np.ndarray, grid: 
     ``image``, ``flow`` and ``grid`` may be a crop of the whole (``grid`` holds the whole image's
     coordinates); ``other`` is the whole other image."""
     warped = cv2.remap(other, grid + flow, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return cv2.blur(np.abs(warped - image).mean(-1), (3, 3))
+    return cv2.blur(_channel_mean(cv2.absdiff(warped, image)), (3, 3))
+
+
+def _channel_mean(rgb: np.ndarray) -> np.ndarray:
+    """``rgb.mean(-1)`` of a float32 ``[..., 3]`` array, summed in the same order (the same bits),
+    without numpy's reduction over a short last axis (most of the cost at these sizes)."""
+    return (rgb[..., 0] + rgb[..., 1] + rgb[..., 2]) / np.float32(3)
 
 
 def _subpixel(res: np.ndarray, x: int, y: int) -> tuple[float, float]:
@@ -202,32 +208,38 @@ def match_region(
     x0, x1, y0, y1 = _box(mask)
     template, weights = image[y0:y1, x0:x1], mask[y0:y1, x0:x1].astype(np.uint8)
     margin_x = min(config.margin_x, config.max_motion * width + 16)
-    best = None
+    setups = []  # per scale that fits: (template, mask, mask pixels, search window sx0, sx1, sy0, sy1)
     for a in config.scales if scales is None else scales:
         w, h = max(3, round((x1 - x0) * a)), max(3, round((y1 - y0) * a))
         t = cv2.resize(template, (w, h), interpolation=cv2.INTER_LINEAR)
         m = cv2.resize(weights, (w, h), interpolation=cv2.INTER_NEAREST)
-        if m.sum() < 5:
+        count = cv2.countNonZero(m)
+        if count < 5:
             continue
         grow_x, grow_y = (w - (x1 - x0)) / 2, (h - (y1 - y0)) / 2
         sx0 = int(max(0, np.floor(window[0] - margin_x - grow_x)))
         sx1 = int(min(width, np.ceil(window[1] + margin_x + grow_x)))
         sy0 = int(max(0, np.floor(window[2] - config.margin_y - grow_y)))
         sy1 = int(min(height, np.ceil(window[3] + config.margin_y + grow_y)))
-        if sx1 - sx0 < w or sy1 - sy0 < h:
-            continue
-        res = cv2.matchTemplate(other[sy0:sy1, sx0:sx1], t, cv2.TM_SQDIFF, mask=m) / float(m.sum())
+        if sx1 - sx0 >= w and sy1 - sy0 >= h:
+            setups.append((t, m, count, sx0, sx1, sy0, sy1))
+    maps = [cv2.matchTemplate(other[sy0:sy1, sx0:sx1], t, cv2.TM_SQDIFF, mask=m) for t, m, _, sx0, sx1, sy0, sy1 in setups]
+    best = None  # (value, result map, its minimum's position, template size, search origin)
+    for (t, _, count, sx0, _, sy0, _), res in zip(setups, maps):
+        res = res / float(count)
         _, _, (lx, ly), _ = cv2.minMaxLoc(res)
         value = float(res[ly, lx])
-        if not np.isfinite(value) or (best is not None and value >= best[0]):
-            continue
-        fx, fy = _subpixel(res, lx, ly)
-        ax, ay = w / (x1 - x0), h / (y1 - y0)
-        elsewhere = res.copy()
-        elsewhere[max(0, ly - h // 2) : ly + h // 2 + 1, max(0, lx - w // 2) : lx + w // 2 + 1] = np.inf
-        second = float(elsewhere.min()) if np.isfinite(elsewhere).any() else np.inf
-        best = (value, np.array([[ax, 0, sx0 + fx - ax * x0], [0, ay, sy0 + fy - ay * y0]], np.float32), second)
-    return best
+        if np.isfinite(value) and (best is None or value < best[0]):
+            best = (value, res, lx, ly, t.shape[1], t.shape[0], sx0, sy0)
+    if best is None:
+        return None
+    # the sub-pixel position and the best elsewhere, of the winning scale only
+    value, res, lx, ly, w, h, sx0, sy0 = best
+    fx, fy = _subpixel(res, lx, ly)
+    ax, ay = w / (x1 - x0), h / (y1 - y0)
+    res[max(0, ly - h // 2) : ly + h // 2 + 1, max(0, lx - w // 2) : lx + w // 2 + 1] = np.inf
+    second = float(res.min()) if np.isfinite(res).any() else np.inf
+    return value, np.array([[ax, 0, sx0 + fx - ax * x0], [0, ay, sy0 + fy - ay * y0]], np.float32), second
 
 
 def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
@@ -243,7 +255,7 @@ def _apply(warp: np.ndarray, points: np.ndarray) -> np.ndarray:
 def _search_window(mask: np.ndarray, rigid: np.ndarray) -> tuple[float, float, float, float]:
     """The box (x0, x1, y0, y1) covering ``mask``'s box where it is and where its median rigid flow puts it."""
     x0, x1, y0, y1 = _box(mask)
-    shift = np.median(rigid[mask], 0)
+    shift = np.median(rigid[y0:y1, x0:x1][mask[y0:y1, x0:x1]], 0)
     return min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1])
 
 
@@ -269,7 +281,7 @@ def track_region(
         return None
     warp = found[1]
     moved = cv2.warpAffine(mask.astype(np.uint8), warp, (width, height), flags=cv2.INTER_NEAREST) > 0
-    if moved.sum() < 5:
+    if np.count_nonzero(moved) < 5:
         return None
     bx0, bx1, by0, by1 = _box(moved)
     window = (min(bx0, x0), max(bx1, x1), min(by0, y0), max(by1, y1))
@@ -277,8 +289,8 @@ def track_region(
     back = match_region(other, image, moved, window, config, (scale,))
     if back is None:
         return None
-    ys, xs = np.nonzero(moved)
-    points = np.stack([xs, ys], -1).astype(np.float32)
+    ys, xs = np.nonzero(moved[by0:by1, bx0:bx1])
+    points = np.stack([xs + bx0, ys + by0], -1).astype(np.float32)
     returned = _apply(back[1], points)
     expected = _apply(cv2.invertAffineTransform(warp), points)
     if np.median(np.linalg.norm(returned - expected, axis=-1)) > config.back_px:
@@ -342,13 +354,16 @@ def object_flows(
             for label in range(1, count):
                 if stats[label, cv2.CC_STAT_AREA] < config.min_pixels:
                     continue
-                blob = (labels == label) & ~excluded[k, v]
+                x, y, w, h = stats[label, :4]
+                box = np.s_[y : y + h, x : x + w]  # the component's bounding box: the label test there only
+                blob = np.zeros((height, width), bool)
+                blob[box] = (labels[box] == label) & ~excluded[k, v][box]
                 tries = [blob]
                 if config.split:
                     tries += [*_near_far(blob, depth[k, v], config.split_ratio), *_halves(blob)]
                 for region in tries:
                     region = region & ~owned[k, v]
-                    if region.sum() >= config.min_pixels:
+                    if np.count_nonzero(region) >= config.min_pixels:
                         _track_and_paint(
                             flow, owned, rgb, grey, rigid, base_cost, k, v, region, blob & ~owned[k, v], grid, config
                         )
@@ -398,19 +413,23 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
     if first is None:
         return False
     _, _, core = _explained(rgb[k, v], rgb[o, v], region, first[1], base_cost, grid)
-    if core.sum() < config.min_pixels // 2:
+    if np.count_nonzero(core) < config.min_pixels // 2:
         return False
     warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config, first[1])
     if warp is None:
         return False
     dense, cost, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, base_cost, grid)
-    if keep.sum() < config.min_pixels // 2:
+    if np.count_nonzero(keep) < config.min_pixels // 2:
         return False
     height, width = region.shape
-    motion = float(np.median(np.linalg.norm(dense[keep] - rigid[k, v][keep], axis=-1)))
+    x0, x1, y0, y1 = _box(keep)
+    inside = keep[y0:y1, x0:x1]
+    motion = float(np.median(np.linalg.norm(dense[y0:y1, x0:x1][inside] - rigid[k, v][y0:y1, x0:x1][inside], axis=-1)))
     if motion < config.min_motion or motion > config.max_motion * width:
         return False
-    if cost[region].mean() > config.ratio * base_cost[region].mean():
+    x0, x1, y0, y1 = _box(region)
+    inside = region[y0:y1, x0:x1]
+    if cost[y0:y1, x0:x1][inside].mean() > config.ratio * base_cost[y0:y1, x0:x1][inside].mean():
         return False
     flow[k, v][keep] = dense[keep]
     owned[k, v] |= keep

@@ -198,3 +198,13 @@ def test_local_scales_search_around_the_guess_only():
     assert whole is not None and np.allclose(whole @ corner, moved, atol=1.0)
     with pytest.raises(ValueError, match="local_px"):
         ObjectMotionConfig(local_px=-1)
+
+
+def test_channel_mean_has_the_bits_of_numpys_mean():
+    """The costs' channel mean (summed in numpy's order, without its short-axis reduction) is
+    bit-identical to ``mean(-1)``, so the tracking decides exactly as it did with it."""
+    from drivingscene.methods.object_motion import _channel_mean
+
+    rgb = np.random.default_rng(3).random((37, 53, 3), dtype=np.float32) * np.float32(1.7)
+    assert _channel_mean(rgb).dtype == np.float32
+    assert np.array_equal(_channel_mean(rgb), rgb.mean(-1))
