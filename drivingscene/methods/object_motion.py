@@ -160,7 +160,7 @@ def warp_cost(
     the other image cannot say)."""
     warped = cv2.remap(other, grid + flow, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(-1, -1, -1))
     outside = warped[..., 0] < 0
-    cost = np.abs(warped - image).mean(-1)
+    cost = _channel_mean(cv2.absdiff(warped, image))
     cost[outside] = 0.0
     return cv2.blur(cost, (box, box)), outside
 
@@ -208,7 +208,7 @@ def match_region(
     x0, x1, y0, y1 = _box(mask)
     template, weights = image[y0:y1, x0:x1], mask[y0:y1, x0:x1].astype(np.uint8)
     margin_x = min(config.margin_x, config.max_motion * width + 16)
-    setups = []  # per scale that fits: (template, mask, mask pixels, search window sx0, sx1, sy0, sy1)
+    best = None  # (value, result map, its minimum's position, template size, search origin)
     for a in config.scales if scales is None else scales:
         w, h = max(3, round((x1 - x0) * a)), max(3, round((y1 - y0) * a))
         t = cv2.resize(template, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -221,16 +221,13 @@ def match_region(
         sx1 = int(min(width, np.ceil(window[1] + margin_x + grow_x)))
         sy0 = int(max(0, np.floor(window[2] - config.margin_y - grow_y)))
         sy1 = int(min(height, np.ceil(window[3] + config.margin_y + grow_y)))
-        if sx1 - sx0 >= w and sy1 - sy0 >= h:
-            setups.append((t, m, count, sx0, sx1, sy0, sy1))
-    maps = [cv2.matchTemplate(other[sy0:sy1, sx0:sx1], t, cv2.TM_SQDIFF, mask=m) for t, m, _, sx0, sx1, sy0, sy1 in setups]
-    best = None  # (value, result map, its minimum's position, template size, search origin)
-    for (t, _, count, sx0, _, sy0, _), res in zip(setups, maps):
-        res = res / float(count)
+        if sx1 - sx0 < w or sy1 - sy0 < h:
+            continue
+        res = cv2.matchTemplate(other[sy0:sy1, sx0:sx1], t, cv2.TM_SQDIFF, mask=m) / float(count)
         _, _, (lx, ly), _ = cv2.minMaxLoc(res)
         value = float(res[ly, lx])
         if np.isfinite(value) and (best is None or value < best[0]):
-            best = (value, res, lx, ly, t.shape[1], t.shape[0], sx0, sy0)
+            best = (value, res, lx, ly, w, h, sx0, sy0)
     if best is None:
         return None
     # the sub-pixel position and the best elsewhere, of the winning scale only
@@ -248,6 +245,14 @@ def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
     return x, x + w, y, y + h
 
 
+def _under(mask: np.ndarray, *maps: np.ndarray) -> list[np.ndarray]:
+    """Each of ``maps`` (``[H, W, ...]``) at ``mask``'s pixels, in ``map[mask]``'s order, selected
+    over the mask's box only (a blob is a small part of the image)."""
+    x0, x1, y0, y1 = _box(mask)
+    inside = mask[y0:y1, x0:x1]
+    return [values[y0:y1, x0:x1][inside] for values in maps]
+
+
 def _apply(warp: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ warp[:, :2].T + warp[:, 2]
 
@@ -255,7 +260,7 @@ def _apply(warp: np.ndarray, points: np.ndarray) -> np.ndarray:
 def _search_window(mask: np.ndarray, rigid: np.ndarray) -> tuple[float, float, float, float]:
     """The box (x0, x1, y0, y1) covering ``mask``'s box where it is and where its median rigid flow puts it."""
     x0, x1, y0, y1 = _box(mask)
-    shift = np.median(rigid[y0:y1, x0:x1][mask[y0:y1, x0:x1]], 0)
+    shift = np.median(*_under(mask, rigid), 0)
     return min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1])
 
 
@@ -422,14 +427,12 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
     if np.count_nonzero(keep) < config.min_pixels // 2:
         return False
     height, width = region.shape
-    x0, x1, y0, y1 = _box(keep)
-    inside = keep[y0:y1, x0:x1]
-    motion = float(np.median(np.linalg.norm(dense[y0:y1, x0:x1][inside] - rigid[k, v][y0:y1, x0:x1][inside], axis=-1)))
+    moved, still = _under(keep, dense, rigid[k, v])
+    motion = float(np.median(np.linalg.norm(moved - still, axis=-1)))
     if motion < config.min_motion or motion > config.max_motion * width:
         return False
-    x0, x1, y0, y1 = _box(region)
-    inside = region[y0:y1, x0:x1]
-    if cost[y0:y1, x0:x1][inside].mean() > config.ratio * base_cost[y0:y1, x0:x1][inside].mean():
+    tracked, static = _under(region, cost, base_cost)
+    if tracked.mean() > config.ratio * static.mean():
         return False
     flow[k, v][keep] = dense[keep]
     owned[k, v] |= keep
