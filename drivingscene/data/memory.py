@@ -14,6 +14,9 @@ from drivingscene.errors import InputError
 from drivingscene.machine import MEMORY_LIMIT_ENV, available_memory_bytes, gib
 
 HEADER_ERRORS = (ValueError, EOFError, SyntaxError, TypeError)  # what a malformed .npy header raises
+# what a damaged zip raises in zipfile: NotImplementedError for an unknown zip version or method,
+# RuntimeError for a member flagged as encrypted
+ZIP_ERRORS = (OSError, zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError, RuntimeError)
 
 
 def read_npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
@@ -35,7 +38,7 @@ def declared_arrays(zf: zipfile.ZipFile) -> dict[str, tuple[tuple[int, ...], np.
         try:
             with zf.open(name) as f:
                 shape, dtype = read_npy_header(f)
-        except (*HEADER_ERRORS, OSError, zipfile.BadZipFile, NotImplementedError, zlib.error):
+        except (*HEADER_ERRORS, *ZIP_ERRORS):
             continue
         out[name.removesuffix(".npy")] = (shape, dtype)
     return out
@@ -77,7 +80,7 @@ def declared_npz_complete(path: str | os.PathLike) -> dict[str, tuple[tuple[int,
         with zipfile.ZipFile(path) as zf:
             declared = declared_arrays(zf)
             return declared if len(declared) == len(zf.namelist()) else None
-    except (OSError, zipfile.BadZipFile, ValueError):
+    except ZIP_ERRORS:
         return None
 
 
@@ -86,5 +89,5 @@ def declared_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np
     try:
         with zipfile.ZipFile(path) as zf:
             return declared_arrays(zf)
-    except (OSError, zipfile.BadZipFile, ValueError):
+    except ZIP_ERRORS:
         return {}

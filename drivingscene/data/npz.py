@@ -12,14 +12,20 @@ from __future__ import annotations
 import io
 import os
 import zipfile
-import zlib
 from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from drivingscene.data.atomic import atomic_write
-from drivingscene.data.memory import HEADER_ERRORS, check_npz_fits, declared_nbytes, declared_npz_complete, read_npy_header
+from drivingscene.data.memory import (
+    HEADER_ERRORS,
+    ZIP_ERRORS,
+    check_npz_fits,
+    declared_nbytes,
+    declared_npz_complete,
+    read_npy_header,
+)
 from drivingscene.errors import InputError, SceneFormatError
 
 _FIXED_DATE = (1980, 1, 1, 0, 0, 0)
@@ -86,7 +92,7 @@ def load_npz(path: str | os.PathLike, keys: Collection[str] | None = None) -> di
             return out
     except InputError:
         raise
-    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, NotImplementedError, RuntimeError) as e:
+    except ZIP_ERRORS as e:
         found = f"a damaged archive ({_one_line(e)})"
         raise InputError(f"{path}: expected an .npz archive of named arrays (a zip of .npy files), found {found}") from None
 

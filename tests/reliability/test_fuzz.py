@@ -5,6 +5,7 @@ another exception. Example counts are kept small for the suite's time (about a m
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -317,3 +318,26 @@ def test_nuscenes_tables_mutated(work, nuscenes_root, data, table):
     relative = f"{VERSION}/{table}.json"
     (folder / relative).write_text(mutated_json(data, (nuscenes_root / relative).read_text()))
     read_or_own_error(import_nuscenes, folder, VERSION, SCENE, 0, "keyframe", False, None)
+
+
+@pytest.mark.parametrize(
+    ("offset", "value", "found"),
+    [(6, b"\x54\x00", "zip file version 8.4"), (8, b"\x01\x00", "encrypted")],  # version needed; flag bit 0
+    ids=["unknown-zip-version", "encrypted-member"],
+)
+def test_npz_central_directory_damage_is_one_line(work, npz_bytes, offset, value, found):
+    """What the fuzzing found: zipfile raises NotImplementedError for a zip version it does not
+    know and RuntimeError for a member flagged as encrypted; both are one line naming the file."""
+    from drivingscene.data.frame_pair import load_frame_pair, validate_frame_pair_file
+    from drivingscene.errors import InputError
+
+    data = bytearray(npz_bytes[False])
+    at = data.index(b"PK\x01\x02") + offset  # the first member's central directory entry
+    data[at : at + 2] = value
+    path = work / f"damaged_{offset}.npz"
+    path.write_bytes(bytes(data))
+    (problem,) = validate_frame_pair_file(path)
+    assert found in problem.found and problem.source == str(path)
+    with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: expected an \.npz archive.*{found}") as e:
+        load_frame_pair(path)
+    assert "\n" not in str(e.value)
