@@ -7,7 +7,11 @@ done (the background load's result taken by the window), the first picture on sc
 pass shows as its chunks are drawn), and the full-quality picture finished. Two ways to run the
 window's frames while the model works: at the window's pacing (`ViewerWindow.pause_s`: a few frames
 a second while only a load runs) and flat out (what the window did before: frames drawn as fast as
-they go, competing with the model for the cores and the GIL).
+they go, competing with the model for the cores and the GIL); and two ways to draw the full-quality
+picture: as now (a chunk resolves the layers over the sky only when its picture is on screen, at
+most every `Viewport.show_every_s`, and the levels of detail are built once the picture is done)
+and as before 2026-12-03 (every chunk resolved, the levels built at once, in a thread that competes
+with the picture for the cores).
 """
 
 from __future__ import annotations
@@ -21,12 +25,14 @@ from drivingscene.arguments import positive_int
 from drivingscene.machine import machine_description
 
 
-def time_open(scene: Path, paced: bool, timeout: float = 180.0) -> dict[str, float]:
-    """Seconds from ``open`` to: the model done, the first picture, the full-quality picture."""
+def time_open(scene: Path, paced: bool, before: bool = False, timeout: float = 180.0) -> dict[str, float]:
+    """Seconds from ``open`` to: the model done, the first picture, the full-quality picture;
+    ``before``: the refinement as it was before 2026-12-03 (`Viewport.before_2026_12_03`)."""
     from drivingscene_view.window import ViewerWindow
 
     win = ViewerWindow(1600, 900, method="auto")
     v = win.viewer
+    v.viewport.before_2026_12_03 = before
     try:
         start = time.perf_counter()
         v.open(scene)
@@ -53,8 +59,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs", type=positive_int, default=3, help="windows opened per way of pacing (default 3; medians)")
     args = p.parse_args(argv)
     rows = []
-    for paced, name in ((False, "frames flat out while loading (before)"), (True, "frames paced while loading (now)")):
-        runs = [time_open(args.scene, paced) for _ in range(args.runs)]
+    ways = (
+        (False, True, "frames flat out while loading, the refinement as before 2026-12-03"),
+        (True, True, "frames paced while loading, the refinement as before 2026-12-03"),
+        (True, False, "frames paced while loading, chunks resolved when seen, levels of detail after the picture (now)"),
+    )
+    for paced, before, name in ways:
+        runs = [time_open(args.scene, paced, before) for _ in range(args.runs)]
         med = {k: statistics.median(r.get(k, float("nan")) for r in runs) for k in ("reconstruct", "model", "first", "full")}
         rows.append(f"| {name} | {med['reconstruct']:.2f} | {med['model']:.2f} | {med['first']:.2f} | {med['full']:.2f} |")
     print(

@@ -251,6 +251,7 @@ class SplatRenderer:
     def __init__(self, ctx, color_dtype: str = "f2"):
         self.ctx = ctx
         self.color_dtype = color_dtype
+        self.last_drawn = 0  # splats the last render_range drew, front-depth passes counted
         self.splat_prog = load_program(ctx, "splat", {"TEX_W": TEX_W, "INDEXED": 1, **shader_blend_defines()})
         self.sky_prog = load_program(ctx, "sky")
         self.present_prog = load_program(ctx, "present")
@@ -322,15 +323,28 @@ class SplatRenderer:
         return self.render_range(splats, camera, t, opts, target, 0, splats.count)
 
     def render_range(
-        self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions, target: Target, start: int, count: int
+        self,
+        splats: GpuSplats,
+        camera: ViewCamera,
+        t: float,
+        opts: RenderOptions,
+        target: Target,
+        start: int,
+        count: int,
+        resolve: bool = True,
     ) -> Target:
         """Draw splats ``[start, start + count)`` of the back-to-front order into ``target`` (the sky
         first when ``start`` is 0): drawing a picture in several calls gives the same result. The
         layered blends draw into a target per layer; a layer is added to the accumulation when its
-        last splat is drawn, and every call resolves what is complete over the sky (module docstring)."""
+        last splat is drawn, and a call resolves what is complete over the sky (module docstring)
+        when ``resolve`` says so or it draws the last splat: two full-size passes, which a picture
+        drawn in many chunks that nobody sees until it is done need not pay on every chunk.
+        ``last_drawn`` is then the number of splats the call drew, each layer's front-depth pass
+        counted (what its time is proportional to)."""
         if opts.blend in LAYERED_BLENDS and opts.mode != "depth":
-            self._draw_layers(splats, camera, t, opts, target, start, count)
+            self._draw_layers(splats, camera, t, opts, target, start, count, resolve)
             return target
+        self.last_drawn = max(0, min(count, splats.count - start))
         return self._draw(splats, camera, t, opts, target, start, count)
 
     def _layers(self, splats: GpuSplats, camera: ViewCamera, t: float, opts: RenderOptions):
@@ -357,8 +371,9 @@ class SplatRenderer:
             layers.append((f"k{k}c{c}", weight, ranges, -1, k))
         return layers
 
-    def _draw_layers(self, splats, camera, t, opts, target: Target, start: int, count: int) -> None:
+    def _draw_layers(self, splats, camera, t, opts, target: Target, start: int, count: int, resolve: bool = True) -> None:
         end = start + min(count, splats.count - start)
+        drawn = 0
         layers = self._layers(splats, camera, t, opts)
         acc = [self.target(target.width, target.height, "f4", name=f"acc{i}@{target.texture.glo}") for i in range(4)]
         key = tuple(a.texture.glo for a in acc)
@@ -386,17 +401,21 @@ class SplatRenderer:
                 surface.front.fbo.clear(3e38, 0.0, 0.0, 0.0)
                 for a, b in ranges:
                     self._draw(splats, camera, t, opts, surface.front, a, b - a, layer=keyframe, sky=False, surface_pass=1)
+                    drawn += b - a
             for a, b in ranges:  # this call's part of the layer's range
                 lo, hi = max(a, start), min(b, end)
                 if hi > lo:
+                    drawn += hi - lo
                     if surface is None:
                         self._draw(splats, camera, t, opts, layer, lo, hi - lo, layer=keyframe, sky=False)
                     else:
                         self._draw(splats, camera, t, opts, surface, lo, hi - lo, layer=keyframe, sky=False, surface_pass=2)
             if start < max(b for _, b in ranges) <= end:  # the layer is complete: add it once
                 self._accumulate(layer, acc_fbo, weight, layer_keyframe, opts.layer_blend.coverage_full, surface)
-        self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
-        self._resolve(acc, target, t, opts.layer_blend.far_mix)
+        self.last_drawn = drawn
+        if resolve or end >= splats.count:
+            self._draw(splats, camera, t, opts, target, 0, 0, sky=True)  # the sky alone
+            self._resolve(acc, target, t, opts.layer_blend.far_mix)
 
     def _surface(self, name: str, layer: Target, scratch: str) -> SurfaceLayer:
         """The surface-averaging framebuffer of the layer target ``name`` over the scratch targets

@@ -102,13 +102,27 @@ def preview_uses_level(level: int, num_levels: int, mode: str) -> bool:
 class Viewport:
     """Renderer, sort worker and splat sets bound to one document at a time."""
 
-    def __init__(self, ctx, color_dtype: str = "f2", keys: str = "u16", lod: bool = True, chunk_budget_s: float = 0.08):
+    def __init__(
+        self,
+        ctx,
+        color_dtype: str = "f2",
+        keys: str = "u16",
+        lod: bool = True,
+        chunk_budget_s: float = 0.08,
+        show_every_s: float = 0.25,
+        before_2026_12_03: bool = False,
+    ):
         self.ctx = ctx
         self.renderer = SplatRenderer(ctx, color_dtype)
         self.worker = SortWorker()
         self.keys = keys
         self.use_lod = lod
+        self.lod_min_splats = 100_000  # fewer draw fast enough without levels of detail
         self.chunk_budget_s = chunk_budget_s
+        self.show_every_s = show_every_s  # a picture on screen while it fills in is resolved this often
+        # the refinement as it was (first_picture's "before" row): every chunk resolved and sized by
+        # its own splats, the levels of detail built as soon as a document is opened
+        self.before_2026_12_03 = before_2026_12_03
         self.doc: SceneDoc | None = None
         self.full = SplatSet(ctx, "full")
         self.levels: list[SplatSet] = []
@@ -119,6 +133,7 @@ class Viewport:
         self._want = None  # (full-scene request stamp, options) of the latest update
         self._versions: dict | None = None
         self._lod_thread: threading.Thread | None = None
+        self._lod_pending: SceneDoc | None = None  # built once the first full picture is done, or on the first move
         self._lod_result: list[LodLevel] | None = None
         self._submitted = None
         self._shown = None  # what ``target`` shows: (request stamp, set name, scale, options)
@@ -143,7 +158,9 @@ class Viewport:
             self.renderer.set_sky(None if doc.recon.sky_sh is None else doc.recon.sky_sh.cpu().numpy())
             self.renderer.set_ground(doc.recon.ground)
             self.renderer.set_cameras(source_axes(doc.recon).numpy(), source_centres(doc.recon).numpy())
-            self._start_lod(doc)
+            self._lod_pending = doc
+            if self.before_2026_12_03:
+                self._start_lod()
         if new_doc or v["geometry"] != self._versions["geometry"]:
             self.full.upload(doc.splats, doc.origin, self._flags(doc))
         else:
@@ -159,13 +176,21 @@ class Viewport:
         self._poll_lod()
         return True
 
-    def _start_lod(self, doc: SceneDoc) -> None:
-        if not self.use_lod or len(doc.splats) < 100_000:
+    def _start_lod(self) -> None:
+        """Build the levels of detail in a thread, once per document, when they are first wanted:
+        not while the first full-quality picture is drawn, which they would slow (both want the
+        cores)."""
+        doc, self._lod_pending = self._lod_pending, None
+        if doc is None or doc is not self.doc or not self.use_lod or len(doc.splats) < self.lod_min_splats:
             return
+        if self._lod_thread is not None:
+            self._lod_thread.join()  # a previous document's build (its result is dropped)
         splats = doc.splats
 
         def work():
-            self._lod_result = build_levels(splats)
+            levels = build_levels(splats)
+            if self.doc is doc:
+                self._lod_result = levels
 
         self._lod_thread = threading.Thread(target=work, name="viewer-lod", daemon=True)
         self._lod_thread.start()
@@ -193,6 +218,7 @@ class Viewport:
         return bool(self.levels)
 
     def wait_lod(self, timeout: float | None = None) -> None:
+        self._start_lod()
         if self._lod_thread is not None:
             self._lod_thread.join(timeout)
         self._poll_lod()
@@ -265,6 +291,7 @@ class Viewport:
         return self._refine_step(camera, t, opts)
 
     def _preview(self, camera: ViewCamera, t: float, opts: RenderOptions) -> bool:
+        self._start_lod()
         level, scale = self.ladder.step
         s = self.levels[level] if preview_uses_level(level, len(self.levels), opts.mode) else self.full
         if s is not self.full and opts.blend == "cameras":
@@ -312,14 +339,22 @@ class Viewport:
             name = "refine_b" if self.target is not None and self._target_name == "refine_a" else "refine_a"
             self._target_name_next = name
             target = self.renderer.target(camera.width, camera.height, "f4" if opts.mode == "depth" else None, name=name)
-            r = self._refine = {"key": key, "target": target, "next": 0, "seconds": 0.0}
+            r = self._refine = {"key": key, "target": target, "next": 0, "seconds": 0.0, "shown_at": -np.inf}
         start = time.perf_counter()
         count = min(self._chunk, s.gpu.count - r["next"])
-        self.renderer.render_range(s.gpu, camera, t, opts, r["target"], r["next"], count)
+        # a picture nobody sees until it is done resolves on its last chunk only
+        on_screen = self.target is None or self.target is r["target"]
+        resolve = self.before_2026_12_03 or (on_screen and start - r["shown_at"] >= self.show_every_s)
+        self.renderer.render_range(s.gpu, camera, t, opts, r["target"], r["next"], count, resolve=resolve)
         self.ctx.finish()
         seconds = time.perf_counter() - start
-        if count > 0:
-            self._chunk = int(np.clip(count * self.chunk_budget_s / max(seconds, 1e-4), 2_000, 2_000_000))
+        if self.before_2026_12_03:
+            if count > 0:
+                self._chunk = int(np.clip(count * self.chunk_budget_s / max(seconds, 1e-4), 2_000, 2_000_000))
+        elif resolve:
+            r["shown_at"] = time.perf_counter()
+        elif self.renderer.last_drawn > 0:  # chunks sized by the splats a call draws, front-depth passes counted
+            self._chunk = int(np.clip(self.renderer.last_drawn * self.chunk_budget_s / max(seconds, 1e-4), 2_000, 2_000_000))
         r["next"] += count
         r["seconds"] += seconds
         self.stats.render_ms, self.stats.refining = 1e3 * seconds, r["next"] / max(s.gpu.count, 1)
@@ -332,6 +367,7 @@ class Viewport:
         self.target, self.target_opts, self._refine = r["target"], opts, None
         self._target_name = self._target_name_next
         self._shown = (key, None, 1.0, opts)
+        self._start_lod()
         self.stats.full_ms, self.stats.scale, self.stats.level = 1e3 * r["seconds"], 1.0, "full"
         return True
 

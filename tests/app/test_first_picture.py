@@ -47,3 +47,30 @@ def test_first_picture_fills_in_on_screen_and_ends_as_the_full_render(gl_ctx):
             vp._chunk = max(1, total // 5)
     finally:
         vp.close()
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize("before", [False, True], ids=["now", "before-2026-12-03"])
+def test_levels_of_detail_wait_for_the_first_full_picture(gl_ctx, before):
+    """The levels of detail, built in a thread that wants the cores the first full-quality picture
+    is drawn with, start once that picture is done (or on the first move), not when the scene opens;
+    the refinement as it was (``before_2026_12_03``) started them at once."""
+    doc = SceneDoc(street_recon(height=24, width=32))
+    vp = Viewport(gl_ctx, before_2026_12_03=before)
+    vp.lod_min_splats = 0
+    try:
+        c = CameraController()
+        c.reset(doc.recon, 0.0)
+        cam, opts = c.view(doc.recon, 0.0, 160, 90), RenderOptions()
+        vp.sync(doc)
+        assert (vp._lod_thread is not None) == before
+        vp._chunk, vp.chunk_budget_s = max(1, vp.full.gpu.count // 4), 1e-9
+        start = time.time()
+        while not vp.settled and time.time() - start < 60:
+            assert before or vp._lod_thread is None
+            vp.update(doc, cam, 0.0, opts, moving=False)
+        assert vp.settled and vp._lod_thread is not None
+        vp.wait_lod()
+        assert vp.lod_ready
+    finally:
+        vp.close()
