@@ -8,7 +8,9 @@ Measured in one run, on a camera path that orbits the chase view while t sweeps 
 - at rest: the full scene at full resolution in one pass, its fragment count (GL fragment-shader
   invocations, ARB_pipeline_statistics_query) against the fill rate measured in the same run with the
   same shaders on large splats (the fill-rate floor);
-- baseline: a full float argsort of every Gaussian and a full-resolution draw every frame.
+- baseline: a full float argsort of every Gaussian and a full-resolution draw every frame;
+- the full picture at rest drawn in chunks, as the window draws it, each chunk resolving the layers
+  over the sky or only the last one, against one call.
 """
 
 from __future__ import annotations
@@ -142,6 +144,31 @@ def measure_rest(viewport, doc, cams, ctx, opts: RenderOptions = RenderOptions()
     return out
 
 
+CHUNKS = (2_000, 20_000)  # splats per refinement chunk: the floor of the window's adaptation, and a typical size
+
+
+def measure_chunks(viewport, doc, cam, t, ctx) -> dict:
+    """The full picture at rest drawn as the window draws it, in chunks (`SplatRenderer.render_range`),
+    against one call: each chunk resolving the layers over the sky (the refinement before
+    2026-12-03) and only the last one (now, for a picture not on screen)."""
+    from drivingscene_view.sorter import depth_order
+
+    opts, gpu, renderer = RenderOptions(), viewport.full.gpu, viewport.renderer
+    gpu.set_order(depth_order(viewport.full.sort_input, viewport._request(viewport.full, cam, t, opts)))
+    target = renderer.target(cam.width, cam.height, name="bench-chunks")
+    out = {"one call": _timed(lambda: renderer.render_range(gpu, cam, t, opts, target, 0, gpu.count), ctx)}
+    for chunk in CHUNKS:
+        for every, name in ((True, "every chunk resolved"), (False, "the last chunk resolved")):
+
+            def draw(chunk=chunk, every=every):
+                for start in range(0, gpu.count, chunk):
+                    renderer.render_range(gpu, cam, t, opts, target, start, chunk, resolve=every)
+                    ctx.finish()  # as the window, which shows a frame between chunks
+
+            out[f"chunks of {chunk:,}, {name}"] = _timed(draw, ctx)
+    return out
+
+
 def measure_baseline(viewport, doc, cams, ctx) -> dict:
     """Full float32 argsort of every Gaussian's depth, full upload and full-resolution draw, every frame."""
     opts = RenderOptions()
@@ -191,6 +218,7 @@ def run_bench(args) -> int:
                 viewport, doc, _cameras(doc, 3), ctx, RenderOptions(layer_blend=LayerBlend(surface_tolerance=0.0))
             ),
             "baseline": measure_baseline(viewport, doc, _cameras(doc, 3), ctx),
+            "chunks": measure_chunks(viewport, doc, *_cameras(doc, 1)[0], ctx),
             "lod_s": lod_s,
             "levels": [len(s.splats) for s in viewport.levels],
         }
@@ -249,6 +277,16 @@ def report(r: dict) -> str:
         f"| baseline: float argsort of all + full res every frame | {_ms(base['frame'])} ms | {_ms(base['sort'])} ms | "
         f"{_ms(base['upload'])} ms | {100 * statistics.median([s + u for s, u in zip(base['sort'], base['upload'])]) / statistics.median(base['frame']):.1f} % | "
         f"moving-frame speed-up {statistics.median(base['frame']) / statistics.median(mv['frame']):.1f}x |",
+    ]
+    chunks = r["chunks"]
+    one = chunks["one call"]
+    lines += [
+        "",
+        "The full picture at rest as the window draws it, in chunks across frames (the first camera of the path):",
+        "",
+        "| drawn | seconds | against one call |",
+        "|---|---|---|",
+        *(f"| {name} | {sec:.2f} | {sec / one:.2f}x |" for name, sec in chunks.items()),
     ]
     head = [
         f"Scene `{r['scene']}`: {r['n']:,} Gaussians ({r['dynamic']:,} dynamic), {r['method']} reconstruction.",
