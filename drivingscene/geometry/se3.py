@@ -104,7 +104,7 @@ def interpolate_pose(pose0: Tensor, pose1: Tensor, t: Tensor | float) -> Tensor:
     t = torch.as_tensor(t, dtype=pose0.dtype, device=pose0.device)
     q = slerp(matrix_to_quat(pose0[..., :3, :3]), matrix_to_quat(pose1[..., :3, :3]), t)
     trans = pose0[..., :3, 3] + t[..., None] * (pose1[..., :3, 3] - pose0[..., :3, 3])
-    shape = torch.broadcast_shapes(pose0.shape[:-2], t.shape)
+    shape = trans.shape[:-1]  # the leading dims broadcast (torch.broadcast_shapes imports sympy: 0.5 s once)
     out = torch.zeros(*shape, 4, 4, dtype=pose0.dtype, device=pose0.device)
     out[..., :3, :3] = quat_to_matrix(q)
     out[..., :3, 3] = trans

@@ -158,3 +158,19 @@ def test_depth_view_previews_the_full_scene_not_a_merged_level():
     assert preview_uses_level(0, 2, "rgb") and preview_uses_level(1, 2, "flow")
     assert not preview_uses_level(0, 2, "depth") and not preview_uses_level(1, 2, "depth")
     assert not preview_uses_level(-1, 2, "rgb") and not preview_uses_level(0, 0, "rgb")
+
+
+def test_viewer_covariances_are_the_renderers():
+    """The GL path's world covariances (upper triangle, float64 numpy) against the CPU renderer's."""
+    import torch
+    from drivingscene_view.splats import covariances
+
+    from drivingscene.render import covariances_3d
+
+    g = torch.Generator().manual_seed(3)
+    quats = torch.randn(500, 4, generator=g) * 2  # not normalised: both normalise
+    log_scales = torch.randn(500, 3, generator=g) - 2
+    expected = covariances_3d(torch.nn.functional.normalize(quats.double(), dim=-1), log_scales.double().exp())
+    got = covariances(quats.numpy(), log_scales.numpy())
+    upper = expected[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].numpy()
+    np.testing.assert_allclose(got, upper, rtol=1e-12, atol=1e-15)

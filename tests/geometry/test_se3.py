@@ -97,6 +97,31 @@ def test_interpolate_pose_batched_times():
     torch.testing.assert_close(out[1], interpolate_pose(p0, p1, 0.25))
 
 
+def test_interpolate_pose_broadcasts_poses_against_times():
+    p0, p1 = _random_poses(2, seed=6)
+    ts = torch.tensor([[0.0], [0.5]], dtype=torch.float64)
+    out = interpolate_pose(p0.expand(3, 4, 4), p1.expand(3, 4, 4), ts)  # [3] poses against [2, 1] times
+    assert out.shape == (2, 3, 4, 4)
+    torch.testing.assert_close(out[1, 2], interpolate_pose(p0, p1, 0.5))
+
+
+def test_interpolate_pose_imports_nothing_heavy():
+    """The viewer interpolates the ego pose when a scene opens: torch.broadcast_shapes imported sympy
+    there on its first call (0.5 s on a 2-core machine), before the first picture."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, torch\n"
+        "from drivingscene.geometry import interpolate_pose\n"
+        "p = torch.eye(4, dtype=torch.float64)\n"
+        "interpolate_pose(p, p, 0.5); interpolate_pose(p[None].repeat(2, 1, 1), p, torch.tensor([0.0, 1.0]))\n"
+        "print('sympy' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert out.stdout.strip() == "False"
+
+
 def test_quat_multiply_composes_rotations():
     from drivingscene.geometry import quat_multiply
 
