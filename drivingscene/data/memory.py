@@ -4,6 +4,7 @@ array is allocated (a header may declare any shape; numpy allocates what it decl
 from __future__ import annotations
 
 import os
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -13,7 +14,8 @@ import numpy as np
 from drivingscene.errors import InputError
 from drivingscene.machine import MEMORY_LIMIT_ENV, available_memory_bytes, gib
 
-HEADER_ERRORS = (ValueError, EOFError, SyntaxError, TypeError)  # what a malformed .npy header raises
+# what a malformed .npy header raises (tokenize.TokenError: numpy's second parse of a header cut short)
+HEADER_ERRORS = (ValueError, EOFError, SyntaxError, TypeError, tokenize.TokenError)
 # what a damaged zip raises in zipfile: NotImplementedError for an unknown zip version or method,
 # RuntimeError for a member flagged as encrypted
 ZIP_ERRORS = (OSError, zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError, RuntimeError)

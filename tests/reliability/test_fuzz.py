@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from drivingscene.errors import DrivingSceneError
+from tests.factories import make_pair
 from tests.reliability.corpus import ply_bytes, rig_folder, scene_arrays, tiny_weights, write_npz
 
 FUZZ = settings(max_examples=150, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -81,6 +82,26 @@ def test_npz_mutated_bytes(work, npz_bytes, data, compressed):
     path = work / "mutated.npz"
     path.write_bytes(data.draw(mutations(npz_bytes[compressed])))
     read_or_own_error(_load_scene, path)
+
+
+@pytest.fixture(scope="module")
+def recon_bytes(work):
+    from drivingscene.gaussians.recon import save_reconstruction
+    from tests.app.scenes import street_recon
+
+    return save_reconstruction(street_recon(height=12, width=16), work / "recon.npz").read_bytes()
+
+
+@FUZZ
+@given(data=st.data())
+def test_recon_npz_mutated_bytes(work, recon_bytes, data):
+    """A saved reconstruction (what the viewer and `drivingscene render` open) with mutated bytes:
+    read, or refused with the project's own one-line error."""
+    from drivingscene.sources import open_source
+
+    path = work / "mutated_recon.npz"
+    path.write_bytes(data.draw(mutations(recon_bytes)))
+    read_or_own_error(open_source, path)
 
 
 KEYS = ["format", "version", "images", "intrinsics", "cam_to_ego", "ego_to_world", "timestamps", "camera_names", "gt_depth"]
@@ -339,5 +360,32 @@ def test_npz_central_directory_damage_is_one_line(work, npz_bytes, offset, value
     (problem,) = validate_frame_pair_file(path)
     assert found in problem.found and problem.source == str(path)
     with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: expected an \.npz archive.*{found}") as e:
+        load_frame_pair(path)
+    assert "\n" not in str(e.value)
+
+
+def test_npz_header_cut_inside_its_shape_is_one_line(work):
+    """What fuzzing a reconstruction file found: a .npy header whose length field cuts it inside the
+    shape tuple makes numpy's second parse of it raise tokenize.TokenError (not a ValueError)."""
+    import struct
+
+    from drivingscene.data.frame_pair import load_frame_pair, validate_frame_pair_file
+    from drivingscene.data.npz import save_npz
+    from drivingscene.errors import InputError
+
+    # the images' .npy header (version 1.0: a 2-byte length) in a scene whose images are larger than
+    # zipfile's first read (4 KiB), so that their CRC is not checked before the header is parsed
+    arrays = make_pair(num_views=2, height=48, width=64, with_gt=False).to_arrays()
+    data = bytearray(save_npz(work / "larger.npz", arrays, compress=False).read_bytes())
+    magic = data.index(b"images.npy\x93NUMPY") + len(b"images.npy")
+    start = magic + 10
+    cut = data.index(b"'shape': (", start) + len(b"'shape': (")
+    cut = data.index(b", ", cut) + 2  # "(2, " and no more
+    data[magic + 8 : magic + 10] = struct.pack("<H", cut - start)
+    path = work / "header_cut.npz"
+    path.write_bytes(bytes(data))
+    (problem,) = validate_frame_pair_file(path)
+    assert problem.source == str(path)
+    with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: ") as e:
         load_frame_pair(path)
     assert "\n" not in str(e.value)
