@@ -28,7 +28,7 @@ on validation pairs (docs/parsimony.md); the per-pixel output stays selectable
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import torch
 import torch.nn.functional as F
@@ -147,10 +147,11 @@ def _first_level(g: Gaussians, pixels: Tensor, depth: Tensor, colors: Tensor | N
     return _Level(ids, depth.float(), rgb, g.flows, g.view_bound, _detail(rgb, ids) if config.color_test == "detail" else None)
 
 
-def _decide(level: _Level, config: BlockMerge) -> tuple[Tensor, Tensor, Tensor, _Level]:
+def _decide(level: _Level, config: BlockMerge, following: bool = True) -> tuple[Tensor, Tensor, Tensor, _Level | None]:
     """Which blocks of ``level`` merge: their ids ``[M, 4]``, their flat indices into the blocks
-    ``[I, h, w]``, their mean depths ``[M]``, and the next level's tests (its id map into the merged
-    ones, -1 where a block did not merge; its depth map; the merged blocks' mean colours and flows)."""
+    ``[I, h, w]``, their mean depths ``[M]``, and, when ``following``, the next level's tests (its
+    id map into the merged ones, -1 where a block did not merge; its depth map; the merged blocks'
+    mean colours and flows; None otherwise)."""
     block_ids = _blocks(level.ids)  # [I, h, w, 4]
     block_depth = _blocks(level.depth)
     full = (block_ids >= 0).all(-1)
@@ -176,17 +177,19 @@ def _decide(level: _Level, config: BlockMerge) -> tuple[Tensor, Tensor, Tensor, 
     ok_at = ok.nonzero().squeeze(1)
     groups = cand.index_select(0, ok_at)  # [M, 4]
     merged_at = full_at.index_select(0, ok_at)
+    if not following:
+        return groups, merged_at, mean_depth.index_select(0, ok_at), None
     next_ids = torch.full(block_ids.shape[:3], -1, dtype=torch.long, device=level.ids.device)
     next_ids.view(-1).index_copy_(0, merged_at, torch.arange(len(groups), device=level.ids.device))
     flat = groups.flatten()
-    following = _Level(
+    next_level = _Level(
         next_ids,
         block_depth.mean(-1),
         _group_mean(level.rgb, flat),
         _group_mean(level.flows, flat),
         level.bound.index_select(0, groups[:, 0]),
     )
-    return groups, merged_at, mean_depth.index_select(0, ok_at), following
+    return groups, merged_at, mean_depth.index_select(0, ok_at), next_level
 
 
 def _group_mean(x: Tensor, flat: Tensor) -> Tensor:
@@ -225,10 +228,10 @@ def _merged_count(level: _Level, config: BlockMerge) -> int:
     """How many Gaussians `merge_blocks` leaves, from the tests alone (no Gaussian is built): each
     block that merges turns four into one."""
     count = int((level.ids >= 0).sum())
-    for _ in range(config.levels):
+    for step in range(config.levels):
         if min(level.depth.shape[1:]) < 2:
             break
-        groups, _, _, level = _decide(level, config)
+        groups, _, _, level = _decide(level, config, following=step + 1 < config.levels)
         count -= 3 * len(groups)
         if len(groups) == 0:
             break
@@ -252,43 +255,64 @@ def merge_blocks(
     block it merged into), so that a merged Gaussian's pixels are known (`render.color_solve`)."""
     focal = 0.5 * (intrinsics[:, 0, 0] + intrinsics[:, 1, 1]).float()  # [I] pixels per metre at 1 m
     level = _first_level(g, pixels, depth, colors, config)
-    current, parts = g, []
-    # each input Gaussian's place: in the current level (label) until it lands in a part (owner)
+    current, parts = g, []  # parts: (Gaussians, the ids of those kept) of each level; the last one whole
+    # each input Gaussian's place: in the current level (label) until it lands in a part (owner);
+    # whole-array selects (torch.where and gathers), not boolean indexing, which is several times slower
     label = torch.arange(len(g), device=g.device)
     owner = torch.full((len(g),), -1, dtype=torch.long, device=g.device)
     placed = 0
-    for step in range(config.levels):
+    steps = config.levels
+    for step in range(steps):
         if min(level.depth.shape[1:]) < 2:
             break
         blocks_per_image = (level.depth.shape[1] // 2) * (level.depth.shape[2] // 2)
-        groups, merged_at, mean_depth, level = _decide(level, config)
+        groups, merged_at, mean_depth, level = _decide(level, config, following=step + 1 < steps)
         merged = _merged_gaussians(current, groups, merged_at, mean_depth, blocks_per_image, focal * 0.5**step, 2.0, eps2d)
         alive = torch.ones(len(current), dtype=torch.bool, device=g.device)  # the previous level's that merged give way
-        alive[groups.flatten()] = False
+        flat = groups.flatten()
+        alive[flat] = False
         rank = torch.cumsum(alive, 0) - 1
         group_of = torch.full((len(current),), -1, dtype=torch.long, device=g.device)
-        group_of[groups.flatten()] = torch.arange(len(groups), device=g.device).repeat_interleave(4)
-        still = (owner < 0).nonzero().squeeze(1)  # not placed yet: label is into `current`
-        at = label[still]
-        stays = alive[at]
-        owner[still[stays]] = placed + rank[at[stays]]
-        label[still[~stays]] = group_of[at[~stays]]
-        placed += int(alive.sum())
-        parts.append(current.index(alive))
+        group_of[flat] = torch.arange(len(groups), device=g.device).repeat_interleave(4)
+        pending = owner < 0  # not placed yet: label is into `current`
+        at = torch.where(pending, label, 0)
+        stays = alive.index_select(0, at)
+        owner = torch.where(pending & stays, placed + rank.index_select(0, at), owner)
+        label = torch.where(pending & ~stays, group_of.index_select(0, at), label)
+        kept = alive.nonzero().squeeze(1)
+        placed += len(kept)
+        parts.append((current, kept))
         current = merged
         if len(merged) == 0:
             break
-    still = owner < 0
-    owner[still] = placed + label[still]
-    parts.append(current)
-    out = Gaussians.cat(parts)
-    image = out.keyframes * (int(out.cameras.max()) + 1 if len(out) else 1) + out.cameras
+    owner = torch.where(owner < 0, placed + label, owner)
+    parts.append((current, None))
+    # ordered by image (keyframe, then camera) as assembled: the output's i-th Gaussian is the
+    # order[i]-th of the parts' concatenation; each field is gathered from its part once, straight
+    # into its place (no concatenation, then no reordered copy of it)
+    sizes = [len(ids) if ids is not None else len(part) for part, ids in parts]
+    stops = torch.tensor([0, *sizes], device=g.device).cumsum(0)
+    cameras = torch.cat([part.cameras if ids is None else part.cameras.index_select(0, ids) for part, ids in parts])
+    keyframes = torch.cat([part.keyframes if ids is None else part.keyframes.index_select(0, ids) for part, ids in parts])
+    image = keyframes * (int(cameras.max()) + 1 if len(cameras) else 1) + cameras
     order = torch.sort(image, stable=True).indices
-    if not with_owners:
-        return out.index(order)
     position = torch.empty_like(order)
     position[order] = torch.arange(len(order), device=order.device)
-    return out.index(order), position[owner]
+    fields_out = {}
+    for f in fields(Gaussians):
+        chunks = []
+        for (part, ids), lo, hi in zip(parts, stops[:-1].tolist(), stops[1:].tolist()):
+            x = getattr(part, f.name)
+            chunks.append((x if ids is None else x.index_select(0, ids), position[lo:hi]))
+        first = chunks[0][0]
+        out_f = first.new_empty((len(order), *first.shape[1:]))
+        for x, where in chunks:
+            out_f.index_copy_(0, where, x)
+        fields_out[f.name] = out_f
+    out = Gaussians(**fields_out)
+    if not with_owners:
+        return out
+    return out, position.index_select(0, owner)
 
 
 @dataclass(frozen=True)
