@@ -348,13 +348,13 @@ class Viewport:
         self.renderer.render_range(s.gpu, camera, t, opts, r["target"], r["next"], count, resolve=resolve)
         self.ctx.finish()
         seconds = time.perf_counter() - start
-        if self.before_2026_12_03:
-            if count > 0:
-                self._chunk = int(np.clip(count * self.chunk_budget_s / max(seconds, 1e-4), 2_000, 2_000_000))
-        elif resolve:
+        # chunks sized by the splats a call draws, front-depth passes counted (before: by its own
+        # splats, on every call), not by a call that also resolved
+        drawn = count if self.before_2026_12_03 else self.renderer.last_drawn
+        if resolve and not self.before_2026_12_03:
             r["shown_at"] = time.perf_counter()
-        elif self.renderer.last_drawn > 0:  # chunks sized by the splats a call draws, front-depth passes counted
-            self._chunk = int(np.clip(self.renderer.last_drawn * self.chunk_budget_s / max(seconds, 1e-4), 2_000, 2_000_000))
+        elif drawn > 0:
+            self._chunk = int(np.clip(drawn * self.chunk_budget_s / max(seconds, 1e-4), 2_000, 2_000_000))
         r["next"] += count
         r["seconds"] += seconds
         self.stats.render_ms, self.stats.refining = 1e3 * seconds, r["next"] / max(s.gpu.count, 1)

@@ -255,18 +255,17 @@ def merge_blocks(
     block it merged into), so that a merged Gaussian's pixels are known (`render.color_solve`)."""
     focal = 0.5 * (intrinsics[:, 0, 0] + intrinsics[:, 1, 1]).float()  # [I] pixels per metre at 1 m
     level = _first_level(g, pixels, depth, colors, config)
-    current, parts = g, []  # parts: (Gaussians, the ids of those kept) of each level; the last one whole
+    current, parts = g, []
     # each input Gaussian's place: in the current level (label) until it lands in a part (owner);
     # whole-array selects (torch.where and gathers), not boolean indexing, which is several times slower
     label = torch.arange(len(g), device=g.device)
     owner = torch.full((len(g),), -1, dtype=torch.long, device=g.device)
     placed = 0
-    steps = config.levels
-    for step in range(steps):
+    for step in range(config.levels):
         if min(level.depth.shape[1:]) < 2:
             break
         blocks_per_image = (level.depth.shape[1] // 2) * (level.depth.shape[2] // 2)
-        groups, merged_at, mean_depth, level = _decide(level, config, following=step + 1 < steps)
+        groups, merged_at, mean_depth, level = _decide(level, config, following=step + 1 < config.levels)
         merged = _merged_gaussians(current, groups, merged_at, mean_depth, blocks_per_image, focal * 0.5**step, 2.0, eps2d)
         alive = torch.ones(len(current), dtype=torch.bool, device=g.device)  # the previous level's that merged give way
         flat = groups.flatten()
@@ -279,36 +278,28 @@ def merge_blocks(
         stays = alive.index_select(0, at)
         owner = torch.where(pending & stays, placed + rank.index_select(0, at), owner)
         label = torch.where(pending & ~stays, group_of.index_select(0, at), label)
-        kept = alive.nonzero().squeeze(1)
-        placed += len(kept)
-        parts.append((current, kept))
+        placed += int(alive.sum())
+        parts.append(current.index(alive))
         current = merged
         if len(merged) == 0:
             break
     owner = torch.where(owner < 0, placed + label, owner)
-    parts.append((current, None))
-    # ordered by image (keyframe, then camera) as assembled: the output's i-th Gaussian is the
-    # order[i]-th of the parts' concatenation; each field is gathered from its part once, straight
-    # into its place (no concatenation, then no reordered copy of it)
-    sizes = [len(ids) if ids is not None else len(part) for part, ids in parts]
-    stops = torch.tensor([0, *sizes], device=g.device).cumsum(0)
-    cameras = torch.cat([part.cameras if ids is None else part.cameras.index_select(0, ids) for part, ids in parts])
-    keyframes = torch.cat([part.keyframes if ids is None else part.keyframes.index_select(0, ids) for part, ids in parts])
-    image = keyframes * (int(cameras.max()) + 1 if len(cameras) else 1) + cameras
+    parts.append(current)
+    # ordered by image (keyframe, then camera) as assembled: the i-th Gaussian of the parts'
+    # concatenation goes to position[i], each field copied from its part straight into its place
+    # (no concatenation, then no reordered copy of it)
+    cameras = torch.cat([part.cameras for part in parts])
+    image = torch.cat([part.keyframes for part in parts]) * (int(cameras.max()) + 1 if len(cameras) else 1) + cameras
     order = torch.sort(image, stable=True).indices
     position = torch.empty_like(order)
     position[order] = torch.arange(len(order), device=order.device)
+    places = position.split([len(part) for part in parts])
     fields_out = {}
     for f in fields(Gaussians):
-        chunks = []
-        for (part, ids), lo, hi in zip(parts, stops[:-1].tolist(), stops[1:].tolist()):
-            x = getattr(part, f.name)
-            chunks.append((x if ids is None else x.index_select(0, ids), position[lo:hi]))
-        first = chunks[0][0]
-        out_f = first.new_empty((len(order), *first.shape[1:]))
-        for x, where in chunks:
-            out_f.index_copy_(0, where, x)
-        fields_out[f.name] = out_f
+        first = getattr(parts[0], f.name)
+        fields_out[f.name] = first.new_empty((len(order), *first.shape[1:]))
+        for part, where in zip(parts, places):
+            fields_out[f.name].index_copy_(0, where, getattr(part, f.name))
     out = Gaussians(**fields_out)
     if not with_owners:
         return out
