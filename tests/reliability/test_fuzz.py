@@ -341,6 +341,20 @@ def test_nuscenes_tables_mutated(work, nuscenes_root, data, table):
     read_or_own_error(import_nuscenes, folder, VERSION, SCENE, 0, "keyframe", False, None)
 
 
+def _refused_on_one_line(path: Path, expected: str = ""):
+    """The scene file at ``path`` is one problem for `validate` and one line naming it for the
+    loader (after the file's name, the regex ``expected``); the problem."""
+    from drivingscene.data.frame_pair import load_frame_pair, validate_frame_pair_file
+    from drivingscene.errors import InputError
+
+    (problem,) = validate_frame_pair_file(path)
+    assert problem.source == str(path)
+    with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: {expected}") as e:
+        load_frame_pair(path)
+    assert "\n" not in str(e.value)
+    return problem
+
+
 @pytest.mark.parametrize(
     ("offset", "value", "found"),
     [(6, b"\x54\x00", "zip file version 8.4"), (8, b"\x01\x00", "encrypted")],  # version needed; flag bit 0
@@ -349,19 +363,13 @@ def test_nuscenes_tables_mutated(work, nuscenes_root, data, table):
 def test_npz_central_directory_damage_is_one_line(work, npz_bytes, offset, value, found):
     """What the fuzzing found: zipfile raises NotImplementedError for a zip version it does not
     know and RuntimeError for a member flagged as encrypted; both are one line naming the file."""
-    from drivingscene.data.frame_pair import load_frame_pair, validate_frame_pair_file
-    from drivingscene.errors import InputError
-
     data = bytearray(npz_bytes[False])
     at = data.index(b"PK\x01\x02") + offset  # the first member's central directory entry
     data[at : at + 2] = value
     path = work / f"damaged_{offset}.npz"
     path.write_bytes(bytes(data))
-    (problem,) = validate_frame_pair_file(path)
-    assert found in problem.found and problem.source == str(path)
-    with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: expected an \.npz archive.*{found}") as e:
-        load_frame_pair(path)
-    assert "\n" not in str(e.value)
+    problem = _refused_on_one_line(path, rf"expected an \.npz archive.*{found}")
+    assert found in problem.found
 
 
 def test_npz_header_cut_inside_its_shape_is_one_line(work):
@@ -369,9 +377,7 @@ def test_npz_header_cut_inside_its_shape_is_one_line(work):
     shape tuple makes numpy's second parse of it raise tokenize.TokenError (not a ValueError)."""
     import struct
 
-    from drivingscene.data.frame_pair import load_frame_pair, validate_frame_pair_file
     from drivingscene.data.npz import save_npz
-    from drivingscene.errors import InputError
 
     # the images' .npy header (version 1.0: a 2-byte length) in a scene whose images are larger than
     # zipfile's first read (4 KiB), so that their CRC is not checked before the header is parsed
@@ -384,8 +390,4 @@ def test_npz_header_cut_inside_its_shape_is_one_line(work):
     data[magic + 8 : magic + 10] = struct.pack("<H", cut - start)
     path = work / "header_cut.npz"
     path.write_bytes(bytes(data))
-    (problem,) = validate_frame_pair_file(path)
-    assert problem.source == str(path)
-    with pytest.raises(InputError, match=rf"^{re.escape(str(path))}: ") as e:
-        load_frame_pair(path)
-    assert "\n" not in str(e.value)
+    _refused_on_one_line(path)
