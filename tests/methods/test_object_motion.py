@@ -90,6 +90,21 @@ def test_a_match_that_moves_further_than_max_motion_is_not_an_object():
         ObjectMotionConfig(max_motion=0.0)
 
 
+def test_a_blob_whose_first_match_explains_it_no_better_is_not_tracked_further():
+    """`ObjectMotionConfig.first_ratio`: the object grown by 1.1 is matched at scale 1 first, which
+    explains its blob only in part; a bound below that refuses it before the scales are searched,
+    the default (1: no better than the static world) and none track it alike."""
+    images, mask0, _, _ = _scene((12.0, 0.0), 1.1)
+    flow, owned = _run(images)
+    flow_all, owned_all = _run(images, ObjectMotionConfig(first_ratio=float("inf")))
+    assert (owned[0, 0] & mask0).sum() >= 0.6 * mask0.sum()
+    assert np.array_equal(owned, owned_all) and np.array_equal(flow, flow_all)
+    _, strict = _run(images, ObjectMotionConfig(first_ratio=0.05))
+    assert not strict.any()
+    with pytest.raises(ValueError, match="first_ratio"):
+        ObjectMotionConfig(first_ratio=0.0)
+
+
 def test_cameras_tracked_side_by_side_are_tracked_as_alone():
     """object_flows runs the cameras in threads: three cameras with objects moved differently give
     each camera's result alone, to the bit."""
