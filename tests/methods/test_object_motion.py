@@ -105,6 +105,31 @@ def test_a_blob_whose_first_match_explains_it_no_better_is_not_tracked_further()
         ObjectMotionConfig(first_ratio=0.0)
 
 
+def test_background_an_object_covers_is_not_carried_with_it_with_the_landing_test():
+    """`ObjectMotionConfig.landing`: an object moving down over flat road (with sensor noise) is
+    tracked either way; without the test the road it covers at keyframe 1, which its warp carries
+    onto road the other keyframe's static world explains as well, is painted with the object's flow."""
+    rng = np.random.default_rng(3)
+    background = _texture(0, H, W)
+    background[40:] = 128  # flat road below row 40
+    x, y, w, h = 60, 30, 30, 20
+    patch = _texture(1, h, w)
+    images = np.stack([background, background])[:, None].copy()
+    images[0, 0, y : y + h, x : x + w] = patch
+    images[1, 0, y + 14 : y + h + 14, x : x + w] = patch
+    images = np.clip(images + rng.normal(0, 2.5, images.shape), 0, 255).astype(np.uint8)
+    thing = np.zeros((H, W), bool)
+    thing[y : y + h, x : x + w] = True
+    _, without = _run(images)
+    _, tested = _run(images, ObjectMotionConfig(landing=0.01))
+    for owned in (without, tested):
+        assert (owned[0, 0] & thing).sum() >= 0.95 * thing.sum()
+    assert (without[0, 0] & ~thing).sum() > 0.5 * thing.sum()  # the road under it, carried along
+    assert (tested[0, 0] & ~thing).sum() < 0.3 * (without[0, 0] & ~thing).sum()
+    with pytest.raises(ValueError, match="landing"):
+        ObjectMotionConfig(landing=-0.1)
+
+
 def test_cameras_tracked_side_by_side_are_tracked_as_alone():
     """object_flows runs the cameras in threads: three cameras with objects moved differently give
     each camera's result alone, to the bit."""
