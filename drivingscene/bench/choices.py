@@ -64,6 +64,7 @@ class Variant:
     mscale: float | None = None  # MatchedDepthConfig.scale
     pmatch: str | None = None  # MatchedDepthConfig.prior_preset: the fallback's DIS preset
     fdisp: float | None = None  # MatchedDepthConfig.fallback_dispersion (0: every camera matched again)
+    mout: float | None = None  # MatchedDepthConfig.prior_outlier (-1: off); None: the default
     rig: bool | None = None  # MatchedDepthConfig.cross: the stereo across the rig on (the default) or off
     fuse: str | None = None  # MatchedDepthConfig.fuse
     replace: bool | None = None  # MatchedDepthConfig.replace: determined pixels take the triangulated depth
@@ -119,6 +120,8 @@ class Variant:
                     match = replace(match, **{name: value})
             if self.rig is not None:
                 match = replace(match, cross=CrossCameraConfig() if self.rig else None)
+            if self.mout is not None:  # -1: off (None in the config)
+                match = replace(match, prior_outlier=None if self.mout < 0 else self.mout)
         lift = base.lift
         if self.region is not None:
             lift = replace(lift, min_dynamic_region=self.region)
@@ -194,9 +197,9 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def _cell(value: float) -> str:
-    """A table cell: two decimals, or "n/a" where the pairs have no such figure (a real scene's moving pixels)."""
-    return "n/a" if np.isnan(value) else f"{value:.2f}"
+def _cell(value: float, decimals: int = 2) -> str:
+    """A table cell: ``decimals`` decimals, or "n/a" where the pairs have no such figure (a real scene's moving pixels)."""
+    return "n/a" if np.isnan(value) else f"{value:.{decimals}f}"
 
 
 def _nanmean(values: list[float]) -> float:
@@ -226,7 +229,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, pmatch, fdisp, fuse, replace, bonus, region, unseen, unseenpx, objects,
+    windows, guide, levels, passes, mscale, pmatch, fdisp, mout, fuse, replace, bonus, region, unseen, unseenpx, objects,
     residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, oland, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.feedforward import MOVING_DEPTHS
@@ -298,6 +301,8 @@ def parse_variant(text: str) -> Variant:
             values["mscale"] = float(value)
         elif key == "pmatch" and value in MATCHES[1:]:
             values["pmatch"] = value
+        elif key == "mout" and (value == "off" or (_is_number(value) and float(value) > 0)):
+            values["mout"] = -1.0 if value == "off" else float(value)
         elif key == "fdisp" and _is_number(value) and float(value) >= 0:
             values["fdisp"] = float(value)
         elif key == "passes" and value.isdigit() and int(value) >= 1:
@@ -310,7 +315,7 @@ def parse_variant(text: str) -> Variant:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
                 f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, oland=off|COST, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
-                f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
+                f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), mout=off|LOG (> 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
 
@@ -343,7 +348,9 @@ def score_variant(model, pair, variant: Variant) -> dict[str, float]:
     out["dynamic"] = float(recon.visible().dynamic.float().mean())
     out["gaussians"] = float(len(recon.visible()))
     if pair.gt_depth is not None:  # as docs/results.md and docs/real-data.md score it
-        out["abs_rel"] = score_depth(recon, pair)["depth_abs_rel"]
+        depth = score_depth(recon, pair)
+        out["abs_rel"] = depth["depth_abs_rel"]
+        out["abs_rel_dyn"] = depth.get("depth_abs_rel_dyn", float("nan"))
     if pair.num_eval:
         novel = score_novel_views(recon, pair, None, variant.blend)
         out["psnr"], out["psnr_dyn"] = novel["psnr"], novel.get("psnr_dyn", float("nan"))
@@ -388,7 +395,7 @@ def run(args: argparse.Namespace) -> int:
                 f"| {_cell(mean.get('epe_dyn', np.nan))} / {_cell(mean.get('epe_static', np.nan))} "
                 f"| {_cell(mean.get('epe_dyn_applied', np.nan))} / {_cell(mean.get('epe_static_applied', np.nan))} "
                 f"| {100 * mean['dynamic']:.1f} % | {mean['gaussians'] / 1000:.0f} | {mean.get('abs_rel', np.nan):.3f} "
-                f"| {np.median([s['seconds'] for s in scores]):.2f} |"
+                f"/ {_cell(mean.get('abs_rel_dyn', np.nan), 3)} | {np.median([s['seconds'] for s in scores]):.2f} |"
             )
             first = per_pair if first is None else first
             print(f"{folder}: {rows[-1]}", flush=True)
@@ -406,7 +413,7 @@ def run(args: argparse.Namespace) -> int:
             "",
             "| variant | input views PSNR | intermediate PSNR | intermediate PSNR, moving | moving: pairs above the first row (sign test) "
             "| flow EPE moving / static (px) | flow the Gaussians follow: EPE moving / static (px) | dynamic Gaussians "
-            "| Gaussians (thousands) | depth AbsRel | s / pair |",
+            "| Gaussians (thousands) | depth AbsRel: all / moving objects | s / pair |",
             "|---|---|---|---|---|---|---|---|---|---|---|",
             *rows,
             "",

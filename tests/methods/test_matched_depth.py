@@ -13,6 +13,7 @@ from drivingscene.data.tensors import pair_to_tensors
 from drivingscene.methods.matched_depth import (
     MatchedDepthConfig,
     _fused,
+    _prior_outliers,
     affine_log_fit,
     match_depth,
     match_mode,
@@ -187,6 +188,36 @@ def test_a_standing_ego_still_gets_depth_from_the_overlapping_cameras(synth_pair
     assert torch.equal(depth[sky], depth_in[sky]) and timings["match_cross_s"] > 0
 
 
+def test_triangulations_far_from_a_reliable_d_are_refused_as_motion():
+    """`MatchedDepthConfig.prior_outlier`: in an image whose matches agree with D's shape, a patch
+    triangulated twice as far as D (an object moving away, read as parallax) is refused; in an image
+    where D's shape scatters (its dispersion above ``fallback_dispersion``), nothing is."""
+    rng = np.random.default_rng(0)
+    d = torch.full((2, 2, 40, 60), 10.0)
+    z = d * torch.from_numpy(np.exp(rng.normal(0, 0.02, d.shape)).astype(np.float32)) * 1.3  # scale 1.3, shape right
+    z[:, 1] = d[:, 1] * torch.from_numpy(np.exp(rng.normal(0, 0.4, d[:, 1].shape)).astype(np.float32))  # D's shape off
+    z[:, :, 10:20, 10:20] *= 2.0  # the moving patch, in both cameras
+    determined = torch.ones(d.shape, dtype=torch.bool)
+    refused = _prior_outliers(d, z, determined, None, MatchedDepthConfig(prior_outlier=0.3))
+    patch = torch.zeros_like(determined)
+    patch[:, :, 10:20, 10:20] = True
+    assert refused[:, 0][patch[:, 0]].all() and not refused[:, 0][~patch[:, 0]].any()
+    assert not refused[:, 1].any()
+
+
+def test_refusing_motion_read_as_parallax_brings_moving_objects_nearer_d(synth_pair):
+    """With D's depth right, matching over time moves the moving objects' depth off it (their motion
+    read as parallax); refusing those triangulations keeps it nearer, and the rest no worse."""
+    batch, gt, sky = _inputs(synth_pair)
+    world = gt > 0
+    right = torch.from_numpy(np.where(world, gt, 50.0).astype(np.float32))
+    moving, still = synth_pair.gt_dynamic & world, ~synth_pair.gt_dynamic & world
+    kept, _, _ = match_depth(right, sky, synth_pair, batch)
+    refused, _, _ = match_depth(right, sky, synth_pair, batch, MatchedDepthConfig(prior_outlier=0.3))
+    assert _abs_rel(refused, gt, moving) < 0.97 * _abs_rel(kept, gt, moving)
+    assert _abs_rel(refused, gt, still) <= _abs_rel(kept, gt, still) + 1e-3
+
+
 def test_config_is_checked():
     with pytest.raises(ValueError, match="preset"):
         MatchedDepthConfig(preset="slow")
@@ -202,6 +233,8 @@ def test_config_is_checked():
         MatchedDepthConfig(min_support=0.2, full_support=0.1)
     with pytest.raises(ValueError, match="fuse"):
         MatchedDepthConfig(fuse="mean")
+    with pytest.raises(ValueError, match="prior_outlier"):
+        MatchedDepthConfig(prior_outlier=0.0)
 
 
 def test_fused_depth_weighs_each_triangulation_by_its_parallax_squared():
