@@ -65,6 +65,7 @@ class Variant:
     pmatch: str | None = None  # MatchedDepthConfig.prior_preset: the fallback's DIS preset
     fdisp: float | None = None  # MatchedDepthConfig.fallback_dispersion (0: every camera matched again)
     mout: float | None = None  # MatchedDepthConfig.prior_outlier (-1: off); None: the default
+    mmove: bool | None = None  # MatchedDepthConfig.refused_motion; None: the default
     rig: bool | None = None  # MatchedDepthConfig.cross: the stereo across the rig on (the default) or off
     fuse: str | None = None  # MatchedDepthConfig.fuse
     replace: bool | None = None  # MatchedDepthConfig.replace: determined pixels take the triangulated depth
@@ -122,6 +123,8 @@ class Variant:
                 match = replace(match, cross=CrossCameraConfig() if self.rig else None)
             if self.mout is not None:  # -1: off (None in the config)
                 match = replace(match, prior_outlier=None if self.mout < 0 else self.mout)
+            if self.mmove is not None:
+                match = replace(match, refused_motion=self.mmove)
         lift = base.lift
         if self.region is not None:
             lift = replace(lift, min_dynamic_region=self.region)
@@ -229,7 +232,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
-    windows, guide, levels, passes, mscale, pmatch, fdisp, mout, fuse, replace, bonus, region, unseen, unseenpx, objects,
+    windows, guide, levels, passes, mscale, pmatch, fdisp, mout, mmove, fuse, replace, bonus, region, unseen, unseenpx, objects,
     residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, oland, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.feedforward import MOVING_DEPTHS
@@ -301,6 +304,8 @@ def parse_variant(text: str) -> Variant:
             values["mscale"] = float(value)
         elif key == "pmatch" and value in MATCHES[1:]:
             values["pmatch"] = value
+        elif key == "mmove" and value in ("on", "off"):
+            values["mmove"] = value == "on"
         elif key == "mout" and (value == "off" or (_is_number(value) and float(value) > 0)):
             values["mout"] = -1.0 if value == "off" else float(value)
         elif key == "fdisp" and _is_number(value) and float(value) >= 0:
@@ -315,7 +320,7 @@ def parse_variant(text: str) -> Variant:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
                 f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, oland=off|COST, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
-                f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), mout=off|LOG (> 0), bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
+                f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), mout=off|LOG (> 0), mmove=on|off, bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)
 

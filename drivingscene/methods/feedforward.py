@@ -317,11 +317,17 @@ def reconstruct(
     if batch.valid_mask is not None:
         sky = sky | ~batch.valid_mask
     matched = None  # pixels whose depth the matching triangulated
+    refused = None  # pixels whose triangulation over time it refused as motion, and their matched flow
     prior_depth = depth  # D's own
     if options.match is not None:
         report("match")
         t0 = time.perf_counter()
-        depth, matched, match_timings = match_depth(depth, sky, pair, batch, options.match)
+        if options.match.prior_outlier is not None and options.match.refused_motion:
+            depth, matched, match_timings, refused, refused_flow = match_depth(
+                depth, sky, pair, batch, options.match, with_motion=True
+            )
+        else:
+            depth, matched, match_timings = match_depth(depth, sky, pair, batch, options.match)
         timings["match_views"] = match_timings.get("match_fallback_views", 0.0)
         static = with_depth(static, depth)
         _sync(device)
@@ -346,6 +352,10 @@ def reconstruct(
         flow = search_motion(flow, batch, search, model.config.input_size)
         _sync(device)
         timings["search_s"] = time.perf_counter() - t1
+    if (
+        flow is not None and refused is not None and bool(refused.any())
+    ):  # they move as the matching saw (tracked objects over it)
+        flow = replace(flow, searched=torch.where(refused[..., None], refused_flow.to(flow.rigid), flow.total))
     if flow is not None and options.objects is not None and flow_predictor is None:
         t1 = time.perf_counter()
         flow = _with_objects(flow, batch, pair, depth, sky, options.objects)
@@ -365,6 +375,8 @@ def reconstruct(
                 if flow.behind is not None:
                     candidates &= ~flow.behind
             fixed = {"triangulated": None, "unmatched": matched, "keep": torch.ones_like(candidates)}[options.lift.epipolar_depth]
+            if refused is not None:  # motion, not parallax: never explained by a static surface
+                candidates = candidates & ~refused
             depth, flow, explained = explain_by_parallax(depth, flow, candidates, batch, options.lift, net_width, fixed)
             scene_flow = torch.where(explained[..., None], torch.zeros_like(scene_flow), scene_flow)
             static = with_depth(static, depth)

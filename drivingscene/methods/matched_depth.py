@@ -145,6 +145,9 @@ class MatchedDepthConfig:
     # pairs the moving objects' depth AbsRel 0.213 -> 0.164 with 0.3, the in-between frame -0.01 dB,
     # but the real DDAD pair's -0.10 dB; docs/moving-objects.md).
     prior_outlier: float | None = None
+    # ... and those pixels follow the flow the matching found there (the inference lifts it with
+    # their depth: a moving Gaussian where the time saw motion), never explained by parallax.
+    refused_motion: bool = False
 
     def __post_init__(self):
         if self.prior_preset is not None and self.prior_preset not in DIS_PRESETS:
@@ -339,9 +342,12 @@ def match_depth(
     pair: FramePair,
     batch: PairTensors,
     config: MatchedDepthConfig = MatchedDepthConfig(),
-) -> tuple[Tensor, Tensor, dict[str, float]]:
+    with_motion: bool = False,
+) -> tuple[Tensor, Tensor, dict[str, float]] | tuple[Tensor, Tensor, dict[str, float], Tensor, Tensor]:
     """The corrected depth (same dtype and device), the ``[2, V, H, W]`` mask of pixels that took
-    a triangulated depth, and timings (flow, triangulation, correction)."""
+    a triangulated depth, and timings (flow, triangulation, correction); ``with_motion``: also the
+    mask of pixels whose triangulation over time was refused as motion
+    (`MatchedDepthConfig.prior_outlier`) and the flow matched there ``[2, V, H, W, 2]`` (0 elsewhere)."""
     device, dtype = depth.device, depth.dtype
     d = depth.detach().float().cpu()
     keep = (~excluded).cpu()
@@ -350,37 +356,43 @@ def match_depth(
     )
     if config.scale == 1.0:
         cpu = batch.to("cpu") if device.type != "cpu" else batch
-        out, determined = _match(d, keep, pair, cpu, config, timings)
+        out, determined, refused, motion = _match(d, keep, pair, cpu, config, timings)
     else:
         small = resized_pair(pair, config.scale)
         size = small.image_size
         d_small = F.interpolate(d.flatten(0, 1)[:, None], size, mode="nearest")[:, 0].view(*d.shape[:2], *size)
         keep_small = F.interpolate(keep.flatten(0, 1)[:, None].float(), size, mode="nearest")[:, 0].view(d_small.shape) > 0.5
         small_batch = pair_to_tensors(small, with_gt=False, with_eval=False)
-        out_small, _ = _match(d_small, keep_small, small, small_batch, replace(config, replace=False), timings)
+        out_small, _, _, _ = _match(d_small, keep_small, small, small_batch, replace(config, replace=False), timings)
         t0 = time.perf_counter()
         log_ratio = (out_small.clamp_min(1e-3) / d_small.clamp_min(1e-3)).log().flatten(0, 1)[:, None]
         log_ratio = F.interpolate(log_ratio, d.shape[-2:], mode="bilinear", align_corners=False)[:, 0].view_as(d)
         out = torch.where(keep, d * log_ratio.exp(), d)
-        determined = torch.zeros_like(keep)
+        determined = refused = torch.zeros_like(keep)
+        motion = torch.zeros((*d.shape, 2))
         timings["match_correct_s"] += time.perf_counter() - t0
-    return out.to(device=device, dtype=dtype), determined.to(device), timings
+    out, determined = out.to(device=device, dtype=dtype), determined.to(device)
+    if with_motion:
+        return out, determined, timings, refused.to(device), motion.to(device)
+    return out, determined, timings
 
 
 def _match(
     d: Tensor, keep: Tensor, pair: FramePair, cpu: PairTensors, config: MatchedDepthConfig, timings: dict[str, float]
-) -> tuple[Tensor, Tensor]:
-    """`match_depth` at the pair's own size, on the CPU: the corrected depth and the determined mask."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`match_depth` at the pair's own size, on the CPU: the corrected depth, the determined mask,
+    the refused mask and the flow matched at the refused pixels (0 elsewhere)."""
     scale = d.shape[-1] / config.reference_width
     out = d
     grey = cpu.images.float().mean(2)  # [2, V, H, W]
 
     def triangulated_with(
         guide_depth: Tensor, preset: str, views: list[int] | None = None
-    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None, Tensor]:
         """Triangulated depth, determined mask, (``guide="best"``) patch costs, (``guide="fallback"``)
-        the well-determined mask and (``guide="fallback"`` or ``fuse="weighted"``) each pixel's
-        parallax; with ``views``, only those cameras are matched (the others determine nothing)."""
+        the well-determined mask, (``guide="fallback"`` or ``fuse="weighted"``) each pixel's
+        parallax and the flow matched; with ``views``, only those cameras are matched (the others
+        determine nothing, flow 0)."""
         t0 = time.perf_counter()
         sub, images, world, depth_sub = cpu, pair.images, keep, d
         if views is not None:
@@ -406,9 +418,10 @@ def _match(
             determined = torch.zeros_like(keep).index_copy_(1, index, determined)
             well = None if well is None else torch.zeros_like(keep).index_copy_(1, index, well)
             parallax = None if parallax is None else torch.zeros_like(d).index_copy_(1, index, parallax.float())
+            total = torch.zeros((*d.shape, 2)).index_copy_(1, index, total.float())
         timings["match_flow_s"] += t1 - t0
         timings["match_triangulate_s"] += time.perf_counter() - t1
-        return z, determined, cost, well, parallax
+        return z, determined, cost, well, parallax, total
 
     def prior_guide() -> Tensor:
         road = torch.from_numpy(road_plane_depth(pair, far=config.lift.epipolar_far))
@@ -417,13 +430,15 @@ def _match(
     prior = None
     if config.guide in ("prior", "both", "best"):
         prior = triangulated_with(prior_guide(), config.prior_preset or config.preset)
+    held = torch.zeros_like(keep)  # refused as motion (`MatchedDepthConfig.prior_outlier`) ...
+    motion = torch.zeros((*d.shape, 2))  # ... and the flow matched there
     for step in range(config.passes):
         if config.guide == "prior":
-            triangulated, determined, _, _, parallax = prior
+            triangulated, determined, _, _, parallax, matched_flow = prior
         else:
-            triangulated, determined, cost, well, parallax = triangulated_with(out, config.preset)
+            triangulated, determined, cost, well, parallax, matched_flow = triangulated_with(out, config.preset)
         if config.guide == "both":
-            z_prior, determined_prior, _, _, _ = prior
+            z_prior, determined_prior, _, _, _, _ = prior
             agree = (triangulated.clamp_min(1e-3) / z_prior.clamp_min(1e-3)).log().abs() <= np.log1p(config.agree)
             determined = determined & determined_prior & agree
             triangulated = torch.where(determined, (triangulated * z_prior).sqrt(), torch.zeros_like(triangulated))
@@ -435,7 +450,7 @@ def _match(
             if views:
                 if prior is None:
                     prior = triangulated_with(prior_guide(), config.prior_preset or config.preset, views)
-                z_prior, determined_prior, _, _, parallax_prior = prior
+                z_prior, determined_prior, _, _, parallax_prior, _ = prior
                 agree = well & determined_prior & _agree(triangulated, z_prior, config.agree)
                 dispersion = shape_dispersion(d, triangulated, agree, config.fallback_min_pixels)
                 unreliable = dispersion.isnan() | (dispersion >= config.fallback_dispersion)
@@ -444,14 +459,17 @@ def _match(
                 parallax = torch.where(extra, parallax_prior, parallax)
                 determined = determined | extra
         elif config.guide == "best":
-            z_prior, determined_prior, cost_prior, _, parallax_prior = prior
+            z_prior, determined_prior, cost_prior, _, parallax_prior, _ = prior
             take_prior = determined_prior & (~determined | (cost_prior < cost))
             triangulated = torch.where(take_prior, z_prior, triangulated)
             if parallax is not None:
                 parallax = torch.where(take_prior, parallax_prior, parallax)
             determined = determined | determined_prior
         if config.prior_outlier is not None:
-            determined = determined & ~_prior_outliers(d, triangulated, determined, well, config)
+            refused = _prior_outliers(d, triangulated, determined, well, config)
+            determined = determined & ~refused
+            motion = torch.where(refused[..., None], matched_flow, motion)
+            held = (held | refused) & ~determined
         if config.cross is not None and step == config.passes - 1:
             # overlapping cameras of each keyframe, guided by this pass's depth: stereo across the
             # rig where the ego's motion gave no parallax
@@ -468,7 +486,8 @@ def _match(
         t2 = time.perf_counter()
         out = _corrected(d, keep, triangulated, determined, config, scale)
         timings["match_correct_s"] += time.perf_counter() - t2
-    return out, determined
+    held = held & ~determined  # the rig's stereo may have determined some
+    return out, determined, held, motion
 
 
 def _prior_outliers(d: Tensor, z: Tensor, determined: Tensor, well: Tensor | None, config: MatchedDepthConfig) -> Tensor:

@@ -218,6 +218,20 @@ def test_refusing_motion_read_as_parallax_brings_moving_objects_nearer_d(synth_p
     assert _abs_rel(refused, gt, still) <= _abs_rel(kept, gt, still) + 1e-3
 
 
+def test_the_refused_pixels_come_back_with_the_flow_matched_there(synth_pair):
+    """``with_motion``: the refused pixels (never determined) and the flow the matching found at
+    them, zero elsewhere; the depth and the determined mask as without it."""
+    batch, gt, sky = _inputs(synth_pair)
+    right = torch.from_numpy(np.where(gt > 0, gt, 50.0).astype(np.float32))
+    config = MatchedDepthConfig(prior_outlier=0.3)
+    depth, determined, _ = match_depth(right, sky, synth_pair, batch, config)
+    depth2, determined2, _, refused, flow = match_depth(right, sky, synth_pair, batch, config, with_motion=True)
+    assert torch.equal(depth, depth2) and torch.equal(determined, determined2)
+    assert refused.any() and not (refused & determined).any()
+    assert flow.shape == (*refused.shape, 2) and not flow[~refused].any()
+    assert (flow[refused].abs().sum(-1) > 0).float().mean() > 0.9
+
+
 def test_config_is_checked():
     with pytest.raises(ValueError, match="preset"):
         MatchedDepthConfig(preset="slow")
