@@ -90,7 +90,17 @@ def test_variant_options_change_only_what_they_name():
     assert parse_variant("mout=0.3,mmove=on").options(base).match == replace(base.match, prior_outlier=0.3, refused_motion=True)
     assert parse_variant("oland=off").options(replace(base, objects=replace(base.objects, landing=0.01))).objects == base.objects
     assert not parse_variant("residual=off").options(base).use_residual
-    for bad in ("objects=maybe", "omotion=-1", "osplit=maybe", "odetect=maybe", "omax=0", "omargin=-3", "oland=-1", "mout=0", "mmove=maybe"):
+    for bad in (
+        "objects=maybe",
+        "omotion=-1",
+        "osplit=maybe",
+        "odetect=maybe",
+        "omax=0",
+        "omargin=-3",
+        "oland=-1",
+        "mout=0",
+        "mmove=maybe",
+    ):
         with pytest.raises(InputError, match=f"'{bad}'"):
             parse_variant(bad)
 
