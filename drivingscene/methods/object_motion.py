@@ -122,16 +122,14 @@ class ObjectMotionConfig:
     # uncovers or with a neighbour. Off: on validation pairs the extra tries found more static
     # surfaces than objects (docs/moving-objects.md).
     split: bool = False
-    # A blob whose first match (scale 1, the whole window) explains it no better than this times
-    # the flow it is tested against is not tracked further: on the ten validation pairs no accepted
-    # object's first match scored above 0.91 of it, and a sixth of the refused blobs above 1
-    # (docs/moving-objects.md). inf: every blob with a core is tracked at every scale.
+    # A blob whose first match (scale 1, the whole window) explains it no better than this times the
+    # flow it is tested against is not tracked further (no accepted object's scored above 0.91 on the
+    # validation pairs, docs/moving-objects.md). inf: every blob with a core is searched at every scale.
     first_ratio: float = 1.0
-    # Where the warp carries a pixel to a place the other keyframe's static world explains (its
-    # rigid flow's cost there no more than the warp's cost of the pixel plus this), the pixel is
-    # background the object covers or uncovers (flat road matched onto flat road), not the object.
-    # None: no such test. Lost on validation pairs (the static pixels' flow error 4.15 -> 4.10 px,
-    # the moving pixels 0.14 dB lower; docs/moving-objects.md): off.
+    # A pixel the warp carries where the other keyframe's static world explains the image as well
+    # (its rigid flow's cost there at most the warp's cost of the pixel plus this) is background the
+    # object covers (flat road onto flat road), not the object. None (off): lost on validation pairs
+    # (static flow 4.15 -> 4.10 px, moving pixels -0.14 dB; docs/moving-objects.md).
     landing: float | None = None
     # Where no object is found, the flow is "search" (R and the search's, as without objects) or
     # "rigid" (the static world).
@@ -440,14 +438,12 @@ def _explained(image, other, region, warp, base_cost, grid) -> tuple[np.ndarray,
 
 
 def _landing_on_object(keep: np.ndarray, warp: np.ndarray, cost: np.ndarray, other_cost: np.ndarray, margin: float) -> np.ndarray:
-    """``keep``'s pixels whose warp lands where the other keyframe's static world explains its image
-    worse than the warp explains the pixel (by more than ``margin``; `ObjectMotionConfig.landing`),
-    opened as `_explained` opens."""
+    """``keep``'s pixels whose warp lands where the other keyframe's static world explains it worse
+    than the warp explains the pixel, by more than ``margin`` (`ObjectMotionConfig.landing`), opened."""
     ys, xs = np.nonzero(keep)
     dest = _apply(warp, np.stack([xs, ys], -1).astype(np.float32))
-    there = cv2.remap(other_cost, dest[:, :1].copy(), dest[:, 1:].copy(), cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)[
-        :, 0
-    ]
+    map_x, map_y = dest[:, :1].copy(), dest[:, 1:].copy()
+    there = cv2.remap(other_cost, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)[:, 0]
     ok = cost[ys, xs] < there - margin
     out = np.zeros(keep.shape, np.uint8)
     out[ys[ok], xs[ok]] = 1
