@@ -352,9 +352,8 @@ def reconstruct(
         flow = search_motion(flow, batch, search, model.config.input_size)
         _sync(device)
         timings["search_s"] = time.perf_counter() - t1
-    if (
-        flow is not None and refused is not None and bool(refused.any())
-    ):  # they move as the matching saw (tracked objects over it)
+    # the refused pixels move as the matching saw them (tracked objects over it)
+    if flow is not None and refused is not None and bool(refused.any()):
         flow = replace(flow, searched=torch.where(refused[..., None], refused_flow.to(flow.rigid), flow.total))
     if flow is not None and options.objects is not None and flow_predictor is None:
         t1 = time.perf_counter()

@@ -141,9 +141,9 @@ class MatchedDepthConfig:
     # pixel whose depth over time is more than this far from D's (|log ratio|, the image's median
     # ratio removed) is not determined by the time: what a static surface cannot explain there is
     # motion read as parallax (collinear traffic): it takes the correction of its neighbours, or the
-    # rig's stereo depth. None: every triangulation over time kept (the default: on validation
-    # pairs the moving objects' depth AbsRel 0.213 -> 0.164 with 0.3, the in-between frame -0.01 dB,
-    # but the real DDAD pair's -0.10 dB; docs/moving-objects.md).
+    # rig's stereo depth. None: every triangulation over time kept (the default: with 0.3 the moving
+    # objects' depth AbsRel 0.218 -> 0.186 on test pairs, but their pixels -0.32 dB there and the
+    # real DDAD pair's in-between frame -0.10 dB; docs/moving-objects.md).
     prior_outlier: float | None = None
     # ... and those pixels follow the flow the matching found there (the inference lifts it with
     # their depth: a moving Gaussian where the time saw motion), never explained by parallax.
@@ -431,7 +431,7 @@ def _match(
     if config.guide in ("prior", "both", "best"):
         prior = triangulated_with(prior_guide(), config.prior_preset or config.preset)
     held = torch.zeros_like(keep)  # refused as motion (`MatchedDepthConfig.prior_outlier`) ...
-    motion = torch.zeros((*d.shape, 2))  # ... and the flow matched there
+    motion = None  # ... and the flow matched there (None: nothing refused)
     for step in range(config.passes):
         if config.guide == "prior":
             triangulated, determined, _, _, parallax, matched_flow = prior
@@ -468,8 +468,8 @@ def _match(
         if config.prior_outlier is not None:
             refused = _prior_outliers(d, triangulated, determined, well, config)
             determined = determined & ~refused
-            motion = torch.where(refused[..., None], matched_flow, motion)
-            held = (held | refused) & ~determined
+            motion = torch.where(refused[..., None], matched_flow, 0.0 if motion is None else motion)
+            held = held | refused
         if config.cross is not None and step == config.passes - 1:
             # overlapping cameras of each keyframe, guided by this pass's depth: stereo across the
             # rig where the ego's motion gave no parallax
@@ -487,7 +487,7 @@ def _match(
         out = _corrected(d, keep, triangulated, determined, config, scale)
         timings["match_correct_s"] += time.perf_counter() - t2
     held = held & ~determined  # the rig's stereo may have determined some
-    return out, determined, held, motion
+    return out, determined, held, torch.zeros((*d.shape, 2)) if motion is None else motion
 
 
 def _prior_outliers(d: Tensor, z: Tensor, determined: Tensor, well: Tensor | None, config: MatchedDepthConfig) -> Tensor:

@@ -401,11 +401,9 @@ def object_flows(
                             other_cost,
                         )
 
-    # OpenCV releases the GIL in its calls (the template matches are most of the time): one thread
-    # per camera where there is more than one core, each camera's results written to its own slices
-    # (the same as one after the other). One per camera, not per core: a camera with many blobs
-    # starts at once instead of waiting behind the others (on two cores 0.26-0.27 -> 0.23-0.24 s
-    # per pair on fourteen captured inputs, docs/moving-objects.md).
+    # OpenCV releases the GIL in its calls (the template matches are most of the time): a thread per
+    # camera, not per core, where there is more than one core (a camera with many blobs need not wait
+    # behind the others; docs/moving-objects.md), each writing its own slices: as one after the other.
     workers = num_views if min(cv2.getNumThreads(), os.cpu_count() or 1) > 1 else 1
     if workers == 1:
         for v in range(num_views):
@@ -437,6 +435,12 @@ def _explained(image, other, region, warp, base_cost, grid) -> tuple[np.ndarray,
     return dense, cost, better > 0
 
 
+def _worse_than(region: np.ndarray, cost: np.ndarray, base_cost: np.ndarray, ratio: float) -> bool:
+    """Whether ``cost``'s mean over ``region`` exceeds ``ratio`` times ``base_cost``'s."""
+    tracked, static = _under(region, cost, base_cost)
+    return bool(tracked.mean() > ratio * static.mean())
+
+
 def _landing_on_object(keep: np.ndarray, warp: np.ndarray, cost: np.ndarray, other_cost: np.ndarray, margin: float) -> np.ndarray:
     """``keep``'s pixels whose warp lands where the other keyframe's static world explains it worse
     than the warp explains the pixel, by more than ``margin`` (`ObjectMotionConfig.landing`), opened."""
@@ -464,10 +468,8 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
     _, cost, core = _explained(rgb[k, v], rgb[o, v], region, first[1], base_cost, grid)
     if np.count_nonzero(core) < config.min_pixels // 2:
         return False
-    if np.isfinite(config.first_ratio):  # a first match no better than the static world's flow: not an object
-        tracked, static = _under(region, cost, base_cost)
-        if tracked.mean() > config.first_ratio * static.mean():
-            return False
+    if np.isfinite(config.first_ratio) and _worse_than(region, cost, base_cost, config.first_ratio):
+        return False  # a first match no better than the static world's flow: not an object
     warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config, first[1])
     if warp is None:
         return False
@@ -481,8 +483,7 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
     motion = float(np.median(np.linalg.norm(moved - still, axis=-1)))
     if motion < config.min_motion or motion > config.max_motion * width:
         return False
-    tracked, static = _under(region, cost, base_cost)
-    if tracked.mean() > config.ratio * static.mean():
+    if _worse_than(region, cost, base_cost, config.ratio):
         return False
     flow[k, v][keep] = dense[keep]
     owned[k, v] |= keep
