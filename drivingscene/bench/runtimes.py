@@ -2,8 +2,11 @@
 
 The shipped model's depth encoder and decoder on a batch of 12 images (one 6-camera pair) at the
 networks' input size, timed as torch runs them in the reconstruction (channels-last), in the
-default layout, as a frozen TorchScript graph (``torch.jit.optimize_for_inference``: oneDNN
-fusions), with ``--compile`` through ``torch.compile`` (inductor) and, where ``onnxruntime`` is installed (not a dependency), exported to ONNX and run by
+default layout, under bf16 autocast where the CPU does bf16 natively (what the reconstruction
+then runs), as a frozen TorchScript graph (``torch.jit.optimize_for_inference``: oneDNN
+fusions), with ``--compile`` through ``torch.compile`` (inductor), where ``openvino`` is installed
+(not a dependency) through OpenVINO's CPU plugin at float32 and, with native bf16, bf16 inference
+precision, and where ``onnxruntime`` is installed (not a dependency) exported to ONNX and run by
 ONNX Runtime's CPU provider with the same thread count. Also the one-off costs (tracing, export,
 session) and the largest difference to torch's outputs. Prints a markdown table (``--out``).
 """
@@ -47,6 +50,7 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
     import torch
 
     from drivingscene.methods.feedforward import load_model
+    from drivingscene.precision import auto_amp
 
     torch.set_num_threads(threads)
     model = load_model(weights).eval()
@@ -77,6 +81,20 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
         seconds = _median_seconds(lambda: net(x_last), runs)
         rows.append(dict(runtime="torch, channels-last (the reconstruction's)", s=seconds, once=0.0, diff=diff(net(x_last))))
         rows.append(dict(runtime="torch, default layout", s=_median_seconds(lambda: net(x), runs), once=0.0, diff=0.0))
+        if auto_amp("cpu"):  # what the reconstruction runs on this CPU (precision.py)
+
+            def bf16():
+                with torch.autocast("cpu", dtype=torch.bfloat16):
+                    return net(x_last)
+
+            rows.append(
+                dict(
+                    runtime="torch, channels-last, bf16 autocast (the reconstruction's on this CPU)",
+                    s=_median_seconds(bf16, runs),
+                    once=0.0,
+                    diff=diff([o.float() for o in bf16()]),
+                )
+            )
         tic = time.perf_counter()
         frozen = torch.jit.optimize_for_inference(torch.jit.freeze(torch.jit.trace(net, x_last, check_trace=False).eval()))
         once = time.perf_counter() - tic
@@ -91,6 +109,7 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
             rows.append(
                 dict(runtime="torch.compile (inductor), channels-last", s=seconds, once=once, diff=diff(compiled(x_last)))
             )
+    rows += _openvino_rows(net, x, runs, threads, diff)
     try:
         import onnxruntime
     except ImportError:
@@ -116,6 +135,40 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
             )
         )
     return rows, tuple(x.shape)
+
+
+def _openvino_rows(net, x, runs: int, threads: int, diff) -> list[dict]:
+    """OpenVINO's CPU plugin on the model converted from torch, at float32 and, where the CPU does
+    bf16 natively (AMX, AVX512_BF16), at its bf16 inference precision (not installed: one row)."""
+    try:
+        import openvino
+    except ImportError:
+        return [dict(runtime="OpenVINO (not installed: pip install openvino)", s=None, once=None, diff=None)]
+    from drivingscene.precision import auto_amp
+
+    precisions = ["f32"] + (["bf16"] if auto_amp("cpu") else [])
+    rows = []
+    for precision in precisions:
+        tic = time.perf_counter()
+        model = openvino.convert_model(net, example_input=x)
+        config = {"INFERENCE_PRECISION_HINT": precision, "INFERENCE_NUM_THREADS": threads, "PERFORMANCE_HINT": "LATENCY"}
+        request = openvino.Core().compile_model(model, "CPU", config).create_infer_request()
+        once = time.perf_counter() - tic
+        feed = x.numpy()
+
+        def infer():
+            request.infer([feed])
+            return [request.get_output_tensor(i).data.copy() for i in range(len(request.outputs))]
+
+        rows.append(
+            dict(
+                runtime=f"OpenVINO {openvino.__version__.split('-')[0]}, CPU plugin, {precision} inference precision",
+                s=_median_seconds(infer, runs),
+                once=once,
+                diff=diff(infer()),
+            )
+        )
+    return rows
 
 
 def run(args: argparse.Namespace) -> int:

@@ -316,8 +316,12 @@ def pixel_footprints(
     quats: Tensor,  # [V, H, W, 4] camera axes
     log_scales: Tensor,  # [V, H, W, 3]
     rule: FootprintRule = FootprintRule(),
+    backend: str = "auto",
 ) -> Tensor:
-    """`bounded_footprints` of per-pixel maps: log scales ``[V, H, W, 3]``."""
+    """`bounded_footprints` of per-pixel maps: log scales ``[V, H, W, 3]``. ``backend`` as
+    `surfel_frames` (the compiled op at inference: one pass instead of some sixty element-wise ones)."""
+    if kernels.available(kernels.pixel_footprints, backend, depth, intrinsics, quats, log_scales):
+        return kernels.pixel_footprints(depth, intrinsics, quats, log_scales, rule.max_footprint, rule.floor)
     points = unproject(depth.clamp(min=1e-3), intrinsics)
     focal = torch.stack([intrinsics[:, 0, 0], intrinsics[:, 1, 1]], -1)[:, None, None]  # [V, 1, 1, 2]
     return bounded_footprints(points, quats, log_scales, focal, rule)

@@ -44,7 +44,7 @@ from drivingscene.kernels.matching import (
 )
 from drivingscene.kernels.pairs import find_pairs, splat_boxes
 from drivingscene.kernels.solve import own_layer_solve
-from drivingscene.kernels.surfels import activate_surfels, extend_along_rays, surfel_frames
+from drivingscene.kernels.surfels import activate_surfels, extend_along_rays, pixel_footprints, surfel_frames
 
 __all__ = [
     "BACKENDS",
@@ -65,6 +65,7 @@ __all__ = [
     "load_extension",
     "local_cost_volume",
     "own_layer_solve",
+    "pixel_footprints",
     "plane_sweep_correlate",
     "plane_sweep_correlate_backward",
     "plane_sweep_volume",

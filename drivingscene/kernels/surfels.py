@@ -52,9 +52,27 @@ def extend_along_rays(
     sigma: Tensor,  # [N] metres added along the view ray (<= 0: unchanged)
 ) -> tuple[Tensor, Tensor]:
     """Quaternions ``[N, 4]`` and log scales ``[N, 3]`` of the Gaussians whose covariance gained
-    ``sigma^2`` along the unit ray from the camera centre to the mean, float32 (a Jacobi
+    ``sigma^2`` along the unit ray from the camera centre to the mean, float32 (a closed-form
     eigen-decomposition per Gaussian, in double precision).
 
     CPU tensors, any float dtype; not differentiable. Reference path:
     ``drivingscene.gaussians.assembly.extend_along_rays_torch`` (the same covariances up to float rounding)."""
     return call("extend_along_rays", points, quats, log_scales, sigma)
+
+
+@compiled
+def pixel_footprints(
+    depth: Tensor,  # [V, H, W] z-depth, metres (no gradient)
+    intrinsics: Tensor,  # [V, 3, 3]
+    quats: Tensor,  # [V, H, W, 4] w, x, y, z, camera axes
+    log_scales: Tensor,  # [V, H, W, 3]
+    max_footprint: float,  # pixels (sigma) of the source view; <= 0: no cap
+    floor: float,  # pixels^2 of the source view; <= 0: no floor
+) -> Tensor:
+    """Log scales ``[V, H, W, 3]`` of per-pixel Gaussians with the footprint rule (shrunk to
+    ``max_footprint`` in their own view, then widened by ``floor``), float32, one pass per row.
+
+    CPU tensors, any float dtype (computed in float32); not differentiable. Reference path:
+    ``drivingscene.gaussians.assembly.pixel_footprints`` with ``backend="torch"`` (the same log
+    scales up to float rounding)."""
+    return call("pixel_footprints", depth, intrinsics, quats, log_scales, max_footprint, floor)

@@ -259,6 +259,26 @@ def test_the_footprint_rule_widens_every_splat_by_the_floor_and_caps_wide_ones()
     )
 
 
+@pytest.mark.parametrize("rule", [(0.5, 0.2), (0.0, 0.2), (0.5, 0.0), (1.0, 0.3)])
+def test_compiled_footprint_rule_matches_the_torch_path(rule):
+    from drivingscene import kernels
+    from drivingscene.gaussians.assembly import FootprintRule, pixel_footprints
+
+    g = torch.Generator().manual_seed(5)
+    depth = torch.rand(3, 17, 29, generator=g) * 40.0
+    depth[0, 0, :5] = 0.0  # below the clamp
+    k = torch.tensor([[[55.0, 0.4, 14.0], [0, 58.0, 8.5], [0, 0, 1]], [[40.0, 0, 15.0], [0, 40.0, 9.0], [0, 0, 1]]] * 2)[:3]
+    quats = torch.randn(3, 17, 29, 4, generator=g)
+    log_scales = torch.randn(3, 17, 29, 3, generator=g) - 2.0
+    log_scales[1, :, :, 1] = log_scales[1, :, :, 0]
+    rule = FootprintRule(*rule)
+    assert kernels.available(kernels.pixel_footprints, "auto", depth, k, quats, log_scales)
+    compiled = pixel_footprints(depth, k, quats, log_scales, rule)
+    reference = pixel_footprints(depth, k, quats, log_scales, rule, backend="torch")
+    torch.testing.assert_close(compiled, reference, rtol=0, atol=2e-5)
+    assert not torch.equal(reference, log_scales)  # the rule changed them
+
+
 def test_transform_moves_means_flows_and_rotations_consistently():
     from drivingscene.geometry import quat_to_matrix as q2m
 

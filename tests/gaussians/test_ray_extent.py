@@ -127,8 +127,12 @@ def test_compiled_extension_matches_the_torch_path():
     quats = torch.randn(n, 4, generator=g)
     log_scales = torch.randn(n, 3, generator=g) - 3.0
     log_scales[:100, 1] = log_scales[:100, 0]  # two equal axes: a degenerate pair
+    log_scales[100:150] = log_scales[100:150, :1]  # isotropic: the ray's axis the only distinct one
+    quats[150:200] = torch.tensor([1.0, 0.0, 0.0, 0.0])  # axis-aligned, the ray along z
+    points[150:200, :2] = 0.0
     sigma = torch.rand(n, generator=g) * 0.2
     sigma[::7] = 0.0  # unchanged ones
+    sigma[1:200:7] = 1e-7  # far below the scales: barely changed
     q_cpp, s_cpp = kernels.extend_along_rays(points, quats, log_scales, sigma)
     q_ref, s_ref = extend_along_rays_torch(points, quats, log_scales, sigma)
     c_cpp, c_ref = _cov(q_cpp, s_cpp), _cov(q_ref, s_ref)

@@ -32,10 +32,11 @@ def registered_schemas() -> dict[str, list[tuple[str, str]]]:
 def test_the_sources_register_the_ops_we_know():
     schemas = registered_schemas()
     assert (
-        len(schemas) == 19
+        len(schemas) == 20
         and "composite_backward" in schemas
         and "own_layer_solve" in schemas
         and "find_pairs" in schemas
+        and "pixel_footprints" in schemas
         and "plane_sweep_correlate_backward" in schemas
     )
 
