@@ -83,6 +83,7 @@ class Variant:
     omargin: int | None = None  # ObjectMotionConfig.margin_x (pixels); None: the default
     oscales: tuple[float, ...] | None = None  # ObjectMotionConfig.scales; None: the default
     olocal: int | None = None  # ObjectMotionConfig.local_px; None: the default
+    ocoarse: bool | None = None  # ObjectMotionConfig.coarse; None: the default
     oland: float | None = None  # ObjectMotionConfig.landing (-1: off); None: the default
     merge: float | None = None  # BlockMerge.color_range (gaussians/parsimony.py); -1: no merge; None: the default
     mtest: str | None = None  # BlockMerge.color_test: "detail" or "range"; None: the default
@@ -154,6 +155,7 @@ class Variant:
             "margin_x": self.omargin,
             "scales": self.oscales,
             "local_px": self.olocal,
+            "coarse": self.ocoarse,
         }  # None: the default
         chosen = {k: v for k, v in chosen.items() if v is not None}
         if self.oland is not None:  # -1: off (None in the config)
@@ -233,7 +235,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, mout, mmove, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, oland, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
+    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, ocoarse, oland, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.feedforward import MOVING_DEPTHS
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
@@ -270,6 +272,8 @@ def parse_variant(text: str) -> Variant:
             values["oland"] = -1.0 if value == "off" else float(value)
         elif key == "olocal" and value.isdigit():
             values["olocal"] = int(value)
+        elif key == "ocoarse" and value in ("on", "off"):
+            values["ocoarse"] = value == "on"
         elif key == "oscales" and value and all(_is_number(a) and float(a) > 0 for a in value.split("+")):
             values["oscales"] = tuple(float(a) for a in value.split("+"))
         elif key == "merge" and (value == "off" or (_is_number(value) and float(value) >= 0)):
@@ -319,7 +323,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, oland=off|COST, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, ocoarse=on|off, oland=off|COST, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), mout=off|LOG (> 0), mmove=on|off, bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

@@ -79,7 +79,14 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
 
         x_last = x.contiguous(memory_format=torch.channels_last)
         seconds = _median_seconds(lambda: net(x_last), runs)
-        rows.append(dict(runtime="torch, channels-last (the reconstruction's)", s=seconds, once=0.0, diff=diff(net(x_last))))
+        rows.append(
+            dict(
+                runtime="torch, channels-last, float32 (the reconstruction's without native bf16)",
+                s=seconds,
+                once=0.0,
+                diff=diff(net(x_last)),
+            )
+        )
         rows.append(dict(runtime="torch, default layout", s=_median_seconds(lambda: net(x), runs), once=0.0, diff=0.0))
         if auto_amp("cpu"):  # what the reconstruction runs on this CPU (precision.py)
 
@@ -152,13 +159,14 @@ def _openvino_rows(net, x, runs: int, threads: int, diff) -> list[dict]:
         tic = time.perf_counter()
         model = openvino.convert_model(net, example_input=x)
         config = {"INFERENCE_PRECISION_HINT": precision, "INFERENCE_NUM_THREADS": threads, "PERFORMANCE_HINT": "LATENCY"}
-        request = openvino.Core().compile_model(model, "CPU", config).create_infer_request()
+        compiled = openvino.Core().compile_model(model, "CPU", config)
+        request = compiled.create_infer_request()
         once = time.perf_counter() - tic
         feed = x.numpy()
 
         def infer():
-            request.infer([feed])
-            return [request.get_output_tensor(i).data.copy() for i in range(len(request.outputs))]
+            result = request.infer({0: feed})
+            return [result[output] for output in compiled.outputs]
 
         rows.append(
             dict(

@@ -42,6 +42,9 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from drivingscene.methods import template_search
+from drivingscene.methods.template_search import box as _box
+
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
@@ -112,6 +115,9 @@ class ObjectMotionConfig:
     # around it, at the same scale): a repeated texture (a row of windows, paving) matches several
     # places alike, and the wrong one makes a static surface an object. 1: off.
     unique: float = 1.0
+    # True: each search first at half the resolution, then at full resolution for the best scale
+    # and its neighbours around where it put them (`template_search`; docs/moving-objects.md).
+    coarse: bool = False
     # > 0: the core's scales are searched only this many pixels around where the blob's first match
     # (scale 1, the whole window) put it, not over the whole window again; 0: the whole window at
     # every scale. Measured (docs/moving-objects.md): 20-35 % less tracking time, 0.05 dB less on
@@ -192,70 +198,12 @@ def _channel_mean(rgb: np.ndarray) -> np.ndarray:
     return (rgb[..., 0] + rgb[..., 1] + rgb[..., 2]) / np.float32(3)
 
 
-def _subpixel(res: np.ndarray, x: int, y: int) -> tuple[float, float]:
-    """The minimum of ``res`` at (x, y) refined by a parabola through its neighbours, per axis."""
-    out = [float(x), float(y)]
-    for axis, (i, n) in enumerate(((x, res.shape[1]), (y, res.shape[0]))):
-        if 0 < i < n - 1:
-            a, b, c = (res[y, x - 1], res[y, x], res[y, x + 1]) if axis == 0 else (res[y - 1, x], res[y, x], res[y + 1, x])
-            d = a - 2 * b + c
-            if d > 1e-12:
-                out[axis] += float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
-    return out[0], out[1]
-
-
-def match_region(
-    image: np.ndarray,
-    other: np.ndarray,
-    mask: np.ndarray,
-    window: tuple[float, float, float, float],
-    config: ObjectMotionConfig,
-    scales: tuple[float, ...] | None = None,
-) -> tuple[float, np.ndarray, float] | None:
-    """Best (masked SSD per pixel, 2x3 warp, the best SSD elsewhere in the window at that scale:
-    outside half the template's size around the match, inf where there is no elsewhere) placing
-    ``mask``'s pixels of grey ``image`` in grey ``other``: scaled by each of ``scales`` (default
-    ``config.scales``) and searched over ``window`` (x0, x1, y0, y1: the box to cover, widened by
-    the margins). None where no scale fits."""
-    height, width = image.shape
-    x0, x1, y0, y1 = _box(mask)
-    template, weights = image[y0:y1, x0:x1], mask[y0:y1, x0:x1].astype(np.uint8)
-    margin_x = min(config.margin_x, config.max_motion * width + 16)
-    best = None  # (value, result map, its minimum's position, template size, search origin)
-    for a in config.scales if scales is None else scales:
-        w, h = max(3, round((x1 - x0) * a)), max(3, round((y1 - y0) * a))
-        t = cv2.resize(template, (w, h), interpolation=cv2.INTER_LINEAR)
-        m = cv2.resize(weights, (w, h), interpolation=cv2.INTER_NEAREST)
-        count = cv2.countNonZero(m)
-        if count < 5:
-            continue
-        grow_x, grow_y = (w - (x1 - x0)) / 2, (h - (y1 - y0)) / 2
-        sx0 = int(max(0, np.floor(window[0] - margin_x - grow_x)))
-        sx1 = int(min(width, np.ceil(window[1] + margin_x + grow_x)))
-        sy0 = int(max(0, np.floor(window[2] - config.margin_y - grow_y)))
-        sy1 = int(min(height, np.ceil(window[3] + config.margin_y + grow_y)))
-        if sx1 - sx0 < w or sy1 - sy0 < h:
-            continue
-        res = cv2.matchTemplate(other[sy0:sy1, sx0:sx1], t, cv2.TM_SQDIFF, mask=m) / float(count)
-        _, _, (lx, ly), _ = cv2.minMaxLoc(res)
-        value = float(res[ly, lx])
-        if np.isfinite(value) and (best is None or value < best[0]):
-            best = (value, res, lx, ly, w, h, sx0, sy0)
-    if best is None:
-        return None
-    # the sub-pixel position and the best elsewhere, of the winning scale only
-    value, res, lx, ly, w, h, sx0, sy0 = best
-    fx, fy = _subpixel(res, lx, ly)
-    ax, ay = w / (x1 - x0), h / (y1 - y0)
-    res[max(0, ly - h // 2) : ly + h // 2 + 1, max(0, lx - w // 2) : lx + w // 2 + 1] = np.inf
-    second = float(res.min()) if np.isfinite(res).any() else np.inf
-    return value, np.array([[ax, 0, sx0 + fx - ax * x0], [0, ay, sy0 + fy - ay * y0]], np.float32), second
-
-
-def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
-    """(x0, x1, y0, y1): the bounding box of a non-empty boolean mask, ends exclusive."""
-    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
-    return x, x + w, y, y + h
+def match_region(image, other, mask, window, config: ObjectMotionConfig, scales: tuple[float, ...] | None = None):
+    """`template_search.match_region` with ``config``'s scales (or ``scales``), margins (the sideways
+    one no wider than ``max_motion`` allows, and 16 px) and coarse pass."""
+    margin_x = min(config.margin_x, config.max_motion * image.shape[1] + 16)
+    chosen = config.scales if scales is None else scales
+    return template_search.match_region(image, other, mask, window, chosen, margin_x, config.margin_y, config.coarse)
 
 
 def _under(mask: np.ndarray, *maps: np.ndarray) -> list[np.ndarray]:
