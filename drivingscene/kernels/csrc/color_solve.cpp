@@ -3,7 +3,7 @@
 // image's pixels (its own pixel; a merged block's pixels, gaussians/parsimony.py).
 //
 // Per (camera, band of rows) task, the pair finder's scatter (find_pairs.cpp: the same cut, early
-// stop and layer cap, the same alphas) lists each pixel's splats into a buffer that stays in
+// stop and layer cap, the alphas from a float32 exp: the torch path's up to rounding) lists each pixel's splats into a buffer that stays in
 // cache; the compositing weights of composite_forward (surface averaging with `tolerance`, black
 // background; front_group.h) are formed from those alphas once, with each pixel's accumulated
 // alpha A[p], and kept packed per task. Then `iterations` Jacobi (Van Cittert) steps: the residual
@@ -172,7 +172,7 @@ at::Tensor own_layer_solve(const at::Tensor& means2d, const at::Tensor& conics, 
       lists[t].count = (row1 - row0) * width;
       drivingscene_pairs::scatter_band(pre.s, pre.bins.ids.data() + pre.bins.offsets[t], pre.bins.offsets[t + 1] - pre.bins.offsets[t],
                                        row0, row1, static_cast<int>(width), static_cast<int>(max_layers), band_ids.data(),
-                                       band_alphas.data(), band_counts.data());
+                                       band_alphas.data(), band_counts.data(), false);
       pack_weights(band_ids.data(), band_alphas.data(), band_counts.data(), max_layers, depths, tol, lists[t]);
     }
   }

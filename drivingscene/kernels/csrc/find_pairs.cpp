@@ -96,7 +96,7 @@ Prepared prepare(const at::Tensor& means2d, const at::Tensor& conics, const at::
 }
 
 void scatter_band(const SplatArrays& s, const int32_t* ids, int64_t count, int row0, int row1, int width, int max_layers,
-                  int32_t* out_band, float* alpha_band, int32_t* counts) {
+                  int32_t* out_band, float* alpha_band, int32_t* counts, bool exact_exp) {
   const int npix = (row1 - row0) * width;
   std::vector<float> trans(npix, 1.0f);
   std::vector<int32_t> layers(npix, 0);
@@ -119,7 +119,8 @@ void scatter_band(const SplatArrays& s, const int32_t* ids, int64_t count, int r
         const float dx = static_cast<float>(x) - gx;
         const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
         if (!(sigma <= sigma_max)) continue;
-        const float alpha = std::min(kMaxAlpha, opacity * static_cast<float>(std::exp(-static_cast<double>(sigma))));
+        const float falloff = exact_exp ? static_cast<float>(std::exp(-static_cast<double>(sigma))) : std::exp(-sigma);
+        const float alpha = std::min(kMaxAlpha, opacity * falloff);
         const float next = trans[p] * (1.0f - alpha);
         if (next < kMinTransmittance) {
           done[p] = 1;

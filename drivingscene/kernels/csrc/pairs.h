@@ -35,8 +35,11 @@ Prepared prepare(const at::Tensor& means2d, const at::Tensor& conics, const at::
 
 // Scatter the band's splats, front to back, into its rows [row0, row1): `out_band` holds the
 // band's pixels' lists (max_layers each, row-major from row0), `counts` (if given) their lengths.
-// Where `alpha_band` is given, each listed pair's alpha is written beside its id.
+// Where `alpha_band` is given, each listed pair's alpha is written beside its id. `exact_exp`:
+// alpha from a float64 exp rounded to float32, as the torch path (the rasterizer, whose two paths
+// must choose the same pairs); false: a float32 exp, a quarter less time for the colour solve,
+// whose pairs may then differ from the torch path's where a transmittance lands on the cut.
 void scatter_band(const SplatArrays& s, const int32_t* ids, int64_t count, int row0, int row1, int width, int max_layers,
-                  int32_t* out_band, float* alpha_band, int32_t* counts);
+                  int32_t* out_band, float* alpha_band, int32_t* counts, bool exact_exp = true);
 
 }  // namespace drivingscene_pairs
