@@ -116,7 +116,9 @@ class ObjectMotionConfig:
     # places alike, and the wrong one makes a static surface an object. 1: off.
     unique: float = 1.0
     # True: each search first at half the resolution, then at full resolution for the best scale
-    # and its neighbours around where it put them (`template_search`; docs/moving-objects.md).
+    # and its neighbours around where it put them (`template_search`). Measured on validation pairs
+    # (docs/moving-objects.md): 8 % less tracking time (23 % at 352x640), 0.22 dB less on moving
+    # pixels: off.
     coarse: bool = False
     # > 0: the core's scales are searched only this many pixels around where the blob's first match
     # (scale 1, the whole window) put it, not over the whole window again; 0: the whole window at
