@@ -49,14 +49,21 @@ def test_bench_command_times_the_reconstruct_command_in_fresh_processes(monkeypa
 
 
 def test_bench_runtimes_rows_without_onnxruntime(monkeypatch):
-    """torch in both layouts and TorchScript are timed on the shipped model's encoder and decoder;
-    without ONNX Runtime its row says how to install it instead of a figure."""
+    """torch in both layouts (and under bf16 autocast where the CPU does bf16 natively) and
+    TorchScript are timed on the shipped model's encoder and decoder; without OpenVINO and ONNX
+    Runtime their rows say how to install them instead of a figure."""
     import sys
 
     from drivingscene.bench import runtimes
+    from drivingscene.precision import auto_amp
 
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import fails as where it is not installed
+    monkeypatch.setitem(sys.modules, "openvino", None)
     rows, shape = runtimes.measure(None, 1, 2)
-    assert shape[0] == 12 and len(rows) == 4
-    assert all(r["s"] > 0 for r in rows[:3]) and rows[0]["diff"] < 1e-4 and rows[1]["diff"] == 0.0
-    assert rows[3]["s"] is None and "not installed" in rows[3]["runtime"]
+    timed = 4 if auto_amp("cpu") else 3
+    assert shape[0] == 12 and len(rows) == timed + 2
+    assert all(r["s"] > 0 for r in rows[:timed]) and rows[0]["diff"] < 1e-4 and rows[1]["diff"] == 0.0
+    assert any("bf16 autocast" in r["runtime"] for r in rows) == auto_amp("cpu")
+    missing = rows[timed:]
+    assert all(r["s"] is None and "not installed" in r["runtime"] for r in missing)
+    assert [r["runtime"].split()[0] for r in missing] == ["OpenVINO", "ONNX"]
