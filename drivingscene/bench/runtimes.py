@@ -53,6 +53,7 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
     from drivingscene.precision import auto_amp
 
     torch.set_num_threads(threads)
+    bf16_native = auto_amp("cpu")  # what the reconstruction runs on this CPU (precision.py)
     model = load_model(weights).eval()
     depth_net = model.depth_net
     height, width = model.config.input_size or (176, 320)
@@ -88,7 +89,7 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
             )
         )
         rows.append(dict(runtime="torch, default layout", s=_median_seconds(lambda: net(x), runs), once=0.0, diff=0.0))
-        if auto_amp("cpu"):  # what the reconstruction runs on this CPU (precision.py)
+        if bf16_native:
 
             def bf16():
                 with torch.autocast("cpu", dtype=torch.bfloat16):
@@ -116,7 +117,7 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
             rows.append(
                 dict(runtime="torch.compile (inductor), channels-last", s=seconds, once=once, diff=diff(compiled(x_last)))
             )
-    rows += _openvino_rows(net, x, runs, threads, diff)
+    rows += _openvino_rows(net, x, runs, threads, diff, bf16_native)
     try:
         import onnxruntime
     except ImportError:
@@ -144,16 +145,14 @@ def measure(weights: Path | None, runs: int, threads: int, compile_: bool = Fals
     return rows, tuple(x.shape)
 
 
-def _openvino_rows(net, x, runs: int, threads: int, diff) -> list[dict]:
-    """OpenVINO's CPU plugin on the model converted from torch, at float32 and, where the CPU does
-    bf16 natively (AMX, AVX512_BF16), at its bf16 inference precision (not installed: one row)."""
+def _openvino_rows(net, x, runs: int, threads: int, diff, bf16: bool) -> list[dict]:
+    """OpenVINO's CPU plugin on the model converted from torch, at float32 and, with ``bf16`` (the CPU
+    does bf16 natively: AMX, AVX512_BF16), at its bf16 inference precision (not installed: one row)."""
     try:
         import openvino
     except ImportError:
         return [dict(runtime="OpenVINO (not installed: pip install openvino)", s=None, once=None, diff=None)]
-    from drivingscene.precision import auto_amp
-
-    precisions = ["f32"] + (["bf16"] if auto_amp("cpu") else [])
+    precisions = ["f32"] + (["bf16"] if bf16 else [])
     rows = []
     for precision in precisions:
         tic = time.perf_counter()

@@ -3,8 +3,8 @@
 // image's pixels (its own pixel; a merged block's pixels, gaussians/parsimony.py).
 //
 // Per (camera, band of rows) task, the pair finder's scatter (find_pairs.cpp: the same cut, early
-// stop and layer cap, the alphas from a float32 exp: the torch path's up to rounding) lists each pixel's splats into a buffer that stays in
-// cache; the compositing weights of composite_forward (surface averaging with `tolerance`, black
+// stop and layer cap, the alphas from a float32 exp: the torch path's up to rounding) lists each
+// pixel's splats into a buffer that stays in cache; the compositing weights of composite_forward (surface averaging with `tolerance`, black
 // background; front_group.h) are formed from those alphas once, with each pixel's accumulated
 // alpha A[p], and kept packed per task. Then `iterations` Jacobi (Van Cittert) steps: the residual
 //     r(p) = target(p) - sum_k w_k c_k / max(A[p], 1e-6)

@@ -26,8 +26,9 @@ namespace {
 // farthest from the other two (the largest where the cubic's half determinant is >= 0, else the
 // smallest) is the largest cross product of two rows of a - lambda I; the other two are the exact
 // 2x2 rotation of the plane orthogonal to it (one Jacobi rotation), so that two equal eigenvalues
-// cost no accuracy. Each eigenvalue is then the matrix's Rayleigh quotient on its vector. About a
-// third of the cyclic Jacobi sweeps' time, and the same covariances up to double rounding.
+// cost no accuracy. Each eigenvalue is then the matrix's Rayleigh quotient on its vector. The
+// whole extension took 0.69x of its time with cyclic Jacobi sweeps (docs/performance.md), with the
+// same covariances up to double rounding.
 void eigen3(const double a[9], double values[3], double v[9]) {
   double scale = 0.0;
   for (int i = 0; i < 9; ++i) scale = std::max(scale, std::fabs(a[i]));
@@ -213,7 +214,7 @@ at::Tensor pixel_footprints(const at::Tensor& depth_in, const at::Tensor& intrin
         const int64_t i = row * width + col;
         const float depth_c = std::max(d[i], 1e-3f);
         const float xn = (static_cast<float>(col) - cx - skew * yn) / fx;
-        const float px = xn * depth_c, py = yn * depth_c, z = std::max(depth_c, 1e-3f);
+        const float px = xn * depth_c, py = yn * depth_c, z = depth_c;
         const float* qi = q + 4 * i;
         const float* si = s + 3 * i;
         float* oi = o + 3 * i;
