@@ -343,6 +343,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE,...",
         help="variants to score, space-separated, each a comma-separated list of choices ('' the defaults; default: a built-in list)",
     )
+    p.add_argument("--device", default="cpu", help="the networks on cpu (default), cuda or cuda:N")
     p.add_argument("-o", "--out", type=Path, default=None, help="write the markdown report here (default: print it)")
 
 
@@ -370,6 +371,12 @@ def score_variant(model, pair, variant: Variant) -> dict[str, float]:
     return out
 
 
+def _gpu(device) -> str:
+    import torch
+
+    return f", GPU {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
+
+
 def score_blend(pair) -> dict[str, float]:
     """The baseline without geometry: the two keyframes blended by time, scored as the variants."""
     from drivingscene.eval.baselines import blend_frames
@@ -381,11 +388,12 @@ def score_blend(pair) -> dict[str, float]:
 
 def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
-    from drivingscene.methods.feedforward import load_model
+    from drivingscene.methods.feedforward import load_model, resolve_device
     from drivingscene.train.data import pair_files
 
     variants = [parse_variant(v) for v in (args.variant or DEFAULT_VARIANTS)]  # errors before any work
-    model = load_model(args.weights)
+    device = resolve_device(args.device)
+    model = load_model(args.weights, device=device)
     sections = []
     for folder in args.data:
         files = pair_files(folder, args.count)
@@ -430,11 +438,12 @@ def run(args: argparse.Namespace) -> int:
     cmd = "drivingscene bench choices --data " + " ".join(str(d) for d in args.data) + f" --count {args.count}"
     cmd += " --variant " + " ".join(f"'{v}'" for v in args.variant) if args.variant else ""
     cmd += f" --weights {args.weights}" if args.weights else ""
+    cmd += f" --device {args.device}" if device.type != "cpu" else ""
     text = "\n".join(
         [
             "# Inference and rendering choices on validation pairs",
             "",
-            f"Measured with `{cmd}` on {machine_description()}, {time.strftime('%Y-%m-%d')}. Means over the pairs (seconds: "
+            f"Measured with `{cmd}` on {machine_description()}{_gpu(device)}, {time.strftime('%Y-%m-%d')}. Means over the pairs (seconds: "
             "the median); PSNR in dB over the pixels that see the world. Flow EPE: rigid + the residual flow as R and the "
             "search propose it; the flow the Gaussians follow: rigid + the residual where a pixel's Gaussian moves.",
             "",

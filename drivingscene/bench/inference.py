@@ -16,13 +16,21 @@ from pathlib import Path
 
 from drivingscene.arguments import Progress, add_list_argument
 from drivingscene.data.atomic import atomic_write_text
+from drivingscene.errors import InputError
 from drivingscene.machine import current_rss_bytes, machine_description, peak_rss_bytes
 
 SIZES = ("96x176", "176x320", "352x640")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_list_argument(p, "--sizes", default=list(SIZES), metavar="HxW", help="procedural pairs generated at these sizes")
+    add_list_argument(
+        p,
+        "--sizes",
+        nargs="*",
+        default=list(SIZES),
+        metavar="HxW",
+        help="procedural pairs generated at these sizes (none: only the --scenes, e.g. on a machine without EGL)",
+    )
     p.add_argument(
         "--scenes",
         nargs="+",
@@ -84,10 +92,11 @@ def _options(amp: bool, threads: int, without: tuple[str, ...] = (), match: str 
 
 def _peak_in_this_process(
     weights: Path | None, device: str, pair_path: str, amp: bool, threads: int, without: tuple[str, ...], match: str
-) -> tuple[float, float]:
+) -> tuple[float, ...]:
     """MiB the process's resident memory peaks above where it stood with the model and the pair
     loaded, over one reconstruction, and the process's whole peak (run in a fresh process by
-    `peak_memory_mib`)."""
+    `peak_memory_mib`); on a GPU also the GPU memory torch allocated at its peak above the loaded
+    model, and in all."""
     import torch
 
     from drivingscene.data.frame_pair import load_frame_pair
@@ -97,16 +106,23 @@ def _peak_in_this_process(
     model = load_model(weights, device=resolve_device(device))
     pair = load_frame_pair(pair_path)
     base = current_rss_bytes()
+    device = next(model.parameters()).device
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+        gpu_base = torch.cuda.memory_allocated(device)
     reconstruct(model, pair, _options(amp, threads, without, match))
     peak = peak_rss_bytes()
-    return (peak - base) / 2**20, peak / 2**20
+    if device.type != "cuda":
+        return (peak - base) / 2**20, peak / 2**20
+    gpu = torch.cuda.max_memory_allocated(device)
+    return (peak - base) / 2**20, peak / 2**20, (gpu - gpu_base) / 2**20, gpu / 2**20
 
 
 def peak_memory_mib(
     pair, weights: Path | None, device: str, amp: bool, threads: int, without: tuple[str, ...] = (), match: str = "fallback"
-) -> tuple[float, float]:
+) -> tuple[float, ...]:
     """Peak resident memory (MiB) of one reconstruction of ``pair`` above the loaded model and
-    pair, and of the whole process, in a fresh process (spawned, so it inherits none of this
+    pair, and of the whole process (and on a GPU the same two of its memory), in a fresh process (spawned, so it inherits none of this
     process's memory)."""
     from drivingscene.data.frame_pair import save_frame_pair
 
@@ -229,6 +245,8 @@ def run(args: argparse.Namespace) -> int:
     without = tuple(
         step for step, off in (("search", args.no_search), ("objects", args.no_objects), ("merge", args.per_pixel)) if off
     )
+    if not args.sizes and not args.scenes:
+        raise InputError("bench inference: nothing to time: give --sizes HxW ... or --scenes FILE ...")
     with Progress("drivingscene bench inference") as progress:  # on stderr once it takes more than a second
         rows = measure(
             model,
@@ -246,7 +264,9 @@ def run(args: argparse.Namespace) -> int:
         )
     from drivingscene.kernels import load_extension
 
-    kernels = "on" if device.type == "cpu" and load_extension() else "off: torch paths"
+    kernels = "on" if load_extension() else "off: torch paths"
+    if device.type != "cpu":
+        kernels = f"{kernels} for the assembly, which runs on the CPU (the networks and the flow search on the GPU as torch paths; OpenCV's matching and tracking on the CPU)"
     lines = [
         f"Measured with `drivingscene bench inference --sizes {' '.join(args.sizes)}"
         f"{' --scenes ' + ' '.join(str(p) for p in args.scenes) if args.scenes else ''} --runs {args.runs}"
@@ -262,8 +282,9 @@ def run(args: argparse.Namespace) -> int:
         "/ that process's whole peak.",
         "",
         "| pair (H×W) | total s (median) | best s | networks D+P s | matching s (cameras matched again) "
-        "| flow (rigid + R + search + lift) s | of which search s | assembly + sky s | Gaussians | peak RSS: reconstruction / process |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| flow (rigid + R + search + lift) s | of which search s | assembly + sky s | Gaussians | peak RSS: reconstruction / process |"
+        + (" peak GPU memory: reconstruction / process |" if device.type == "cuda" else ""),
+        "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if device.type == "cuda" else ""),
     ]
     for r in rows:
         lines.append(
@@ -271,6 +292,7 @@ def run(args: argparse.Namespace) -> int:
             f"| {r['flow_s']:.3f} "
             f"| {r['search_s']:.3f} | "
             f"{r['assembly_s']:.3f} | {r['gaussians'] / 1e3:.0f}k | {r['peak_mib'][0]:.0f} / {r['peak_mib'][1]:.0f} MiB |"
+            + (f" {r['peak_mib'][2]:.0f} / {r['peak_mib'][3]:.0f} MiB |" if len(r["peak_mib"]) > 2 else "")
         )
     for r in rows:
         if r["ops"]:

@@ -237,11 +237,19 @@ def extend_along_rays(
         # the step in z is a step along the ray of |ray| / z times it
         sigma = extent * torch.minimum(slope_steps(depth), step_cap * depth) * points.norm(dim=-1) / points[..., 2]
         flat = (points.reshape(-1, 3), quats.detach().reshape(-1, 4).to(dtype), log_scales.detach().reshape(-1, 3))
+        sigma = sigma.reshape(-1)
+        if backend == "auto" and quats.device.type != "cpu":
+            # No GPU kernel, and torch.linalg.eigh's batched CUDA path asked for 330 GiB of workspace for
+            # a 6x176x320 pair's 3x3 matrices (H200, torch 2.11): the step runs on the CPU, 30 MB each way.
+            flat, sigma = tuple(t.cpu() for t in flat), sigma.cpu()
         if kernels.available(kernels.extend_along_rays, backend, *flat):
-            q, s = kernels.extend_along_rays(*flat, sigma.reshape(-1))
+            q, s = kernels.extend_along_rays(*flat, sigma)
         else:
-            q, s = extend_along_rays_torch(*flat, sigma.reshape(-1))
-    return q.view(quats.shape).to(quats.dtype), s.view(log_scales.shape).to(log_scales.dtype)
+            q, s = extend_along_rays_torch(*flat, sigma)
+    return (
+        q.view(quats.shape).to(quats.device, quats.dtype),
+        s.view(log_scales.shape).to(log_scales.device, log_scales.dtype),
+    )
 
 
 def gaussians_from_pixels(

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -141,6 +141,19 @@ def resolve_device(name: str) -> torch.device:
     if device.type not in ("cpu", "cuda"):
         raise InputError(f"--device: expected cpu, cuda or cuda:N, found {name!r}")
     return device
+
+
+def _on_cpu(value):
+    """``value`` (tensors, dataclasses of them, lists, tuples, dicts, None) with every tensor on the CPU."""
+    if isinstance(value, torch.Tensor) or is_dataclass(value) and hasattr(value, "to"):  # PairTensors.to
+        return value.to("cpu")
+    if is_dataclass(value):
+        return replace(value, **{f.name: _on_cpu(getattr(value, f.name)) for f in fields(value) if f.init})
+    if isinstance(value, (list, tuple)):
+        return type(value)(_on_cpu(v) for v in value)
+    if isinstance(value, dict):
+        return {k: _on_cpu(v) for k, v in value.items()}
+    return value
 
 
 def _sync(device: torch.device) -> None:
@@ -397,6 +410,8 @@ def reconstruct(
     timings["flow_s"] = time.perf_counter() - t0
     report("assembly")
     t0 = time.perf_counter()
+    if device.type != "cpu":  # the assembly's steps are compiled CPU kernels (kernels/csrc): on a GPU they run on the CPU
+        static, batch, sky, sky_pixels, scene_flow, depth = _on_cpu((static, batch, sky, sky_pixels, scene_flow, depth))
     layer_static, layer_sky, layer_flow = static, sky, scene_flow
     if options.far_layer > 0:  # the pixels beyond the sky distance make static Gaussians there too
         distance = sky_distance(batch.intrinsics, depth.shape[-1], model.config.depth.ref_focal, options.lift)
@@ -477,7 +492,7 @@ def reconstruct(
         depth=np.where(sky_np[..., 0], 0.0, depth.cpu().numpy()).astype(np.float32),
         rigid_flow=np.where(sky_np, 0.0, rigid.cpu().numpy()).astype(np.float32),
         residual_flow=None if flow is None else np.where(sky_np, 0.0, flow.residual.cpu().numpy()).astype(np.float32),
-        moving=None if applied is None else (applied & ~sky).cpu().numpy(),
+        moving=None if applied is None else (applied.cpu() & ~sky.cpu()).numpy(),
         meta={
             "method": "drivingscene" if options.use_residual else "drivingscene-static",
             "timings": {k: round(v, 4) for k, v in timings.items()},

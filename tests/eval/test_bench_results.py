@@ -173,6 +173,11 @@ def test_inference_benchmark_times_scene_files_too(tiny_weights, tmp_path):
     rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
     assert [r.split(" | ")[0] for r in rows] == ["| 48x88", "| mine.npz (2 × 24x40)"]
     assert f"--scenes {scene}" in out.read_text()
+    # scene files alone (a machine without EGL for the procedural pairs, e.g. a GPU machine), and nothing at all
+    assert main(args[:2] + ["--sizes"] + args[4:] + ["--out", str(out), "--force"]) == 0
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert [r.split(" | ")[0] for r in rows] == ["| mine.npz (2 × 24x40)"]
+    assert main(["bench", "inference", "--sizes", "--runs", "1"]) == 2
 
 
 def test_inference_benchmark_profiles_the_operations_of_each_pair(tiny_weights, tmp_path):
