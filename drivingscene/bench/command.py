@@ -56,6 +56,10 @@ def measure(scene: Path, runs: int) -> tuple[list[dict], dict[str, float]]:
     cli = [sys.executable, "-m", "drivingscene"]
     startup = {
         "python -c 'import torch'": statistics.median(_wall([sys.executable, "-c", "import torch"]) for _ in range(runs)),
+        # the modules `reconstruct` imports before its first step (its --help imports none of them)
+        "python -c 'import drivingscene.methods.feedforward'": statistics.median(
+            _wall([sys.executable, "-c", "import drivingscene.methods.feedforward"]) for _ in range(runs)
+        ),
         "drivingscene reconstruct --help": statistics.median(_wall([*cli, "reconstruct", "--help"]) for _ in range(runs)),
     }
     with tempfile.TemporaryDirectory() as tmp:

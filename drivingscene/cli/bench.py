@@ -85,10 +85,13 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
 }
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction, only: str | None = None) -> None:
+    """``bench`` and its benchmarks; ``only``: that benchmark's alone when it is one (the others'
+    modules are not imported), else all of them."""
     p = sub.add_parser("bench", help="run a benchmark and write its report")
     bsub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True, parser_class=type(p))
-    for name, (module, help_text) in BENCHMARKS.items():
+    chosen = {only: BENCHMARKS[only]} if only in BENCHMARKS else BENCHMARKS
+    for name, (module, help_text) in chosen.items():
         bp = bsub.add_parser(name, help=help_text)
         importlib.import_module(module).add_arguments(bp)
         bp.add_argument("--force", action="store_true", help="overwrite the report files (--out, --json) if they exist")

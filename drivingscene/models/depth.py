@@ -144,8 +144,9 @@ class DepthNet(nn.Module):
             else None
         )
         # ImageNet-style input normalisation as a buffer, not a parameter.
-        self.register_buffer("mean", torch.tensor([0.45, 0.45, 0.45]).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor([0.225, 0.225, 0.225]).view(1, 3, 1, 1), persistent=False)
+        # constants, on the CPU also when the model is built on the meta device (`load_model`)
+        self.register_buffer("mean", torch.tensor([0.45, 0.45, 0.45], device="cpu").view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor([0.225, 0.225, 0.225], device="cpu").view(1, 3, 1, 1), persistent=False)
 
     def disparity_to_depth(self, disp: Tensor, intrinsics: Tensor, width: int) -> Tensor:
         """Sigmoid disparity ``[B, 1, h, w]`` -> metric depth ``[B, 1, h, w]`` (module docstring)."""

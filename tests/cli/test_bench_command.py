@@ -45,7 +45,11 @@ def test_bench_command_times_the_reconstruct_command_in_fresh_processes(monkeypa
     recon_calls = [a for a in calls if "reconstruct" in a and "--help" not in a]
     assert len(recon_calls) == 2 * (1 + 2)  # one warm-up and two timed runs per row
     assert sum("--deflate" in a and "float32" in a for a in recon_calls) == 3
-    assert set(startup) == {"python -c 'import torch'", "drivingscene reconstruct --help"}
+    assert set(startup) == {
+        "python -c 'import torch'",
+        "python -c 'import drivingscene.methods.feedforward'",
+        "drivingscene reconstruct --help",
+    }
 
 
 def test_bench_runtimes_rows_without_onnxruntime(monkeypatch):

@@ -92,3 +92,33 @@ def test_no_list_option_needs_its_flag_repeated():
     assert view.time == [0.0, 0.25, 1.0] and view.camera == ["A", "B"]
     bench = build_parser().parse_args(["bench", "choices", "--data", "d", "--variant", "", "match=off"])
     assert bench.variant == ["", "match=off"]
+
+
+def _commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def test_a_command_builds_its_own_parser_alone_and_the_same_one():
+    """`drivingscene.cli.COMMANDS` names every command's module; the parser built for one command
+    (start-up: the others' modules are not imported) parses its arguments as the whole parser does."""
+    import importlib
+
+    from drivingscene.cli import COMMAND_MODULES, COMMANDS
+    from drivingscene.cli.bench import BENCHMARKS
+
+    full = _commands(build_parser())
+    assert set(COMMANDS) == set(full)
+    for module in COMMAND_MODULES:  # each command is registered by the module the table names
+        parser = argparse.ArgumentParser()
+        importlib.import_module(f"drivingscene.cli.{module}").register(parser.add_subparsers())
+        assert {c for c, m in COMMANDS.items() if m == module} == set(_commands(parser)), module
+    alone = _commands(build_parser(["-v", "reconstruct", "scene.npz", "-o", "r.npz"]))
+    assert set(alone) == {c for c, m in COMMANDS.items() if m == "recon"}
+    argv = ["reconstruct", "scene.npz", "-o", "r.npz", "--budget", "0.4"]
+    assert vars(build_parser(argv).parse_args(argv)).keys() == vars(build_parser().parse_args(argv)).keys()
+    assert build_parser(argv).parse_args(argv).budget == build_parser().parse_args(argv).budget == 0.4
+    benchmarks = _commands(_commands(build_parser(["bench", "inference", "--runs", "1"]))["bench"])
+    assert set(benchmarks) == {"inference"}
+    assert set(_commands(_commands(build_parser(["bench", "nope"]))["bench"])) == set(BENCHMARKS)  # the error lists them all
+    assert set(_commands(build_parser(["nope"]))) == set(full)

@@ -46,3 +46,33 @@ def test_benchmark_device_errors_are_one_line(capsys, command):
     assert main(command + ["--device", "tpu"]) == 2
     err = capsys.readouterr().err
     assert "--device: expected cpu, cuda or cuda:N, found 'tpu'" in err and err.count("\n") == 1
+
+
+def test_load_model_built_on_the_meta_device_holds_what_the_usual_build_holds(tmp_path):
+    """`load_model` builds the networks on the meta device and assigns the file's tensors; the model
+    is the one the usual build and `load_state_dict` make, and a file without a tensor is still an error."""
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    from drivingscene.errors import InputError
+    from drivingscene.methods.feedforward import DEFAULT_WEIGHTS, load_model
+    from drivingscene.models.model import DrivingSceneModel, ModelConfig
+    from drivingscene.resources import asset_path
+
+    path = asset_path(DEFAULT_WEIGHTS)
+    model = load_model(path)
+    usual = DrivingSceneModel(ModelConfig.from_dict(json.loads(path.with_suffix(".json").read_text())["model"]))
+    usual.load_state_dict(load_file(str(path)))
+    ours, theirs = dict(model.named_buffers()), dict(usual.named_buffers())
+    assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)  # non-persistent too
+    params, reference = dict(model.named_parameters()), dict(usual.named_parameters())
+    assert params.keys() == reference.keys()
+    assert all(p.dtype == torch.float32 and p.requires_grad and torch.equal(p, reference[k]) for k, p in params.items())
+    assert not model.training
+    state = load_file(str(path))
+    state.pop(next(k for k in state if k.endswith(".weight")))  # BatchNorm fills a missing step count in itself
+    save_file(state, str(tmp_path / "w.safetensors"))
+    (tmp_path / "w.json").write_text(path.with_suffix(".json").read_text())
+    with pytest.raises(InputError, match="missing 1"):
+        load_model(tmp_path / "w.safetensors")
