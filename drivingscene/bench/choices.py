@@ -93,6 +93,9 @@ class Variant:
     edges: int | None = None  # InferenceOptions.edges: EdgeSharpen(radius=edges), 0: off; None: the default
     esigma: float | None = None  # EdgeSharpen.sigma; None: the default
     mdepth: str | None = None  # InferenceOptions.moving_depth: "matched" or "prior"; None: the default
+    robj: bool | None = None  # InferenceOptions.rig_objects on (RigObjectConfig()) or off; None: the default
+    rratio: float | None = None  # RigObjectConfig.ratio (with robj on); None: its default
+    rseen: str | None = None  # RigObjectConfig.seen, "front" or "depth" (with robj on); None: its default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -187,10 +190,17 @@ class Variant:
             edges = None if self.edges == 0 else replace(edges or EdgeSharpen(), radius=self.edges)
         if edges is not None and self.esigma is not None:
             edges = replace(edges, sigma=self.esigma)
+        from drivingscene.methods.rig_objects import RigObjectConfig
+
+        rig = base.rig_objects if self.robj is None else (RigObjectConfig() if self.robj else None)
+        if rig is not None and self.rratio is not None:
+            rig = replace(rig, ratio=self.rratio)
+        if rig is not None and self.rseen is not None:
+            rig = replace(rig, seen=self.rseen)
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
             use_residual=self.residual, merge=merge, dedupe=dedupe, edges=edges,
-            moving_depth=base.moving_depth if self.mdepth is None else self.mdepth,
+            moving_depth=base.moving_depth if self.mdepth is None else self.mdepth, rig_objects=rig,
         )  # fmt: skip
 
 
@@ -235,7 +245,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, mout, mmove, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, ocoarse, oland, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
+    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, ocoarse, oland, robj, rratio, rseen, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.feedforward import MOVING_DEPTHS
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
@@ -274,6 +284,12 @@ def parse_variant(text: str) -> Variant:
             values["olocal"] = int(value)
         elif key == "ocoarse" and value in ("on", "off"):
             values["ocoarse"] = value == "on"
+        elif key == "robj" and value in ("on", "off"):
+            values["robj"] = value == "on"
+        elif key == "rratio" and _is_number(value) and float(value) > 0:
+            values["rratio"] = float(value)
+        elif key == "rseen" and value in ("front", "depth"):
+            values["rseen"] = value
         elif key == "oscales" and value and all(_is_number(a) and float(a) > 0 for a in value.split("+")):
             values["oscales"] = tuple(float(a) for a in value.split("+"))
         elif key == "merge" and (value == "off" or (_is_number(value) and float(value) >= 0)):
@@ -323,7 +339,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, ocoarse=on|off, oland=off|COST, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, ocoarse=on|off, oland=off|COST, robj=on|off, rratio=RATIO, rseen=front|depth, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), mout=off|LOG (> 0), mmove=on|off, bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

@@ -36,6 +36,7 @@ import torch
 
 from drivingscene.arguments import positive_int
 from drivingscene.data.atomic import atomic_write_text
+from drivingscene.errors import InputError
 from drivingscene.gaussians.assembly import MAX_FOOTPRINT, NO_FOOTPRINT_RULE, FootprintRule
 from drivingscene.gaussians.parsimony import BlockMerge
 from drivingscene.methods.feedforward import FAR_LAYER
@@ -133,6 +134,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", choices=("test", "val"), default="test", help="procedural split (val: to choose settings on)")
     p.add_argument("--scenes", type=Path, nargs="+", default=[], metavar="SCENE", help="real scenes (rows against the input)")
     p.add_argument("--weights", type=Path, default=None, help="model weights (default: the shipped ones)")
+    p.add_argument(
+        "--merge-range",
+        type=float,
+        default=None,
+        metavar="COLOUR",
+        help="the merged rows' BlockMerge.color_range (default: the reconstruction's, 0.045): how much detail a merged block may hold",
+    )
     p.add_argument("-o", "--out", type=Path, default=Path("out/bench/magnify.md"), help="markdown report")
     p.add_argument("--json", type=Path, default=None, help="the numbers as JSON")
 
@@ -287,6 +295,11 @@ def run(args: argparse.Namespace) -> int:
 
     wall = time.perf_counter()
     variants = (DEFAULT, MERGED) if args.default_only else QUICK if args.quick else VARIANTS
+    if args.merge_range is not None:  # the merged default at another colour bound (named as before)
+        if not args.merge_range >= 0:
+            raise InputError(f"--merge-range: expected a colour difference >= 0, found {args.merge_range}")
+        merged = replace(MERGED, merge=BlockMerge(color_range=args.merge_range))
+        variants = tuple(merged if v is MERGED else v for v in variants)
     count = 1 if args.quick else args.count
     config = resolve_config("default", **({"height": 64, "width": 112} if args.quick else {}))
     model = load_model(args.weights)
@@ -330,6 +343,7 @@ def _markdown(args, sets, variants, seeds, config, machine, minutes) -> str:
     flags = " --quick" if args.quick else f" --count {args.count}" + (f" --start {args.start}" if args.start else "")
     flags += " --default-only" if args.default_only else ""
     flags += f" --split {args.split}" if args.split != "test" else ""
+    flags += f" --merge-range {args.merge_range}" if args.merge_range is not None else ""
     scenes = (" --scenes " + " ".join(map(str, args.scenes))) if args.scenes else ""
     lines = [
         f"Measured with `drivingscene bench magnify{flags}{scenes} --out {args.out}` on {machine}, "

@@ -35,6 +35,7 @@ from drivingscene.methods.depth_edges import EdgeSharpen, sharpen_depth_edges
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
 from drivingscene.methods.memory import check_reconstruct_memory
 from drivingscene.methods.object_motion import ObjectMotionConfig, object_flows
+from drivingscene.methods.rig_objects import RigObjectConfig, rig_objects
 from drivingscene.models.lift import (
     LiftConfig,
     MotionSearchConfig,
@@ -121,6 +122,9 @@ class InferenceOptions:
     dedupe: KeyframeDedupe | None = None
     # depth edges made steps where the image has its edges (methods/depth_edges.py); None: off
     edges: EdgeSharpen | None = None
+    # moving objects searched across the rig as translations of their surface, where the rigid flow
+    # leaves the image or fails and nothing moves them yet (methods/rig_objects.py); None: off
+    rig_objects: RigObjectConfig | None = None
     # the depth of the pixels whose Gaussians move: "matched" (the matching's, as every pixel) or
     # "prior" (D's own, from one instant: the matching over time reads an object's motion as depth)
     moving_depth: str = "matched"
@@ -289,6 +293,28 @@ def _with_objects(flow, batch, pair: FramePair, depth: Tensor, excluded: Tensor,
     return replace(flow, searched=torch.where(owned[..., None], moved, other))
 
 
+def _with_rig_objects(scene_flow, applied, depth, rigid, sky, batch, pair: FramePair, config: RigObjectConfig):
+    """``scene_flow`` and ``applied`` with the objects `rig_objects` finds across the rig moving by
+    their translation (and their landing pixels at the other keyframe back by it)."""
+    up = batch.local_to_world[:3, :3].T.cpu().numpy() @ pair.ego_to_world[0][:3, 2]  # the ego's up, local frame
+    found = rig_objects(
+        pair.images, depth.detach().cpu().numpy(), rigid.detach().cpu().numpy(), (sky | applied).cpu().numpy(),
+        batch.intrinsics.cpu().numpy(), batch.cam_to_local.cpu().numpy(), up, config,
+    )  # fmt: skip
+    if not found:
+        return scene_flow, applied
+    flows, moving = scene_flow.clone(), applied.clone()
+    for obj in found:
+        t = torch.as_tensor(obj.translation, dtype=flows.dtype, device=flows.device)
+        here = torch.from_numpy(obj.pixels).to(flows.device)
+        there = torch.from_numpy(obj.landing).to(flows.device)
+        flows[obj.keyframe, obj.camera][here] = t
+        moving[obj.keyframe, obj.camera] |= here
+        flows[1 - obj.keyframe][there] = -t
+        moving[1 - obj.keyframe] |= there
+    return flows, moving
+
+
 def _stage_reporter(progress, num_views: int) -> Callable[[str | None], None]:
     """``report(stage)``: ``progress(share of stages done, the stage's name)``; ``report(None)``: done."""
     names = list(STAGES)
@@ -416,6 +442,10 @@ def reconstruct(
                 depth, flow.total, flow.residual, sky, batch, options.lift, net_width, rigid=flow.rigid, behind=flow.behind
             )
             scene_flow = torch.where(applied[..., None], lifted, scene_flow)
+    if options.rig_objects is not None and scene_flow is not None:
+        t1 = time.perf_counter()
+        scene_flow, applied = _with_rig_objects(scene_flow, applied, depth, flow.rigid, sky, batch, pair, options.rig_objects)
+        timings["rig_objects_s"] = time.perf_counter() - t1
     rigid = flow.rigid if flow is not None else None
     _sync(device)
     timings["flow_s"] = time.perf_counter() - t0

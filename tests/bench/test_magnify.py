@@ -58,3 +58,11 @@ def test_gaussian_interpolation_samples_the_image_between_its_pixels():
     plain = gaussian_interpolation(noise, 1, iterations=0)
     solved = gaussian_interpolation(noise, 1, iterations=2)
     assert float((solved - noise).abs().mean()) < 0.5 * float((plain - noise).abs().mean())
+
+
+def test_merge_range_is_checked_before_any_work(capsys, tmp_path):
+    from drivingscene.cli import main
+
+    assert main(["bench", "magnify", "--merge-range", "-0.1", "--out", str(tmp_path / "m.md")]) == 2
+    err = capsys.readouterr().err
+    assert "--merge-range: expected a colour difference >= 0, found -0.1" in err and err.count("\n") == 1
