@@ -96,6 +96,7 @@ class Variant:
     robj: bool | None = None  # InferenceOptions.rig_objects on (RigObjectConfig()) or off; None: the default
     rratio: float | None = None  # RigObjectConfig.ratio (with robj on); None: its default
     rseen: str | None = None  # RigObjectConfig.seen, "front" or "depth" (with robj on); None: its default
+    rleave: float | None = None  # RigObjectConfig.leaving, a share in [0, 1] (with robj on); None: its default
 
     def options(self, base):
         from drivingscene.gaussians.visibility import CarveConfig
@@ -197,6 +198,8 @@ class Variant:
             rig = replace(rig, ratio=self.rratio)
         if rig is not None and self.rseen is not None:
             rig = replace(rig, seen=self.rseen)
+        if rig is not None and self.rleave is not None:
+            rig = replace(rig, leaving=self.rleave)
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
             use_residual=self.residual, merge=merge, dedupe=dedupe, edges=edges,
@@ -245,7 +248,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, mout, mmove, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, ocoarse, oland, robj, rratio, rseen, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
+    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, ocoarse, oland, robj, rratio, rseen, rleave, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.feedforward import MOVING_DEPTHS
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
@@ -290,6 +293,8 @@ def parse_variant(text: str) -> Variant:
             values["rratio"] = float(value)
         elif key == "rseen" and value in ("front", "depth"):
             values["rseen"] = value
+        elif key == "rleave" and _is_number(value) and 0 <= float(value) <= 1:
+            values["rleave"] = float(value)
         elif key == "oscales" and value and all(_is_number(a) and float(a) > 0 for a in value.split("+")):
             values["oscales"] = tuple(float(a) for a in value.split("+"))
         elif key == "merge" and (value == "off" or (_is_number(value) and float(value) >= 0)):
@@ -339,7 +344,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, ocoarse=on|off, oland=off|COST, robj=on|off, rratio=RATIO, rseen=front|depth, pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, ocoarse=on|off, oland=off|COST, robj=on|off, rratio=RATIO, rseen=front|depth, rleave=SHARE [0, 1], pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), mout=off|LOG (> 0), mmove=on|off, bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

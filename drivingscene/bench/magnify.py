@@ -355,7 +355,7 @@ def _markdown(args, sets, variants, seeds, config, machine, minutes) -> str:
     ]
     for name, rows in sets.items():
         truth = name == "procedural"
-        lines += [f"### {'Procedural test pairs' if truth else name}", ""]
+        lines += [f"### {f'Procedural {args.split} pairs' if truth else name}", ""]
         head = (
             "| variant | s/pair | input views | in-between | "
             + " | ".join(f"{k}x vs {'truth' if truth else 'bicubic'}" for k in MAGNIFICATIONS)

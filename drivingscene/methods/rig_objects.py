@@ -49,6 +49,9 @@ class RigObjectConfig:
     box: int = 5
     min_pixels: int = 600  # the smallest blob searched (pixels at the image's size)
     samples: int = 256  # blob pixels the search scores each translation with
+    # > 0: only blobs at least this share of whose pixels the rigid flow carries out of the image
+    # (what the tracking within one camera cannot follow); 0: every blob
+    leaving: float = 0.0
     # A blob whose pixels the cameras of the other keyframe already explain standing still (their
     # mean cost at most this) is not searched: the rigid flow left the image, the rig did not
     still_cost: float = 0.05
@@ -74,6 +77,8 @@ class RigObjectConfig:
     def __post_init__(self):
         if self.seen not in ("front", "depth"):
             raise ValueError(f"RigObjectConfig.seen: expected 'front' or 'depth', found {self.seen!r}")
+        if not 0 <= self.leaving <= 1:
+            raise ValueError(f"RigObjectConfig.leaving: expected a share in [0, 1], found {self.leaving}")
         if min(self.min_pixels, self.samples, self.box) < 1 or not 0 < self.step <= self.radius:
             raise ValueError(f"RigObjectConfig: expected positive sizes and 0 < step <= radius, found {self}")
 
@@ -230,7 +235,7 @@ def rig_objects(
                     break
                 blob = (labels == label) & ~taken[k, v]
                 ys, xs = np.nonzero(blob)
-                if len(xs) < config.min_pixels:
+                if len(xs) < config.min_pixels or np.count_nonzero(outside[ys, xs]) < config.leaving * len(xs):
                     continue
                 pick = rng.choice(len(xs), min(config.samples, len(xs)), replace=False)
                 points = _lift(depth[k, v], intrinsics[v], cam_to_local[k, v], ys[pick], xs[pick]).astype(np.float32)

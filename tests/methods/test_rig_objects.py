@@ -110,3 +110,12 @@ def test_reconstruct_with_rig_objects_moves_what_it_found(synth_pair, monkeypatc
     rotation = pair_to_tensors(synth_pair, with_gt=False, with_eval=False).local_to_world[:3, :3].float()
     moved = (flows - rotation @ torch.as_tensor(translation).float()).norm(dim=-1) < 1e-3
     assert int(moved.sum()) >= here.sum() // 4  # merged blocks of it included: at least a quarter as many Gaussians
+
+
+def test_leaving_keeps_only_blobs_whose_rigid_flow_leaves_the_image():
+    """The panel stays inside the image (the ego stands still): found with every blob searched, not
+    when only blobs the rigid flow carries out of the image are."""
+    assert rig_objects(**_scene(1.5), config=RigObjectConfig(min_pixels=200, leaving=0.0))
+    assert rig_objects(**_scene(1.5), config=RigObjectConfig(min_pixels=200, leaving=0.5)) == []
+    with pytest.raises(ValueError, match="leaving"):
+        RigObjectConfig(leaving=1.5)
