@@ -409,7 +409,8 @@ def score_blend(pair) -> dict[str, float]:
 
 def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
-    from drivingscene.methods.feedforward import load_model, resolve_device
+    from drivingscene.methods.devices import resolve_device
+    from drivingscene.methods.feedforward import load_model
     from drivingscene.train.data import pair_files
 
     variants = [parse_variant(v) for v in (args.variant or DEFAULT_VARIANTS)]  # errors before any work

@@ -100,7 +100,8 @@ def _peak_in_this_process(
     import torch
 
     from drivingscene.data.frame_pair import load_frame_pair
-    from drivingscene.methods.feedforward import load_model, reconstruct, resolve_device
+    from drivingscene.methods.devices import resolve_device
+    from drivingscene.methods.feedforward import load_model, reconstruct
 
     torch.set_num_threads(threads)
     model = load_model(weights, device=resolve_device(device))
@@ -234,7 +235,8 @@ def _gpu_name(device) -> str:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from drivingscene.methods.feedforward import load_model, resolve_device
+    from drivingscene.methods.devices import resolve_device
+    from drivingscene.methods.feedforward import load_model
 
     device = resolve_device(args.device)
     torch.set_num_threads(args.threads)

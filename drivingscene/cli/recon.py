@@ -275,7 +275,8 @@ def _reconstruct(args: argparse.Namespace, progress: Progress) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
     from drivingscene.data.summary import motion_warnings
     from drivingscene.gaussians.recon import save_reconstruction
-    from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct, resolve_device
+    from drivingscene.methods.devices import resolve_device
+    from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
     from drivingscene.methods.matched_depth import match_mode
 
     if args.per_pixel and args.budget is not None:

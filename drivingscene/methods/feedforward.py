@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields, is_dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,10 +32,11 @@ from drivingscene.gaussians.parsimony import BlockMerge, KeyframeDedupe, keyfram
 from drivingscene.gaussians.recon import Reconstruction
 from drivingscene.gaussians.visibility import CarveConfig, carve
 from drivingscene.methods.depth_edges import EdgeSharpen, sharpen_depth_edges
+from drivingscene.methods.devices import on_cpu, sync
 from drivingscene.methods.matched_depth import MatchedDepthConfig, match_depth
 from drivingscene.methods.memory import check_reconstruct_memory
 from drivingscene.methods.object_motion import ObjectMotionConfig, object_flows
-from drivingscene.methods.rig_objects import RigObjectConfig, rig_objects
+from drivingscene.methods.rig_objects import RigObjectConfig, with_rig_objects
 from drivingscene.models.lift import (
     LiftConfig,
     MotionSearchConfig,
@@ -132,37 +133,6 @@ class InferenceOptions:
     def __post_init__(self) -> None:
         if self.moving_depth not in MOVING_DEPTHS:
             raise ValueError(f"InferenceOptions.moving_depth: expected one of {MOVING_DEPTHS}, got {self.moving_depth!r}")
-
-
-def resolve_device(name: str) -> torch.device:
-    """``cpu``, ``cuda`` or ``cuda:N``; a one-line error when the GPU is not there."""
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise InputError(f"--device: expected cpu, cuda or cuda:N, found {name!r}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"--device {name}: torch {torch.__version__} sees no CUDA GPU; use --device cpu")
-    if device.type not in ("cpu", "cuda"):
-        raise InputError(f"--device: expected cpu, cuda or cuda:N, found {name!r}")
-    return device
-
-
-def _on_cpu(value):
-    """``value`` (tensors, dataclasses of them, lists, tuples, dicts, None) with every tensor on the CPU."""
-    if isinstance(value, torch.Tensor) or is_dataclass(value) and hasattr(value, "to"):  # PairTensors.to
-        return value.to("cpu")
-    if is_dataclass(value):
-        return replace(value, **{f.name: _on_cpu(getattr(value, f.name)) for f in fields(value) if f.init})
-    if isinstance(value, (list, tuple)):
-        return type(value)(_on_cpu(v) for v in value)
-    if isinstance(value, dict):
-        return {k: _on_cpu(v) for k, v in value.items()}
-    return value
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def load_model(path: str | Path | None = None, device: str = "cpu") -> DrivingSceneModel:
@@ -293,28 +263,6 @@ def _with_objects(flow, batch, pair: FramePair, depth: Tensor, excluded: Tensor,
     return replace(flow, searched=torch.where(owned[..., None], moved, other))
 
 
-def _with_rig_objects(scene_flow, applied, depth, rigid, sky, batch, pair: FramePair, config: RigObjectConfig):
-    """``scene_flow`` and ``applied`` with the objects `rig_objects` finds across the rig moving by
-    their translation (and their landing pixels at the other keyframe back by it)."""
-    up = batch.local_to_world[:3, :3].T.cpu().numpy() @ pair.ego_to_world[0][:3, 2]  # the ego's up, local frame
-    found = rig_objects(
-        pair.images, depth.detach().cpu().numpy(), rigid.detach().cpu().numpy(), (sky | applied).cpu().numpy(),
-        batch.intrinsics.cpu().numpy(), batch.cam_to_local.cpu().numpy(), up, config,
-    )  # fmt: skip
-    if not found:
-        return scene_flow, applied
-    flows, moving = scene_flow.clone(), applied.clone()
-    for obj in found:
-        t = torch.as_tensor(obj.translation, dtype=flows.dtype, device=flows.device)
-        here = torch.from_numpy(obj.pixels).to(flows.device)
-        there = torch.from_numpy(obj.landing).to(flows.device)
-        flows[obj.keyframe, obj.camera][here] = t
-        moving[obj.keyframe, obj.camera] |= here
-        flows[1 - obj.keyframe][there] = -t
-        moving[1 - obj.keyframe] |= there
-    return flows, moving
-
-
 def _stage_reporter(progress, num_views: int) -> Callable[[str | None], None]:
     """``report(stage)``: ``progress(share of stages done, the stage's name)``; ``report(None)``: done."""
     names = list(STAGES)
@@ -357,7 +305,7 @@ def reconstruct(
         static = predict_static(model, batch)
     if not options.gaussian_head:
         static = without_gaussian_head(model, static, batch)
-    _sync(device)
+    sync(device)
     timings["static_s"] = time.perf_counter() - start
     depth = static.depth.float()
     sky = sky_mask(depth, batch.intrinsics, model.config.depth.ref_focal, options.lift)
@@ -380,7 +328,7 @@ def reconstruct(
             depth, matched, match_timings = match_depth(depth, sky, pair, batch, options.match)
         timings["match_views"] = match_timings.get("match_fallback_views", 0.0)
         static = with_depth(static, depth)
-        _sync(device)
+        sync(device)
         timings["match_s"] = time.perf_counter() - t0
     if options.edges is not None:
         t0 = time.perf_counter()
@@ -400,7 +348,7 @@ def reconstruct(
     if flow is not None and search is not None:
         t1 = time.perf_counter()
         flow = search_motion(flow, batch, search, model.config.input_size)
-        _sync(device)
+        sync(device)
         timings["search_s"] = time.perf_counter() - t1
     # the refused pixels move as the matching saw them (tracked objects over it)
     if flow is not None and refused is not None and bool(refused.any()):
@@ -444,15 +392,15 @@ def reconstruct(
             scene_flow = torch.where(applied[..., None], lifted, scene_flow)
     if options.rig_objects is not None and scene_flow is not None:
         t1 = time.perf_counter()
-        scene_flow, applied = _with_rig_objects(scene_flow, applied, depth, flow.rigid, sky, batch, pair, options.rig_objects)
+        scene_flow, applied = with_rig_objects(scene_flow, applied, depth, flow.rigid, sky, batch, pair, options.rig_objects)
         timings["rig_objects_s"] = time.perf_counter() - t1
     rigid = flow.rigid if flow is not None else None
-    _sync(device)
+    sync(device)
     timings["flow_s"] = time.perf_counter() - t0
     report("assembly")
     t0 = time.perf_counter()
     if device.type != "cpu":  # the assembly's steps are compiled CPU kernels (kernels/csrc): on a GPU they run on the CPU
-        static, batch, sky, sky_pixels, scene_flow, depth = _on_cpu((static, batch, sky, sky_pixels, scene_flow, depth))
+        static, batch, sky, sky_pixels, scene_flow, depth = on_cpu((static, batch, sky, sky_pixels, scene_flow, depth))
     layer_static, layer_sky, layer_flow = static, sky, scene_flow
     if options.far_layer > 0:  # the pixels beyond the sky distance make static Gaussians there too
         distance = sky_distance(batch.intrinsics, depth.shape[-1], model.config.depth.ref_focal, options.lift)
@@ -516,7 +464,7 @@ def reconstruct(
     ground = fit_ground(
         gaussians.means.detach(), sh0_to_rgb(gaussians.sh[:, 0].detach()), road_plane(torch.from_numpy(pair.ego_to_world[0]))
     )
-    _sync(device)
+    sync(device)
     timings["assembly_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - start
     if rigid is None:

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from drivingscene.methods.object_motion import _grid, warp_cost
 
@@ -273,3 +274,25 @@ def rig_objects(
                 taken[o] |= landing
                 found.append(RigObject(k, v, mask, translation, landing, best, float(still)))
     return found
+
+
+def with_rig_objects(scene_flow, applied, depth, rigid, sky, batch, pair, config: RigObjectConfig):
+    """``scene_flow`` and ``applied`` with the objects `rig_objects` finds across the rig moving by
+    their translation (and their landing pixels at the other keyframe back by it)."""
+    up = batch.local_to_world[:3, :3].T.cpu().numpy() @ pair.ego_to_world[0][:3, 2]  # the ego's up, local frame
+    found = rig_objects(
+        pair.images, depth.detach().cpu().numpy(), rigid.detach().cpu().numpy(), (sky | applied).cpu().numpy(),
+        batch.intrinsics.cpu().numpy(), batch.cam_to_local.cpu().numpy(), up, config,
+    )  # fmt: skip
+    if not found:
+        return scene_flow, applied
+    flows, moving = scene_flow.clone(), applied.clone()
+    for obj in found:
+        t = torch.as_tensor(obj.translation, dtype=flows.dtype, device=flows.device)
+        here = torch.from_numpy(obj.pixels).to(flows.device)
+        there = torch.from_numpy(obj.landing).to(flows.device)
+        flows[obj.keyframe, obj.camera][here] = t
+        moving[obj.keyframe, obj.camera] |= here
+        flows[1 - obj.keyframe][there] = -t
+        moving[1 - obj.keyframe] |= there
+    return flows, moving

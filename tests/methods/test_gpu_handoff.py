@@ -1,4 +1,4 @@
-"""The hand-off of a GPU reconstruction to the CPU before the assembly (`feedforward._on_cpu`), and
+"""The hand-off of a GPU reconstruction to the CPU before the assembly (`methods.devices.on_cpu`), and
 the one-line errors of the benchmarks' ``--device``."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch
 
 from drivingscene.cli import main
 from drivingscene.data.tensors import pair_to_tensors
-from drivingscene.methods.feedforward import _on_cpu
+from drivingscene.methods.devices import on_cpu
 from tests.factories import make_pair
 
 
@@ -32,7 +32,7 @@ def test_every_tensor_of_a_nested_structure_lands_on_the_cpu_and_the_structure_s
     x = torch.arange(6.0, device=device)
     batch = pair_to_tensors(make_pair(num_views=2, height=8, width=12), with_gt=False, with_eval=False).to(device)
     value = _Outer(_Inner(x, [x, (x, 3)]), None, {"k": x, "s": "text"})
-    moved, moved_batch, nothing = _on_cpu((value, batch, None))
+    moved, moved_batch, nothing = on_cpu((value, batch, None))
     assert type(moved) is _Outer and type(moved.inner) is _Inner and type(moved_batch) is type(batch)
     tensors = [moved.inner.a, moved.inner.items[0], moved.inner.items[1][0], moved.table["k"], moved_batch.images]
     assert all(t.device.type == "cpu" for t in tensors)

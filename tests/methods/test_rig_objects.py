@@ -89,7 +89,7 @@ def test_reconstruct_with_rig_objects_moves_what_it_found(synth_pair, monkeypatc
     translation at its keyframe and back at its landing pixels (the search itself stubbed: one object)."""
     import torch
 
-    import drivingscene.methods.feedforward as feedforward
+    import drivingscene.methods.rig_objects as module
     from drivingscene.methods.feedforward import InferenceOptions, load_model, reconstruct
     from drivingscene.methods.rig_objects import RigObject
 
@@ -99,7 +99,7 @@ def test_reconstruct_with_rig_objects_moves_what_it_found(synth_pair, monkeypatc
     there = np.zeros((synth_pair.num_views, height, width), bool)
     there[1, 40:50, 60:80] = True
     translation = np.array([1.5, -0.5, 0.0])
-    monkeypatch.setattr(feedforward, "rig_objects", lambda *a, **k: [RigObject(0, 2, here, translation, there, 0.01, 0.1)])
+    monkeypatch.setattr(module, "rig_objects", lambda *a, **k: [RigObject(0, 2, here, translation, there, 0.01, 0.1)])
     recon = reconstruct(load_model(), synth_pair, InferenceOptions(rig_objects=RigObjectConfig()))
     assert "rig_objects_s" in recon.meta["timings"]
     assert recon.moving[0, 2][here].all() and recon.moving[1, 1][there[1]].all()
