@@ -141,13 +141,10 @@ class Variant:
             lift = replace(lift, epipolar_depth=self.pdepth)
         if self.ptex is not None:
             lift = replace(lift, epipolar_min_texture=self.ptex)
-        search = base.search if self.search else None
-        if search is not None and self.bonus is not None:
-            search = replace(search, static_bonus=self.bonus)
-        if search is not None and self.unseen is not None:
-            search = replace(search, unseen_static=self.unseen)
-        if search is not None and self.unseen_px is not None:
-            search = replace(search, unseen_residual_px=self.unseen_px)
+        search = _with(
+            base.search if self.search else None,
+            static_bonus=self.bonus, unseen_static=self.unseen, unseen_residual_px=self.unseen_px,
+        )  # fmt: skip
         from drivingscene.methods.object_motion import ObjectMotionConfig
 
         chosen = {
@@ -176,35 +173,30 @@ class Variant:
         merge = base.merge
         if self.merge is not None:
             merge = None if self.merge < 0 else replace(merge or BlockMerge(), color_range=self.merge)
-        if merge is not None and (self.mtest is not None or self.mfit is not None or self.mbudget is not None):
-            merge = replace(
-                merge,
-                color_test=merge.color_test if self.mtest is None else self.mtest,
-                fit_colors=merge.fit_colors if self.mfit is None else self.mfit,
-                budget=merge.budget if self.mbudget is None else self.mbudget,
-            )
+        merge = _with(merge, color_test=self.mtest, fit_colors=self.mfit, budget=self.mbudget)
         dedupe = base.dedupe if self.dedupe is None else (KeyframeDedupe() if self.dedupe else None)
         from drivingscene.methods.depth_edges import EdgeSharpen
 
         edges = base.edges
         if self.edges is not None:
             edges = None if self.edges == 0 else replace(edges or EdgeSharpen(), radius=self.edges)
-        if edges is not None and self.esigma is not None:
-            edges = replace(edges, sigma=self.esigma)
+        edges = _with(edges, sigma=self.esigma)
         from drivingscene.methods.rig_objects import RigObjectConfig
 
         rig = base.rig_objects if self.robj is None else (RigObjectConfig() if self.robj else None)
-        if rig is not None and self.rratio is not None:
-            rig = replace(rig, ratio=self.rratio)
-        if rig is not None and self.rseen is not None:
-            rig = replace(rig, seen=self.rseen)
-        if rig is not None and self.rleave is not None:
-            rig = replace(rig, leaving=self.rleave)
+        rig = _with(rig, ratio=self.rratio, seen=self.rseen, leaving=self.rleave)
         return replace(
             base, carve=carve, search=search, lift=lift, gaussian_head=self.head, match=match, objects=objects,
             use_residual=self.residual, merge=merge, dedupe=dedupe, edges=edges,
             moving_depth=base.moving_depth if self.mdepth is None else self.mdepth, rig_objects=rig,
         )  # fmt: skip
+
+
+def _with(config, **values):
+    """``config`` with the fields of ``values`` that are not None replaced (a variant's choices);
+    None stays None (the step is off)."""
+    chosen = {name: value for name, value in values.items() if value is not None}
+    return replace(config, **chosen) if config is not None and chosen else config
 
 
 def _is_number(text: str) -> bool:
@@ -392,12 +384,6 @@ def score_variant(model, pair, variant: Variant) -> dict[str, float]:
     return out
 
 
-def _gpu(device) -> str:
-    import torch
-
-    return f", GPU {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
-
-
 def score_blend(pair) -> dict[str, float]:
     """The baseline without geometry: the two keyframes blended by time, scored as the variants."""
     from drivingscene.eval.baselines import blend_frames
@@ -409,7 +395,7 @@ def score_blend(pair) -> dict[str, float]:
 
 def run(args: argparse.Namespace) -> int:
     from drivingscene.data.frame_pair import load_frame_pair
-    from drivingscene.methods.devices import resolve_device
+    from drivingscene.methods.devices import gpu_name, resolve_device
     from drivingscene.methods.feedforward import load_model
     from drivingscene.train.data import pair_files
 
@@ -465,7 +451,7 @@ def run(args: argparse.Namespace) -> int:
         [
             "# Inference and rendering choices on validation pairs",
             "",
-            f"Measured with `{cmd}` on {machine_description()}{_gpu(device)}, {time.strftime('%Y-%m-%d')}. Means over the pairs (seconds: "
+            f"Measured with `{cmd}` on {machine_description()}{gpu_name(device)}, {time.strftime('%Y-%m-%d')}. Means over the pairs (seconds: "
             "the median); PSNR in dB over the pixels that see the world. Flow EPE: rigid + the residual flow as R and the "
             "search propose it; the flow the Gaussians follow: rigid + the residual where a pixel's Gaussian moves.",
             "",

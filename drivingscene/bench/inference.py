@@ -104,10 +104,10 @@ def _peak_in_this_process(
     from drivingscene.methods.feedforward import load_model, reconstruct
 
     torch.set_num_threads(threads)
-    model = load_model(weights, device=resolve_device(device))
+    device = resolve_device(device)
+    model = load_model(weights, device=device)
     pair = load_frame_pair(pair_path)
     base = current_rss_bytes()
-    device = next(model.parameters()).device
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         gpu_base = torch.cuda.memory_allocated(device)
@@ -226,18 +226,14 @@ def measure(
     return rows
 
 
-def _gpu_name(device) -> str:
-    import torch
-
-    return "" if device.type != "cuda" else f", GPU {torch.cuda.get_device_name(device)}"
-
-
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from drivingscene.methods.devices import resolve_device
+    from drivingscene.methods.devices import gpu_name, resolve_device
     from drivingscene.methods.feedforward import load_model
 
+    if not args.sizes and not args.scenes:
+        raise InputError("bench inference: nothing to time: give --sizes HxW ... or --scenes FILE ...")
     device = resolve_device(args.device)
     torch.set_num_threads(args.threads)
     model = load_model(args.weights, device=device)
@@ -247,8 +243,6 @@ def run(args: argparse.Namespace) -> int:
     without = tuple(
         step for step, off in (("search", args.no_search), ("objects", args.no_objects), ("merge", args.per_pixel)) if off
     )
-    if not args.sizes and not args.scenes:
-        raise InputError("bench inference: nothing to time: give --sizes HxW ... or --scenes FILE ...")
     with Progress("drivingscene bench inference") as progress:  # on stderr once it takes more than a second
         rows = measure(
             model,
@@ -278,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
         f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}"
         f"{' --profile ' + str(args.profile) if args.profile else ''}`"
         f" on {machine_description(cpu_flags_summary())}"
-        f"{_gpu_name(device)}; precision: {describe_precision(device, args.amp)}; compiled CPU kernels {kernels}; "
+        f"{gpu_name(device)}; precision: {describe_precision(device, args.amp)}; compiled CPU kernels {kernels}; "
         f"median of {args.runs} runs per size, taken in turn across the sizes after {WARMUP_RUNS} warm-up runs each; "
         "peak RSS: one reconstruction in a fresh process, above its memory with the model and the pair loaded "
         "/ that process's whole peak.",

@@ -40,3 +40,8 @@ def sync(device: torch.device) -> None:
     """Wait for the GPU's queued work (a timing's end), nothing on the CPU."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def gpu_name(device: torch.device) -> str:
+    """``", GPU <name>"`` for a benchmark's machine line where ``device`` is a GPU, else ``""``."""
+    return "" if device.type != "cuda" else f", GPU {torch.cuda.get_device_name(device)}"

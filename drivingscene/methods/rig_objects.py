@@ -112,21 +112,30 @@ class _Views:
         self.local_to_cam = np.linalg.inv(cam_to_local.astype(np.float64)).astype(np.float32)
         self.height, self.width = depth.shape[1:]
 
+    def project(self, points: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """Camera ``c``'s pixel coordinates ``[..., 2]`` and z-depth ``[...]`` of ``points`` ``[..., 3]``."""
+        q = points @ self.local_to_cam[c, :3, :3].T + self.local_to_cam[c, :3, 3]
+        z = q[..., 2]
+        return (q @ self.k[c].T)[..., :2] / np.maximum(z, 1e-6)[..., None], z
+
+    def pixel(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest pixel (row, column) of coordinates ``uv`` ``[..., 2]``, clamped to the image."""
+        col = np.clip(np.rint(uv[..., 0]), 0, self.width - 1).astype(np.int64)
+        row = np.clip(np.rint(uv[..., 1]), 0, self.height - 1).astype(np.int64)
+        return row, col
+
     def costs(self, points: np.ndarray, colours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per point of ``points`` ``[..., N, 3]`` the least colour difference over the cameras that
         see it at their depth (inf where none), and which camera that is (-1 where none)."""
         best = np.full(points.shape[:-1], np.inf)
         which = np.full(points.shape[:-1], -1, np.int64)
         for c in range(len(self.images)):
-            q = points @ self.local_to_cam[c, :3, :3].T + self.local_to_cam[c, :3, 3]
-            z = q[..., 2]
-            uv = (q @ self.k[c].T)[..., :2] / np.maximum(z, 1e-6)[..., None]
+            uv, z = self.project(points, c)
             inside = (z > 0.3) & (uv[..., 0] > -0.5) & (uv[..., 0] < self.width - 0.5) & (uv[..., 1] > -0.5)
             inside &= uv[..., 1] < self.height - 0.5
             if not inside.any():
                 continue
-            col = np.clip(np.rint(uv[..., 0]), 0, self.width - 1).astype(np.int64)
-            row = np.clip(np.rint(uv[..., 1]), 0, self.height - 1).astype(np.int64)
+            row, col = self.pixel(uv)
             there = self.depth[c][row, col]
             if self.config.seen == "depth":
                 seen = inside & (there > 0) & (np.abs(z - there) < self.config.depth_tol * z)
@@ -193,11 +202,7 @@ def _landing(views: _Views, points: np.ndarray, colours: np.ndarray, excluded: n
     best, which = views.costs(points, colours)
     good = np.isfinite(best) & (best < views.config.threshold)
     for c in np.unique(which[good]):
-        q = points[good & (which == c)]
-        q = q @ views.local_to_cam[c, :3, :3].T + views.local_to_cam[c, :3, 3]
-        uv = (q @ views.k[c].T)[:, :2] / q[:, 2:3]
-        col = np.clip(np.rint(uv[:, 0]), 0, views.width - 1).astype(np.int64)
-        row = np.clip(np.rint(uv[:, 1]), 0, views.height - 1).astype(np.int64)
+        row, col = views.pixel(views.project(points[good & (which == c)], c)[0])
         out[c, row, col] = 1
         out[c] = cv2.morphologyEx(out[c], cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
     return (out > 0) & ~excluded
@@ -239,8 +244,9 @@ def rig_objects(
                 if len(xs) < config.min_pixels or np.count_nonzero(outside[ys, xs]) < config.leaving * len(xs):
                     continue
                 pick = rng.choice(len(xs), min(config.samples, len(xs)), replace=False)
-                points = _lift(depth[k, v], intrinsics[v], cam_to_local[k, v], ys[pick], xs[pick]).astype(np.float32)
-                colours = smooth[k, v][ys[pick], xs[pick]]
+                every = _lift(depth[k, v], intrinsics[v], cam_to_local[k, v], ys, xs)  # the blob's points
+                colour = smooth[k, v][ys, xs]
+                points, colours = every[pick].astype(np.float32), colour[pick]
                 still, _ = views.mean_cost(points, colours)
                 if still <= config.still_cost:
                     continue
@@ -257,8 +263,6 @@ def rig_objects(
                     and best <= config.unique * elsewhere
                 ):
                     continue
-                every = _lift(depth[k, v], intrinsics[v], cam_to_local[k, v], ys, xs)
-                colour = smooth[k, v][ys, xs]
                 moved, _ = views.costs(every + translation, colour)
                 standing, _ = views.costs(every, colour)
                 better = (moved < config.threshold) & ~(standing <= moved)
@@ -267,9 +271,8 @@ def rig_objects(
                 mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
                 if np.count_nonzero(mask) < config.min_pixels // 2:
                     continue
-                ys, xs = np.nonzero(mask)
-                points = _lift(depth[k, v], intrinsics[v], cam_to_local[k, v], ys, xs) + translation
-                landing = _landing(views, points, smooth[k, v][ys, xs], taken[o])
+                kept = mask[ys, xs]  # the object's pixels among the blob's (mask is within the blob)
+                landing = _landing(views, every[kept] + translation, colour[kept], taken[o])
                 taken[k, v] |= mask
                 taken[o] |= landing
                 found.append(RigObject(k, v, mask, translation, landing, best, float(still)))
