@@ -84,6 +84,7 @@ class Variant:
     oscales: tuple[float, ...] | None = None  # ObjectMotionConfig.scales; None: the default
     olocal: int | None = None  # ObjectMotionConfig.local_px; None: the default
     ocoarse: bool | None = None  # ObjectMotionConfig.coarse; None: the default
+    owidth: int | None = None  # ObjectMotionConfig.max_width (0: off, at the image's size); None: the default
     oland: float | None = None  # ObjectMotionConfig.landing (-1: off); None: the default
     merge: float | None = None  # BlockMerge.color_range (gaussians/parsimony.py); -1: no merge; None: the default
     mtest: str | None = None  # BlockMerge.color_test: "detail" or "range"; None: the default
@@ -159,6 +160,8 @@ class Variant:
             "coarse": self.ocoarse,
         }  # None: the default
         chosen = {k: v for k, v in chosen.items() if v is not None}
+        if self.owidth is not None:  # 0: off (None in the config)
+            chosen["max_width"] = self.owidth or None
         if self.oland is not None:  # -1: off (None in the config)
             chosen["landing"] = None if self.oland < 0 else self.oland
         objects = base.objects
@@ -240,7 +243,7 @@ def _sign(values: list[float] | None, reference: list[float] | None) -> str:
 def parse_variant(text: str) -> Variant:
     """A `Variant` from ``key=value,...`` with keys blend, carve, search, photo, parallax, rig, pdepth, ptex, head, match,
     windows, guide, levels, passes, mscale, pmatch, fdisp, mout, mmove, fuse, replace, bonus, region, unseen, unseenpx, objects,
-    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, ocoarse, oland, robj, rratio, rseen, rleave, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
+    residual, osplit, omotion, odetect, ounique, omax, omargin, oscales, olocal, ocoarse, owidth, oland, robj, rratio, rseen, rleave, merge, mtest, mfit, mbudget, dedupe, edges, esigma, mdepth."""
     from drivingscene.gaussians.timing import BLEND_MODES
     from drivingscene.methods.feedforward import MOVING_DEPTHS
     from drivingscene.methods.matched_depth import FUSES, GUIDES, LEVELS
@@ -279,6 +282,8 @@ def parse_variant(text: str) -> Variant:
             values["olocal"] = int(value)
         elif key == "ocoarse" and value in ("on", "off"):
             values["ocoarse"] = value == "on"
+        elif key == "owidth" and (value == "off" or (value.isdigit() and int(value) >= 16)):
+            values["owidth"] = 0 if value == "off" else int(value)
         elif key == "robj" and value in ("on", "off"):
             values["robj"] = value == "on"
         elif key == "rratio" and _is_number(value) and float(value) > 0:
@@ -336,7 +341,7 @@ def parse_variant(text: str) -> Variant:
         else:
             raise InputError(
                 f"--variant: expected blend={'|'.join(BLEND_MODES)}, carve={'|'.join(CARVES)}, search=on|off, "
-                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, ocoarse=on|off, oland=off|COST, robj=on|off, rratio=RATIO, rseen=front|depth, rleave=SHARE [0, 1], pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
+                f"photo=on|off, parallax=on|off, rig=on|off, replace=on|off, residual=on|off, merge=off|RANGE, mtest=detail|range, mfit=N, mbudget=SHARE (0, 1], dedupe=on|off, edges=off|RADIUS, esigma=COLOUR, mdepth={'|'.join(MOVING_DEPTHS)}, objects={'|'.join(OBJECTS)}, osplit=on|off, omotion=PX, odetect=rigid|fallback, ounique=RATIO (0, 1], omax=SHARE (0, 1], omargin=PX, oscales=A+A..., olocal=PX, ocoarse=on|off, owidth=off|PX, oland=off|COST, robj=on|off, rratio=RATIO, rseen=front|depth, rleave=SHARE [0, 1], pdepth={'|'.join(EPIPOLAR_DEPTHS)}, ptex=LUMA, head=on|off, match={'|'.join(MATCHES)}, windows=PX+PX..., guide={'|'.join(GUIDES)}, "
                 f"levels={'|'.join(LEVELS)}, fuse={'|'.join(FUSES)}, passes=N, mscale=FRACTION, pmatch={'|'.join(MATCHES[1:])}, fdisp=MAD (>= 0), mout=off|LOG (> 0), mmove=on|off, bonus=LUMA (>= 0), region=PIXELS, unseen=static|search or unseenpx=PIXELS (>= 0), found {item!r}"
             )
     return Variant(**values)

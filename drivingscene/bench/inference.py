@@ -49,6 +49,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-search", action="store_true", help="R's flow as it is (no search along the rigid flow)")
     p.add_argument("--no-objects", action="store_true", help="no object tracking (methods/object_motion.py)")
     p.add_argument(
+        "--track-full-size",
+        action="store_true",
+        help="the object tracking at the image's size however wide (ObjectMotionConfig.max_width off: the path before "
+        "2026-12-04); by default a pair wider than 320 is tracked downsampled",
+    )
+    p.add_argument(
         "--per-pixel", action="store_true", help="one Gaussian per pixel: flat blocks not merged (gaussians/parsimony.py)"
     )
     from drivingscene.arguments import add_match_arguments
@@ -82,12 +88,14 @@ def _pair(size: str):
 
 def _options(amp: bool, threads: int, without: tuple[str, ...] = (), match: str = "fallback"):
     """Default inference options with the ``--match`` mode, less the steps named in ``without`` ("search",
-    "objects", "merge")."""
+    "objects", "merge"; "downsampled_tracking": the tracking at the image's size)."""
     from drivingscene.methods.feedforward import InferenceOptions
     from drivingscene.methods.matched_depth import match_mode
 
     options = InferenceOptions(amp=amp, threads=threads, match=match_mode(match))
-    return replace(options, **{step: None for step in without})
+    if "downsampled_tracking" in without and options.objects is not None:
+        options = replace(options, objects=replace(options.objects, max_width=None))
+    return replace(options, **{step: None for step in without if step != "downsampled_tracking"})
 
 
 def _peak_in_this_process(
@@ -241,7 +249,14 @@ def run(args: argparse.Namespace) -> int:
 
     amp = resolve_amp(args.amp, device)  # once, so the spawned processes of the memory figures use the same
     without = tuple(
-        step for step, off in (("search", args.no_search), ("objects", args.no_objects), ("merge", args.per_pixel)) if off
+        step
+        for step, off in (
+            ("search", args.no_search),
+            ("objects", args.no_objects),
+            ("merge", args.per_pixel),
+            ("downsampled_tracking", args.track_full_size),
+        )
+        if off
     )
     with Progress("drivingscene bench inference") as progress:  # on stderr once it takes more than a second
         rows = measure(
@@ -268,6 +283,7 @@ def run(args: argparse.Namespace) -> int:
         f"{' --scenes ' + ' '.join(str(p) for p in args.scenes) if args.scenes else ''} --runs {args.runs}"
         f"{'' if device.type == 'cpu' else ' --device ' + args.device}{' --no-search' if args.no_search else ''}"
         f"{' --no-objects' if args.no_objects else ''}{' --per-pixel' if args.per_pixel else ''}"
+        f"{' --track-full-size' if args.track_full_size else ''}"
         f"{'' if args.match == 'fallback' else ' --match ' + args.match}"
         f"{'' if args.amp is None else (' --amp' if args.amp else ' --no-amp')}"
         f"{' --profile ' + str(args.profile) if args.profile else ''}`"

@@ -25,7 +25,9 @@ search, models/lift.py) cannot express.
 
 Accepted matches move their pixels at most ``max_motion`` of the image's width off the rigid flow
 (further, on validation pairs, they were static surfaces carried onto others), and the cameras are
-tracked side by side in threads (OpenCV releases the GIL). Measured in docs/moving-objects.md: what
+tracked side by side in threads (OpenCV releases the GIL). A pair wider than ``max_width`` (320) is
+tracked area-downsampled and each accepted object painted back at the image's size, its warp
+refined there. Measured in docs/moving-objects.md: what
 it gains, what it costs, and what lost. On by default (`InferenceOptions.objects`; ``drivingscene
 reconstruct --no-objects`` for the ablation).
 """
@@ -43,9 +45,21 @@ import cv2
 import numpy as np
 
 from drivingscene.methods import template_search
+from drivingscene.methods.object_costs import (
+    apply_warp,
+    clamped_cost,
+    explained,
+    landing_on_object,
+    paint,
+    pixel_grid,
+    under,
+    warp_cost,
+    worse_than,
+)
 from drivingscene.methods.template_search import box as _box
 
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)
+REFINE_PX = 3  # pixels around a warp carried from a downsampled image searched again at the image's size
 
 
 @dataclass(frozen=True)
@@ -85,7 +99,7 @@ class ObjectMotionConfig:
     threshold: float = 0.08
     box: int = 5
     # Morphological opening and closing radii (pixels) of the candidates, and the smallest blob,
-    # try and object (pixels at the image's size).
+    # try and object (pixels at the size the tracking runs at: ``max_width``).
     open_radius: int = 1
     close_radius: int = 2
     min_pixels: int = 80
@@ -146,6 +160,13 @@ class ObjectMotionConfig:
     # against it) or "fallback" (the flow kept where no object is found, `elsewhere`: R and the
     # search's, which already explain much of what the rigid flow does not).
     detect: str = "rigid"
+    # The tracking runs on images at most this many pixels wide: a wider pair is area-downsampled
+    # (by the same factor on both axes), tracked there, and each accepted object painted back at
+    # the image's size (its mask upsampled, its warp carried to the image's pixels). The pixel
+    # quantities above (``min_pixels``, the margins, ``box``, ``back_px``, ``min_motion``) were chosen
+    # at 320 wide, and the template matches' cost grows with the fourth power of the size
+    # (docs/performance.md). None: at the image's size, whatever it is.
+    max_width: int | None = 320
 
     def __post_init__(self):
         if self.elsewhere not in ("search", "rigid"):
@@ -163,41 +184,12 @@ class ObjectMotionConfig:
         for name in ("box", "min_pixels"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ObjectMotionConfig.{name}: expected >= 1, found {getattr(self, name)}")
+        if self.max_width is not None and self.max_width < 16:
+            raise ValueError(f"ObjectMotionConfig.max_width: expected None or pixels >= 16, found {self.max_width}")
         if self.local_px < 0:
             raise ValueError(f"ObjectMotionConfig.local_px: expected pixels >= 0, found {self.local_px}")
         if not self.scales or min(self.scales) <= 0:
             raise ValueError(f"ObjectMotionConfig.scales: expected positive scales, found {self.scales}")
-
-
-def _grid(height: int, width: int) -> np.ndarray:
-    return np.stack(np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32)), -1)
-
-
-def warp_cost(
-    image: np.ndarray, other: np.ndarray, flow: np.ndarray, box: int, grid: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Box-averaged mean |RGB difference| ``[H, W]`` between ``image`` and ``other`` sampled at
-    p + ``flow`` (float images in [0, 1]), and the mask of samples outside ``other`` (cost 0 there:
-    the other image cannot say)."""
-    warped = cv2.remap(other, grid + flow, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(-1, -1, -1))
-    outside = warped[..., 0] < 0
-    cost = _channel_mean(cv2.absdiff(warped, image))
-    cost[outside] = 0.0
-    return cv2.blur(cost, (box, box)), outside
-
-
-def _clamped_cost(image: np.ndarray, other: np.ndarray, flow: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """`warp_cost` over 3 x 3 with samples outside clamped to the border (two flows compared).
-    ``image``, ``flow`` and ``grid`` may be a crop of the whole (``grid`` holds the whole image's
-    coordinates); ``other`` is the whole other image."""
-    warped = cv2.remap(other, grid + flow, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return cv2.blur(_channel_mean(cv2.absdiff(warped, image)), (3, 3))
-
-
-def _channel_mean(rgb: np.ndarray) -> np.ndarray:
-    """``rgb.mean(-1)`` of a float32 ``[..., 3]`` array, summed in the same order (the same bits),
-    without numpy's reduction over a short last axis (most of the cost at these sizes)."""
-    return (rgb[..., 0] + rgb[..., 1] + rgb[..., 2]) / np.float32(3)
 
 
 def match_region(image, other, mask, window, config: ObjectMotionConfig, scales: tuple[float, ...] | None = None):
@@ -208,22 +200,10 @@ def match_region(image, other, mask, window, config: ObjectMotionConfig, scales:
     return template_search.match_region(image, other, mask, window, chosen, margin_x, config.margin_y, config.coarse)
 
 
-def _under(mask: np.ndarray, *maps: np.ndarray) -> list[np.ndarray]:
-    """Each of ``maps`` (``[H, W, ...]``) at ``mask``'s pixels, in ``map[mask]``'s order, selected
-    over the mask's box only (a blob is a small part of the image)."""
-    x0, x1, y0, y1 = _box(mask)
-    inside = mask[y0:y1, x0:x1]
-    return [values[y0:y1, x0:x1][inside] for values in maps]
-
-
-def _apply(warp: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ warp[:, :2].T + warp[:, 2]
-
-
 def _search_window(mask: np.ndarray, rigid: np.ndarray) -> tuple[float, float, float, float]:
     """The box (x0, x1, y0, y1) covering ``mask``'s box where it is and where its median rigid flow puts it."""
     x0, x1, y0, y1 = _box(mask)
-    shift = np.median(*_under(mask, rigid), 0)
+    shift = np.median(*under(mask, rigid), 0)
     return min(x0, x0 + shift[0]), max(x1, x1 + shift[0]), min(y0, y0 + shift[1]), max(y1, y1 + shift[1])
 
 
@@ -259,8 +239,8 @@ def track_region(
         return None
     ys, xs = np.nonzero(moved[by0:by1, bx0:bx1])
     points = np.stack([xs + bx0, ys + by0], -1).astype(np.float32)
-    returned = _apply(back[1], points)
-    expected = _apply(cv2.invertAffineTransform(warp), points)
+    returned = apply_warp(back[1], points)
+    expected = apply_warp(cv2.invertAffineTransform(warp), points)
     if np.median(np.linalg.norm(returned - expected, axis=-1)) > config.back_px:
         return None
     return warp
@@ -300,9 +280,88 @@ def object_flows(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The flow ``[2, V, H, W, 2]`` (the rigid flow where no object was found) and the mask
     ``[2, V, H, W]`` of the pixels of tracked objects, both directions (module docstring). With
-    ``config.detect`` "fallback", blobs and tests are against ``fallback`` (default: the rigid flow)."""
+    ``config.detect`` "fallback", blobs and tests are against ``fallback`` (default: the rigid flow).
+    Images wider than ``config.max_width`` are tracked downsampled and painted back at their size."""
+    height, width = images.shape[2:4]
+    factor = 1 if config.max_width is None else -(-width // config.max_width)
+    if factor == 1:
+        flow, owned, accepted = _tracked(images, rigid, excluded, depth, config, fallback)
+    else:
+        small = (max(1, round(height / factor)), max(1, round(width / factor)))
+        scale = np.array([small[1] / width, small[0] / height], np.float32)  # low-res pixels per pixel (x, y)
+        _, _, found = _tracked(
+            _resized(images, small),
+            _resized(rigid.astype(np.float32), small) * scale,
+            _resized(excluded.astype(np.float32), small) >= 0.5,
+            _resized(depth.astype(np.float32), small),
+            config,
+            None if fallback is None else _resized(fallback.astype(np.float32), small) * scale,
+        )
+        flow, owned, accepted = _painted_at_size(found, images, rigid, excluded, config, fallback, scale, factor)
+    with _recorded_lock:
+        if _recorded is not None:
+            _recorded.extend(accepted)
+    return flow, owned
+
+
+def _painted_at_size(found, images, rigid, excluded, config: ObjectMotionConfig, fallback, scale, factor: int):
+    """The objects ``found`` in images downsampled by ``factor`` (``scale`` = their pixels per pixel)
+    painted at the images' size, in the order they were accepted: each warp carried to the image's
+    pixels and refined there (the found scale, `REFINE_PX` around the carried position), its pixels
+    those of the upsampled object (widened by ``factor``) that the warp explains better than the
+    static world's flow, as the tracking decides them (`explained`)."""
+    height, width = images.shape[2:4]
+    grid = pixel_grid(height, width)
+    rgb = images.astype(np.float32) / 255
+    grey = rgb @ _LUMA
+    base = rigid if config.detect == "rigid" or fallback is None else fallback
+    flow, owned = rigid.astype(np.float32).copy(), np.zeros(rigid.shape[:-1], bool)
+    grow = np.ones((2 * factor + 1,) * 2, np.uint8)
+    base_costs, accepted = {}, []
+    for obj in found:
+        k, v, o = obj.keyframe, obj.camera, 1 - obj.keyframe
+        up = cv2.resize(obj.pixels.astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST_EXACT) > 0
+        core = up & ~excluded[k, v] & ~owned[k, v]
+        if np.count_nonzero(core) < template_search.MIN_MASK:
+            continue
+        warp = _warp_at_size(obj.warp, scale)
+        x0, x1, y0, y1 = _box(core)
+        corners = apply_warp(warp, np.array([[x0, y0], [x1, y1]], np.float32))
+        window = (corners[0, 0], corners[1, 0], corners[0, 1], corners[1, 1])
+        scales = (float(warp[0, 0]),)
+        refined = template_search.match_region(grey[k, v], grey[o, v], core, window, scales, REFINE_PX, REFINE_PX)
+        if refined is not None:
+            warp = refined[1]
+        if (k, v) not in base_costs:
+            base_costs[k, v] = clamped_cost(rgb[k, v], rgb[o, v], base[k, v].astype(np.float32), grid)
+        region = (cv2.dilate(up.astype(np.uint8), grow) > 0) & ~excluded[k, v] & ~owned[k, v]
+        _, _, keep = explained(rgb[k, v], rgb[o, v], region, warp, base_costs[k, v], grid)
+        if keep.any():
+            paint(flow, owned, k, v, keep, warp)
+            accepted.append(AcceptedObject(k, v, keep, warp, obj.motion / float(scale[0])))
+    return flow, owned, accepted
+
+
+def _resized(maps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``[2, V, H, W, ...]`` maps area-resampled to ``size`` (h, w), image by image."""
+    out = [cv2.resize(m, (size[1], size[0]), interpolation=cv2.INTER_AREA) for m in maps.reshape(-1, *maps.shape[2:])]
+    return np.stack(out).reshape(*maps.shape[:2], *out[0].shape)
+
+
+def _warp_at_size(warp: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """A 2x3 warp between downsampled images' pixels (``scale`` of them per pixel, centres aligned:
+    x_small = scale (x + 0.5) - 0.5) as one between the images' own pixels."""
+    offset = 0.5 * scale - 0.5
+    linear = warp[:, :2] * scale[None, :] / scale[:, None]
+    shift = (warp[:, :2] @ offset + warp[:, 2] - offset) / scale
+    return np.concatenate([linear, shift[:, None]], 1).astype(np.float32)
+
+
+def _tracked(images, rigid, excluded, depth, config: ObjectMotionConfig, fallback):
+    """`object_flows` at the images' own size, with the accepted objects in the order they were
+    accepted (camera by camera)."""
     num_views, height, width = images.shape[1:4]
-    grid = _grid(height, width)
+    grid = pixel_grid(height, width)
     rgb = images.astype(np.float32) / 255
     grey = rgb @ _LUMA
     flow = rigid.astype(np.float32).copy()
@@ -311,6 +370,8 @@ def object_flows(
     opening = np.ones((2 * config.open_radius + 1,) * 2, np.uint8)
     closing = np.ones((2 * config.close_radius + 1,) * 2, np.uint8)
 
+    accepted: list[list[AcceptedObject]] = [[] for _ in range(num_views)]
+
     def camera(v: int) -> None:  # a camera's two keyframes; cameras share nothing, so they run side by side
         for k in (0, 1):
             o = 1 - k
@@ -318,10 +379,10 @@ def object_flows(
             candidates = ((static_cost > config.threshold) & ~excluded[k, v] & ~outside & ~owned[k, v]).astype(np.uint8)
             candidates = cv2.morphologyEx(cv2.morphologyEx(candidates, cv2.MORPH_OPEN, opening), cv2.MORPH_CLOSE, closing)
             count, labels, stats, _ = cv2.connectedComponentsWithStats(candidates, connectivity=8)
-            base_cost = _clamped_cost(rgb[k, v], rgb[o, v], base[k, v], grid) if count > 1 else None
+            base_cost = clamped_cost(rgb[k, v], rgb[o, v], base[k, v], grid) if count > 1 else None
             other_cost = None
             if count > 1 and config.landing is not None:  # the other keyframe's static explanation
-                other_cost = _clamped_cost(rgb[o, v], rgb[k, v], base[o, v], grid)
+                other_cost = clamped_cost(rgb[o, v], rgb[k, v], base[o, v], grid)
             for label in range(1, count):
                 if stats[label, cv2.CC_STAT_AREA] < config.min_pixels:
                     continue
@@ -335,7 +396,7 @@ def object_flows(
                 for region in tries:
                     region = region & ~owned[k, v]
                     if np.count_nonzero(region) >= config.min_pixels:
-                        _track_and_paint(
+                        found = _track_and_paint(
                             flow,
                             owned,
                             rgb,
@@ -350,6 +411,8 @@ def object_flows(
                             config,
                             other_cost,
                         )
+                        if found is not None:
+                            accepted[v].append(found)
 
     # OpenCV releases the GIL in its calls (the template matches are most of the time): a thread per
     # camera, not per core, where there is more than one core (a camera with many blobs need not wait
@@ -361,52 +424,14 @@ def object_flows(
     else:
         with ThreadPoolExecutor(workers) as pool:
             list(pool.map(camera, range(num_views)))
-    return flow, owned
+    return flow, owned, [obj for objects in accepted for obj in objects]
 
 
-def _explained(image, other, region, warp, base_cost, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The flow ``[H, W, 2]`` of ``warp`` over ``region`` (zero elsewhere), its cost
-    (`_clamped_cost`, computed over the region's box and 2 pixels around it: inf further out) and
-    the region's pixels it explains better than the flow of cost ``base_cost`` does (the rigid
-    flow's or the fallback's, `ObjectMotionConfig.detect`; opened, so that single pixels do not count)."""
-    height, width = region.shape
-    x0, x1, y0, y1 = _box(region)
-    x0, x1, y0, y1 = max(0, x0 - 2), min(width, x1 + 2), max(0, y0 - 2), min(height, y1 + 2)
-    crop = region[y0:y1, x0:x1]
-    ys, xs = np.nonzero(crop)
-    points = np.stack([xs + x0, ys + y0], -1).astype(np.float32)
-    dense = np.zeros((height, width, 2), np.float32)
-    dense[y0:y1, x0:x1][crop] = _apply(warp, points) - points
-    cost = np.full((height, width), np.inf, np.float32)
-    cost[y0:y1, x0:x1] = _clamped_cost(image[y0:y1, x0:x1], other, dense[y0:y1, x0:x1], grid[y0:y1, x0:x1])
-    better = np.zeros((height, width), np.uint8)
-    better[y0:y1, x0:x1] = crop & (cost[y0:y1, x0:x1] < base_cost[y0:y1, x0:x1])
-    better[y0:y1, x0:x1] = cv2.morphologyEx(better[y0:y1, x0:x1], cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    return dense, cost, better > 0
-
-
-def _worse_than(region: np.ndarray, cost: np.ndarray, base_cost: np.ndarray, ratio: float) -> bool:
-    """Whether ``cost``'s mean over ``region`` exceeds ``ratio`` times ``base_cost``'s."""
-    tracked, static = _under(region, cost, base_cost)
-    return bool(tracked.mean() > ratio * static.mean())
-
-
-def _landing_on_object(keep: np.ndarray, warp: np.ndarray, cost: np.ndarray, other_cost: np.ndarray, margin: float) -> np.ndarray:
-    """``keep``'s pixels whose warp lands where the other keyframe's static world explains it worse
-    than the warp explains the pixel, by more than ``margin`` (`ObjectMotionConfig.landing`), opened."""
-    ys, xs = np.nonzero(keep)
-    dest = _apply(warp, np.stack([xs, ys], -1).astype(np.float32))
-    map_x, map_y = dest[:, :1].copy(), dest[:, 1:].copy()
-    there = cv2.remap(other_cost, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)[:, 0]
-    ok = cost[ys, xs] < there - margin
-    out = np.zeros(keep.shape, np.uint8)
-    out[ys[ok], xs[ok]] = 1
-    return cv2.morphologyEx(out, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
-
-
-def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blob, grid, config, other_cost=None) -> bool:
+def _track_and_paint(
+    flow, owned, rgb, grey, rigid, base_cost, k, v, region, blob, grid, config, other_cost=None
+) -> AcceptedObject | None:
     """Track ``region`` (a part of ``blob``) of image (k, v); where accepted, write its flow over the
-    blob's pixels it explains both ways into ``flow`` and ``owned``.
+    blob's pixels it explains both ways into ``flow`` and ``owned`` (`paint`) and return it.
 
     A blob holds the object and the background it uncovers or covers (no match in the other image),
     so a first match picks the pixels it explains, and those are tracked again (with the backward
@@ -414,37 +439,26 @@ def _track_and_paint(flow, owned, rgb, grey, rigid, base_cost, k, v, region, blo
     o = 1 - k
     first = match_region(grey[k, v], grey[o, v], region, _search_window(region, rigid[k, v]), config, (1.0,))  # roughly
     if first is None:
-        return False
-    _, cost, core = _explained(rgb[k, v], rgb[o, v], region, first[1], base_cost, grid)
+        return None
+    _, cost, core = explained(rgb[k, v], rgb[o, v], region, first[1], base_cost, grid)
     if np.count_nonzero(core) < config.min_pixels // 2:
-        return False
-    if np.isfinite(config.first_ratio) and _worse_than(region, cost, base_cost, config.first_ratio):
-        return False  # a first match no better than the static world's flow: not an object
+        return None
+    if np.isfinite(config.first_ratio) and worse_than(region, cost, base_cost, config.first_ratio):
+        return None  # a first match no better than the static world's flow: not an object
     warp = track_region(grey[k, v], grey[o, v], core, rigid[k, v], config, first[1])
     if warp is None:
-        return False
-    dense, cost, keep = _explained(rgb[k, v], rgb[o, v], blob, warp, base_cost, grid)
+        return None
+    dense, cost, keep = explained(rgb[k, v], rgb[o, v], blob, warp, base_cost, grid)
     if other_cost is not None and keep.any():
-        keep = _landing_on_object(keep, warp, cost, other_cost, config.landing)
+        keep = landing_on_object(keep, warp, cost, other_cost, config.landing)
     if np.count_nonzero(keep) < config.min_pixels // 2:
-        return False
-    height, width = region.shape
-    moved, still = _under(keep, dense, rigid[k, v])
+        return None
+    width = region.shape[1]
+    moved, still = under(keep, dense, rigid[k, v])
     motion = float(np.median(np.linalg.norm(moved - still, axis=-1)))
     if motion < config.min_motion or motion > config.max_motion * width:
-        return False
-    if _worse_than(region, cost, base_cost, config.ratio):
-        return False
-    flow[k, v][keep] = dense[keep]
-    owned[k, v] |= keep
-    with _recorded_lock:
-        if _recorded is not None:
-            _recorded.append(AcceptedObject(k, v, keep, warp, motion))
-    there = cv2.warpAffine(keep.astype(np.uint8), warp, (width, height), flags=cv2.INTER_NEAREST) > 0
-    there &= ~owned[o, v]
-    ys, xs = np.nonzero(there)
-    if len(xs):
-        points = np.stack([xs, ys], -1).astype(np.float32)
-        flow[o, v][there] = _apply(cv2.invertAffineTransform(warp), points) - points
-        owned[o, v] |= there
-    return True
+        return None
+    if worse_than(region, cost, base_cost, config.ratio):
+        return None
+    paint(flow, owned, k, v, keep, warp)
+    return AcceptedObject(k, v, keep, warp, motion)

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 import torch
 
-from drivingscene.methods.object_motion import _grid, warp_cost
+from drivingscene.methods.object_costs import pixel_grid, warp_cost
 
 
 @dataclass(frozen=True)
@@ -221,7 +221,7 @@ def rig_objects(
     """The objects found across the rig (module docstring), both keyframes searched; a pixel
     belongs to at most one object (the first keyframe's first)."""
     num_views, height, width = depth.shape[1:]
-    grid = _grid(height, width)
+    grid = pixel_grid(height, width)
     rgb = images.astype(np.float32) / 255
     smooth = np.stack([[cv2.blur(rgb[k, v], (3, 3)) for v in range(num_views)] for k in (0, 1)])
     taken = excluded.copy()

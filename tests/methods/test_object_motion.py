@@ -243,8 +243,39 @@ def test_local_scales_search_around_the_guess_only():
 def test_channel_mean_has_the_bits_of_numpys_mean():
     """The costs' channel mean (summed in numpy's order, without its short-axis reduction) is
     bit-identical to ``mean(-1)``, so the tracking decides exactly as it did with it."""
-    from drivingscene.methods.object_motion import _channel_mean
+    from drivingscene.methods.object_costs import channel_mean as _channel_mean
 
     rgb = np.random.default_rng(3).random((37, 53, 3), dtype=np.float32) * np.float32(1.7)
     assert _channel_mean(rgb).dtype == np.float32
     assert np.array_equal(_channel_mean(rgb), rgb.mean(-1))
+
+
+def test_warps_found_downsampled_carry_to_the_images_pixels():
+    """`_warp_at_size`: a warp between images downsampled (pixel centres aligned) is, at the
+    images' own size, the downsampling, the warp and the upsampling in turn."""
+    from drivingscene.methods.object_costs import apply_warp as _apply
+    from drivingscene.methods.object_motion import _warp_at_size
+
+    scale = np.array([0.5, 0.25], np.float32)
+    small = np.array([[1.1, 0.0, 3.5], [0.0, 0.9, -2.0]], np.float32)
+    points = np.random.default_rng(0).uniform(0, 300, (50, 2)).astype(np.float32)
+    down = scale * (points + 0.5) - 0.5
+    expected = (_apply(small, down) + 0.5) / scale - 0.5
+    np.testing.assert_allclose(_apply(_warp_at_size(small, scale), points), expected, atol=1e-3)
+
+
+def test_an_object_tracked_downsampled_has_its_flow_at_the_images_size():
+    """``max_width``: a pair wider than it is tracked at half the size and painted back: the object
+    is found with its flow in the image's pixels, as when tracked at the image's size."""
+    images, mask0, _, _ = _scene((17.0, 2.0), 1.0, box=(40, 30, 44, 30))
+    full_flow, full_owned = _run(images, ObjectMotionConfig(max_width=None))
+    flow, owned = _run(images, ObjectMotionConfig(max_width=W // 2))
+    both = mask0 & owned[0, 0] & full_owned[0, 0]
+    assert both.sum() >= 0.6 * mask0.sum(), f"found {(mask0 & owned[0, 0]).sum()} of the object's {mask0.sum()} pixels"
+    error = np.linalg.norm(flow[0, 0][both] - np.array([17.0, 2.0]), axis=-1)
+    assert np.median(error) < 0.5, f"median flow error {np.median(error):.2f} px"
+    assert np.median(np.linalg.norm(full_flow[0, 0][both] - np.array([17.0, 2.0]), axis=-1)) < 0.5
+    # the static world keeps its (rigid) flow
+    assert (owned[0, 0] & ~cv2.dilate(mask0.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)).mean() < 0.01
+    with pytest.raises(ValueError, match="max_width"):
+        ObjectMotionConfig(max_width=8)
